@@ -1,0 +1,1 @@
+"""armid: command line and reports around the identification core."""

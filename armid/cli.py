@@ -1,0 +1,97 @@
+"""The ``armid`` command line (INTERFACES.md). Exit 0 on success, 2 on bad usage or bad
+input (one line on stderr naming the file and what is wrong), 1 on a runtime fault."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from identify.errors import ArmidError, IdentificationError, PoorExcitationWarning, RecordingError, RobotFileError
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.print_usage(sys.stderr)
+        print(f"{self.prog}: error: {message}", file=sys.stderr)
+        raise SystemExit(2)
+
+
+def _identify(args: argparse.Namespace) -> int:
+    from identify.identification import IdentifyOptions, identify
+    from identify.preprocess import PrepareOptions, prepare
+    from identify.recordings import read_recording, write_csv
+    from identify.robot_file import load_robot
+
+    robot = load_robot(args.robot)
+    options = PrepareOptions(max_gap_factor=args.max_gap_factor, lowpass_hz=args.lowpass)
+    experiments = [prepare(read_recording(p, robot), robot, options) for p in args.data]
+    validation = [prepare(read_recording(p, robot), robot, options) for p in args.validate or []]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", PoorExcitationWarning)
+        result = identify(robot, experiments, validation, IdentifyOptions(weighting=args.weighting))
+    for w in caught:
+        print(f"warning: {w.message}", file=sys.stderr)
+    doc = result.to_json()
+    for path, prep in zip(list(args.data) + list(args.validate or []), experiments + validation):
+        for note in prep.notes:
+            print(f"{path}: {note}", file=sys.stderr)
+    if args.json:
+        Path(args.json).write_text(json.dumps(doc, indent=1) + "\n")
+    segments = [s for p in (validation or experiments) for s in p.segments]
+    if args.predictions:
+        if not validation:
+            raise IdentificationError("--predictions needs --validate data")
+        t = np.concatenate([s.t for s in segments])
+        write_csv(args.predictions, t, {"tau_hat": np.concatenate([result.predict(s) for s in segments])})
+    if args.report:
+        from .report import write_report
+
+        write_report(result, doc, segments, Path(args.report), "validation data" if validation else "identification data")
+    v = doc["validation"]
+    print(
+        f"{robot.name}: {doc['samples']} samples, {len(doc['base_parameters'])} base parameters, "
+        f"condition number {doc['condition_number']:.3g}, fit error {doc['fit']['relative_error']:.4g}"
+        + (f", validation error {v['relative_error']:.4g}" if v else "")
+    )
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="armid", description="Robot dynamics identification (Khosla 1987) from servo data.")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    p = sub.add_parser("identify", help="least-squares identification (eq. 18) with identifiability classes")
+    p.add_argument("data", nargs="+", help="recordings to identify on (CSV or .npz)")
+    p.add_argument("--robot", required=True, help="robot description (config/robots/*.yaml)")
+    p.add_argument("--validate", nargs="+", metavar="DATA", help="held-out recordings for the validation error")
+    p.add_argument("--json", metavar="OUT", help="write the result as JSON (INTERFACES.md)")
+    p.add_argument("--report", metavar="DIR", help="write a markdown report with PNG plots")
+    p.add_argument("--predictions", metavar="CSV", help="write predicted validation torques (t, tau_hat1..n)")
+    p.add_argument("--weighting", choices=("wls", "ols"), default="wls", help="per-joint weighted (default) or ordinary LS")
+    p.add_argument("--lowpass", type=float, metavar="HZ", help="zero-phase low-pass before differentiating")
+    p.add_argument("--max-gap-factor", type=float, default=20.0, help="split where a step exceeds this many median steps")
+    p.set_defaults(run=_identify)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.run(args))
+    except (RobotFileError, RecordingError, IdentificationError) as err:
+        print(f"armid {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except ArmidError as err:
+        print(f"armid {args.command}: error: {err}", file=sys.stderr)
+        return 1
+    except OSError as err:
+        print(f"armid {args.command}: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,1 @@
+"""armid daq: see README (this package fills in with its issue)."""

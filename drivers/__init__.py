@@ -1,0 +1,1 @@
+"""armid drivers: see README (this package fills in with its issue)."""

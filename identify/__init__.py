@@ -1,0 +1,1 @@
+"""The numerical core of armid: Khosla's linear-in-parameters Newton-Euler model and identification."""

@@ -1,0 +1,47 @@
+"""Errors and warnings of the identification core.
+
+One tree, so that a caller can catch everything armid raises, or one branch::
+
+    ArmidError
+     +-- RobotFileError(ArmidError, ValueError)     malformed robot description
+     +-- RecordingError(ArmidError, ValueError)     unusable recording (file, column, row)
+     +-- IdentificationError(ArmidError)            the data cannot give an estimate
+    PoorExcitationWarning(UserWarning)              trajectory not persistently exciting (5.2)
+
+Every message names what is wrong and where (file, field or row), so that the command
+line can print it on one line.
+"""
+
+from __future__ import annotations
+
+
+class ArmidError(Exception):
+    """Root of every error armid raises on purpose."""
+
+
+class RobotFileError(ArmidError, ValueError):
+    """A robot description is malformed: the message names the file, the field, the problem."""
+
+    def __init__(self, source: str, field: str, problem: str) -> None:
+        self.source = source
+        self.field = field
+        self.problem = problem
+        where = f"{source}: {field}" if field else source
+        super().__init__(f"{where}: {problem}")
+
+
+class RecordingError(ArmidError, ValueError):
+    """A recording cannot be used: the message names the file and the column or row."""
+
+    def __init__(self, source: str, problem: str) -> None:
+        self.source = source
+        self.problem = problem
+        super().__init__(f"{source}: {problem}")
+
+
+class IdentificationError(ArmidError):
+    """The data, as given, cannot produce an estimate (too few samples, no excitation)."""
+
+
+class PoorExcitationWarning(UserWarning):
+    """The trajectory does not excite what it should (Khosla 5.2: not persistently exciting)."""

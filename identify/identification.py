@@ -1,0 +1,214 @@
+"""Identification from recordings: regressor, base parameters, least squares, metrics.
+
+``identify`` is what ``armid identify`` runs: the stacked regressor of eq. (18) with the
+declared effects as extra columns, the structural base parameters (5.4), an excitation
+check (5.2), weighted least squares, and the fit and held-out errors (INTERFACES.md
+metrics).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .dynamics import regressor
+from .effects import LinearEffect, effect_columns, linear_effect
+from .errors import IdentificationError, PoorExcitationWarning
+from .estimation import LeastSquares, least_squares
+from .identifiability import UNIQUE, BaseParameters, Excitation, base_parameters, excitation, preferred_order
+from .metrics import summary
+from .preprocess import Prepared, Segment
+from .robot import Robot
+from .spatial import Array
+
+
+@dataclass(frozen=True)
+class IdentifyOptions:
+    weighting: str = "wls"
+    max_condition: float = 1e3
+    seed: int = 0
+
+
+def declared_effects(robot: Robot) -> list[LinearEffect]:
+    """The robot file's effects as regressor columns (``joint: null`` means every joint)."""
+    out = []
+    for eff in robot.effects:
+        joints = range(robot.n_joints) if eff.joint is None else [eff.joint - 1]
+        out += [linear_effect(eff.effect, j) for j in joints]
+    return out
+
+
+def column_names(robot: Robot, effects: list[LinearEffect]) -> list[str]:
+    return robot.parameter_names + [label for e in effects for label in e.labels()]
+
+
+def random_motion(robot: Robot, n_samples: int, seed: int = 0) -> tuple[Array, Array, Array]:
+    """Random configurations within the joint limits, with random velocity and acceleration."""
+    rng = np.random.default_rng(seed)
+    lo = np.array([j.limits.position[0] if j.limits.position else -np.pi for j in robot.joints])
+    hi = np.array([j.limits.position[1] if j.limits.position else np.pi for j in robot.joints])
+    q = rng.uniform(lo, hi, (n_samples, robot.n_joints))
+    return q, rng.normal(size=q.shape), rng.normal(size=q.shape)
+
+
+def stacked_regressor(robot: Robot, effects: list[LinearEffect], q: Array, qd: Array, qdd: Array) -> Array:
+    """(n N, 10 N + k) rows of eq. (18) with effect columns, sample by sample."""
+    m = regressor(robot, q, qd, qdd)
+    if effects:
+        m = np.concatenate([m, effect_columns(effects, q, qd, qdd)], axis=2)
+    return m.reshape(-1, m.shape[2])
+
+
+def structural_base(robot: Robot, effects: list[LinearEffect] | None = None, seed: int = 0) -> BaseParameters:
+    """Base parameters from the kinematics alone (random motion over the joint ranges)."""
+    effects = declared_effects(robot) if effects is None else effects
+    names = column_names(robot, effects)
+    n_samples = max(60, 4 * len(names))
+    w = stacked_regressor(robot, effects, *random_motion(robot, n_samples, seed))
+    return base_parameters(w, names, preferred_order(robot.n_joints, len(names) - robot.n_parameters))
+
+
+@dataclass
+class IdentificationResult:
+    robot: Robot
+    names: list[str]
+    effects: list[LinearEffect]
+    base: BaseParameters
+    estimate: LeastSquares
+    excitation: Excitation
+    samples: int
+    fit: dict[str, Any]
+    validation: dict[str, Any] | None = None
+    validation_samples: int = 0
+    notes: list[str] = field(default_factory=list)
+
+    def predict(self, segment: Segment) -> Array:
+        """Torques (n, N) the identified model predicts for a segment's motion."""
+        w = stacked_regressor(self.robot, self.effects, segment.q, segment.qd, segment.qdd)
+        return (w[:, self.base.independent] @ self.estimate.beta).reshape(segment.n_samples, -1)
+
+    def parameter_values(self) -> tuple[Array, Array]:
+        """Value and std per standard parameter; NaN where it has no unique value."""
+        value = np.full(len(self.names), np.nan)
+        std = np.full(len(self.names), np.nan)
+        for k, col in enumerate(self.base.independent):
+            if self.classes[col] == UNIQUE:
+                value[col], std[col] = self.estimate.beta[k], self.estimate.std[k]
+        return value, std
+
+    @property
+    def classes(self) -> list[str]:
+        return self.base.classes()
+
+    def to_json(self) -> dict[str, Any]:
+        """The ``identify --json`` document of INTERFACES.md (plus a few extra fields)."""
+        nj = self.robot.n_joints
+        value, std = self.parameter_values()
+        modeled = self.robot.modeled_parameters()
+        classes = self.classes
+        params = []
+        for k in range(self.robot.n_parameters):
+            params.append(
+                {
+                    "name": self.names[k],
+                    "link": k // 10 + 1,
+                    "value": _num(value[k]),
+                    "std": _num(std[k]),
+                    "identifiability": classes[k],
+                    "modeled": _num(modeled[k]),
+                }
+            )
+        base = []
+        exprs = self.base.expressions()
+        modeled_base = self.base.base_values(np.concatenate([modeled, np.zeros(len(self.names) - len(modeled))]))
+        for k, expr in enumerate(exprs):
+            base.append(
+                {
+                    "expression": expr,
+                    "value": float(self.estimate.beta[k]),
+                    "std": float(self.estimate.std[k]),
+                    "relative_std_percent": _num(self.estimate.relative_std[k]),
+                    "modeled": _num(modeled_base[k]),
+                }
+            )
+        effects = []
+        for e in self.effects:
+            cols = [self.names.index(label) for label in e.labels()]
+            effects.append(
+                {
+                    "effect": e.effect,
+                    "joint": e.joint + 1,
+                    "parameters": {p: _num(value[c]) for p, c in zip(e.parameter_names, cols)},
+                    "std": {p: _num(std[c]) for p, c in zip(e.parameter_names, cols)},
+                    "identifiability": {p: classes[c] for p, c in zip(e.parameter_names, cols)},
+                }
+            )
+        return {
+            "robot": self.robot.name,
+            "n_joints": nj,
+            "samples": self.samples,
+            "condition_number": self.excitation.condition_number,
+            "rank": self.excitation.rank,
+            "weighting": self.estimate.weighting,
+            "joint_noise_sigma": [float(x) for x in self.estimate.joint_sigma],
+            "parameters": params,
+            "base_parameters": base,
+            "effects": effects,
+            "fit": self.fit,
+            "validation": self.validation,
+            "validation_samples": self.validation_samples,
+            "preprocessing": self.notes,
+        }
+
+
+def _num(x: float) -> float | None:
+    return None if not np.isfinite(x) else float(x)
+
+
+def _system(robot: Robot, effects: list[LinearEffect], segments: list[Segment]) -> tuple[Array, Array, Array]:
+    ws, ys = [], []
+    for seg in segments:
+        ws.append(stacked_regressor(robot, effects, seg.q, seg.qd, seg.qdd))
+        ys.append(seg.tau.reshape(-1))
+    w = np.concatenate(ws) if len(ws) > 1 else ws[0]
+    y = np.concatenate(ys)
+    joints = np.tile(np.arange(robot.n_joints), y.size // robot.n_joints)
+    return w, y, joints
+
+
+def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepared] | None = None, options: IdentifyOptions | None = None) -> IdentificationResult:
+    """Estimate the base parameters from ``experiments``; measure the error on ``validation``."""
+    options = options or IdentifyOptions()
+    effects = declared_effects(robot)
+    names = column_names(robot, effects)
+    segments = [s for p in experiments for s in p.segments]
+    if not segments:
+        raise IdentificationError("no usable samples in the identification data")
+    w, y, joints = _system(robot, effects, segments)
+    base = structural_base(robot, effects, options.seed)
+    notes = [f"{s}" for p in experiments for s in p.notes]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", PoorExcitationWarning)
+        exc = excitation(base.base_matrix(w), base.expressions(), options.max_condition)
+    if exc.rank < base.n_base:
+        # the data excites less than the kinematics allow: regroup on the data itself
+        base = base_parameters(w, names, preferred_order(robot.n_joints, len(names) - robot.n_parameters), rtol=1e-7)
+        notes.append(f"the data excites {exc.rank} of the {exc.n_base} structural base parameters; regrouped on the data")
+    for c in caught:
+        warnings.warn(c.message, PoorExcitationWarning, stacklevel=2)
+    wb = base.base_matrix(w)
+    est = least_squares(wb, y, joints, robot.n_joints, options.weighting)
+    n = y.size // robot.n_joints
+    fit = summary(y.reshape(n, -1), (wb @ est.beta).reshape(n, -1))
+    result = IdentificationResult(robot, names, effects, base, est, exc, n, fit, notes=notes)
+    if validation:
+        segs = [s for p in validation for s in p.segments]
+        tau = np.concatenate([s.tau for s in segs])
+        tau_hat = np.concatenate([result.predict(s) for s in segs])
+        result.validation = summary(tau, tau_hat)
+        result.validation_samples = int(tau.shape[0])
+        result.notes += [f"validation: {s}" for p in validation for s in p.notes]
+    return result

@@ -1,0 +1,237 @@
+"""Loading robot descriptions (INTERFACES.md 'Robot description') into :class:`Robot`.
+
+Precedence for a URDF-based file: values the YAML gives for a joint (``limits``,
+``inertial``, ``torque_constant``) override the URDF's; everything else comes from the URDF.
+Every problem raises :class:`RobotFileError` naming the file, the field and what is wrong.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .effects import CATALOGUE, LINEAR_EFFECTS
+from .errors import RobotFileError
+from .robot import DeclaredEffect, Inertial, Joint, JointLimits, JointType, Robot, dh_joint, inertia_entries, mdh_joint
+
+CONVENTIONS = ("dh", "mdh")
+TOP_LEVEL = {"name", "gravity", "convention", "urdf", "joints", "effects", "description"}
+JOINT_FIELDS = {"name", "type", "a", "alpha", "d", "theta", "torque_constant", "limits", "inertial"}
+
+
+def load_robot(path: str | Path) -> Robot:
+    """Read and check a robot YAML file."""
+    import yaml
+
+    path = Path(path)
+    src = str(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise RobotFileError(src, "", "no such file") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise RobotFileError(src, "", f"cannot read ({err})") from err
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f"line {mark.line + 1}" if mark is not None else "YAML"
+        raise RobotFileError(src, where, f"not valid YAML ({getattr(err, 'problem', err)})") from err
+    return robot_from_dict(doc, src, path.parent)
+
+
+def robot_from_dict(doc: Any, src: str = "<robot>", base_dir: Path | None = None) -> Robot:
+    """Build a robot from the parsed YAML mapping (see module docstring)."""
+    if not isinstance(doc, dict):
+        raise RobotFileError(src, "", "the file must be a mapping with name, joints, ...")
+    unknown = set(doc) - TOP_LEVEL
+    if unknown:
+        raise RobotFileError(src, sorted(unknown)[0], f"unknown field (allowed: {', '.join(sorted(TOP_LEVEL))})")
+    name = doc.get("name")
+    if not isinstance(name, str) or not name:
+        raise RobotFileError(src, "name", "must be a non-empty string")
+    gravity = _vector(doc.get("gravity", [0.0, 0.0, -9.81]), 3, src, "gravity")
+    joints_doc = doc.get("joints")
+    if not isinstance(joints_doc, list) or not joints_doc:
+        raise RobotFileError(src, "joints", "must be a non-empty list of joints")
+    if "urdf" in doc:
+        joints = _urdf_joints(doc, joints_doc, src, base_dir or Path("."))
+    else:
+        convention = doc.get("convention", "dh")
+        if convention not in CONVENTIONS:
+            raise RobotFileError(src, "convention", f"must be one of {', '.join(CONVENTIONS)} (or give urdf:), got {convention!r}")
+        joints = [_dh_joint(j, k, convention, src) for k, j in enumerate(joints_doc)]
+    names = [j.name for j in joints]
+    dup = sorted({x for x in names if names.count(x) > 1})
+    if dup:
+        raise RobotFileError(src, "joints", f"duplicate joint name {dup[0]!r}")
+    effects = _effects(doc.get("effects", []) or [], len(joints), src)
+    return Robot(name, gravity, tuple(joints), tuple(effects), src)
+
+
+def _field(where: str, key: str) -> str:
+    return f"{where}.{key}" if where else key
+
+
+def _number(value: Any, src: str, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise RobotFileError(src, where, f"must be a number, got {value!r}")
+    if not np.isfinite(value):
+        raise RobotFileError(src, where, f"must be finite, got {value!r}")
+    return float(value)
+
+
+def _vector(value: Any, size: int, src: str, where: str) -> np.ndarray:
+    if not isinstance(value, (list, tuple)) or len(value) != size:
+        raise RobotFileError(src, where, f"must be a list of {size} numbers, got {value!r}")
+    return np.array([_number(v, src, f"{where}[{k}]") for k, v in enumerate(value)])
+
+
+def _joint_type(j: dict[str, Any], src: str, where: str) -> JointType:
+    kind = j.get("type", "revolute")
+    try:
+        return JointType(kind)
+    except ValueError:
+        raise RobotFileError(src, _field(where, "type"), f"must be revolute or prismatic, got {kind!r}") from None
+
+
+def _dh_joint(j: Any, k: int, convention: str, src: str) -> Joint:
+    where = f"joints[{k}]"
+    if not isinstance(j, dict):
+        raise RobotFileError(src, where, "must be a mapping")
+    unknown = set(j) - JOINT_FIELDS
+    if unknown:
+        raise RobotFileError(src, _field(where, sorted(unknown)[0]), f"unknown field (allowed: {', '.join(sorted(JOINT_FIELDS))})")
+    kind = _joint_type(j, src, where)
+    values = {}
+    for key in ("a", "alpha", "d", "theta"):
+        if key not in j:
+            raise RobotFileError(src, _field(where, key), f"missing ({convention} needs a, alpha, d, theta)")
+        values[key] = _number(j[key], src, _field(where, key))
+    make = dh_joint if convention == "dh" else mdh_joint
+    pre, axis, post = make(kind, values["a"], values["alpha"], values["d"], values["theta"])
+    name = str(j.get("name", f"j{k + 1}"))
+    return Joint(name, kind, pre, axis, post, *_joint_extras(j, src, where, None, None))
+
+
+def _joint_extras(j: dict[str, Any], src: str, where: str, limits: JointLimits | None, inertial: Inertial | None) -> tuple[float, JointLimits, Inertial | None]:
+    kt = _number(j.get("torque_constant", 1.0), src, _field(where, "torque_constant"))
+    if kt <= 0:
+        raise RobotFileError(src, _field(where, "torque_constant"), f"must be positive, got {kt}")
+    if "limits" in j:
+        limits = _limits(j["limits"], src, _field(where, "limits"))
+    if "inertial" in j:
+        inertial = _inertial(j["inertial"], src, _field(where, "inertial"))
+    return kt, limits or JointLimits(), inertial
+
+
+def _limits(doc: Any, src: str, where: str) -> JointLimits:
+    if not isinstance(doc, dict):
+        raise RobotFileError(src, where, "must be a mapping with position, velocity, torque")
+    unknown = set(doc) - {"position", "velocity", "acceleration", "torque"}
+    if unknown:
+        raise RobotFileError(src, _field(where, sorted(unknown)[0]), "unknown limit (position, velocity, acceleration, torque)")
+    pos = None
+    if doc.get("position") is not None:
+        lo, hi = _vector(doc["position"], 2, src, _field(where, "position"))
+        if not lo < hi:
+            raise RobotFileError(src, _field(where, "position"), f"lower {lo} must be below upper {hi}")
+        pos = (float(lo), float(hi))
+    scalars = {}
+    for key in ("velocity", "acceleration", "torque"):
+        if doc.get(key) is not None:
+            v = _number(doc[key], src, _field(where, key))
+            if v <= 0:
+                raise RobotFileError(src, _field(where, key), f"must be positive, got {v}")
+            scalars[key] = v
+    return JointLimits(pos, scalars.get("velocity"), scalars.get("acceleration"), scalars.get("torque"))
+
+
+def _inertial(doc: Any, src: str, where: str) -> Inertial:
+    if not isinstance(doc, dict):
+        raise RobotFileError(src, where, "must be a mapping with mass, com, inertia")
+    for key in ("mass", "com", "inertia"):
+        if key not in doc:
+            raise RobotFileError(src, _field(where, key), "missing")
+    mass = _number(doc["mass"], src, _field(where, "mass"))
+    if mass < 0:
+        raise RobotFileError(src, _field(where, "mass"), f"must not be negative, got {mass}")
+    com = _vector(doc["com"], 3, src, _field(where, "com"))
+    inertia = _vector(doc["inertia"], 6, src, _field(where, "inertia"))
+    return Inertial(mass, tuple(com), tuple(inertia))  # type: ignore[arg-type]
+
+
+def _effects(doc: Any, n_joints: int, src: str) -> list[DeclaredEffect]:
+    if not isinstance(doc, list):
+        raise RobotFileError(src, "effects", "must be a list like [{effect: coulomb_friction, joint: 2}]")
+    out = []
+    for k, e in enumerate(doc):
+        where = f"effects[{k}]"
+        if not isinstance(e, dict) or "effect" not in e:
+            raise RobotFileError(src, where, "must be a mapping with an 'effect' name")
+        name = e["effect"]
+        if name not in CATALOGUE:
+            raise RobotFileError(src, _field(where, "effect"), f"unknown effect {name!r} (catalogue: {', '.join(CATALOGUE)})")
+        if name not in LINEAR_EFFECTS:
+            raise RobotFileError(src, _field(where, "effect"), f"{name} cannot be declared yet (declarable: {', '.join(LINEAR_EFFECTS)})")
+        joint = e.get("joint")
+        if joint is not None and (isinstance(joint, bool) or not isinstance(joint, int) or not 1 <= joint <= n_joints):
+            raise RobotFileError(src, _field(where, "joint"), f"must be a joint number 1..{n_joints} or null (all joints), got {joint!r}")
+        out.append(DeclaredEffect(name, joint, {k2: v for k2, v in e.items() if k2 not in ("effect", "joint")}))
+    return out
+
+
+def _urdf_joints(doc: dict[str, Any], joints_doc: list[Any], src: str, base_dir: Path) -> list[Joint]:
+    """Joints matched by name in a URDF loaded through Pinocchio (link frame = child frame)."""
+    import pinocchio as pin
+
+    urdf = base_dir / str(doc["urdf"])
+    if not urdf.exists():
+        raise RobotFileError(src, "urdf", f"no such file {urdf}")
+    try:
+        model = pin.buildModelFromUrdf(str(urdf))
+    except Exception as err:  # Pinocchio raises ValueError/RuntimeError on a bad URDF
+        raise RobotFileError(src, "urdf", f"{urdf}: not a loadable URDF ({err})") from err
+    joints = []
+    previous = 0
+    for k, j in enumerate(joints_doc):
+        where = f"joints[{k}]"
+        if not isinstance(j, dict) or "name" not in j:
+            raise RobotFileError(src, where, "must be a mapping with the URDF joint's name")
+        extra = set(j) - {"name", "torque_constant", "limits", "inertial"}
+        if extra:
+            raise RobotFileError(src, _field(where, sorted(extra)[0]), "not allowed with urdf (kinematics come from the URDF)")
+        name = str(j["name"])
+        if not model.existJointName(name):
+            movable = [model.names[i] for i in range(1, model.njoints)]
+            raise RobotFileError(src, _field(where, "name"), f"no joint {name!r} in {urdf.name} (movable joints: {', '.join(movable)})")
+        jid = model.getJointId(name)
+        if model.parents[jid] != previous:
+            raise RobotFileError(src, _field(where, "name"), f"{name!r} does not follow the previous joint in the chain of {urdf.name}")
+        jm = model.joints[jid]
+        short = jm.shortname()
+        if jm.nq != 1:
+            raise RobotFileError(src, _field(where, "name"), f"{name!r} is a {short}; only revolute and prismatic joints are supported")
+        revolute = short.startswith("JointModelR")
+        if short.endswith("Unaligned"):
+            axis = np.asarray(jm.extract().axis, dtype=float)
+        else:
+            axis = np.eye(3)["XYZ".index(short[-1])]
+        placement = model.jointPlacements[jid].homogeneous
+        inert = model.inertias[jid]
+        inertial = Inertial(float(inert.mass), tuple(float(x) for x in inert.lever), tuple(float(x) for x in inertia_entries(inert.inertia)))  # type: ignore[arg-type]
+        iq, iv = model.idx_qs[jid], model.idx_vs[jid]
+        lo, hi = float(model.lowerPositionLimit[iq]), float(model.upperPositionLimit[iq])
+        vel, eff = float(model.velocityLimit[iv]), float(model.effortLimit[iv])
+        limits = JointLimits(
+            (lo, hi) if np.isfinite(lo) and np.isfinite(hi) and lo < hi else None,
+            vel if np.isfinite(vel) and vel > 0 else None,
+            None,
+            eff if np.isfinite(eff) and eff > 0 else None,
+        )
+        kind = JointType.REVOLUTE if revolute else JointType.PRISMATIC
+        joints.append(Joint(name, kind, placement, axis, np.eye(4), *_joint_extras(j, src, where, limits, inertial)))
+        previous = jid
+    return joints

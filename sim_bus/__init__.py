@@ -1,0 +1,1 @@
+"""armid sim_bus: see README (this package fills in with its issue)."""
