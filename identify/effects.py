@@ -7,8 +7,8 @@ tilt) are searched by the diagnosis, which builds on the same interface.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 

@@ -145,8 +145,9 @@ def excitation(w_base: Array, base_names: list[str], max_condition: float = 1e3,
     norms = np.linalg.norm(w_base, axis=0)
     if w_base.shape[1] == 0:
         return Excitation(0, 0, 1.0, [])
-    scaled = w_base / np.where(norms > 0, norms, 1.0)
-    sv, vt = np.linalg.svd(scaled, full_matrices=False)[1:]
+    # the singular values of the column-scaled matrix are those of its (small) R factor
+    r = qr(w_base, mode="r", check_finite=False)[0][: w_base.shape[1]]
+    sv, vt = np.linalg.svd(r / np.where(norms > 0, norms, 1.0))[1:]
     rank = int(np.sum(sv > rtol * sv[0])) if sv[0] > 0 else 0
     cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
     weak_dirs = vt[rank:] if rank < len(sv) else vt[-1:]

@@ -19,7 +19,6 @@ from .errors import RecordingError
 from .robot import Robot
 from .spatial import Array
 
-
 _JOINT_COLUMN = re.compile(r"(q|qd|qdd|tau|i)(\d+)")
 
 

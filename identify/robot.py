@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from .spatial import Array, rot_x, rot_z, skew, transform
+from .spatial import Array, ArrayLike, rot_x, rot_z, skew, transform
 
 PARAMETERS_PER_LINK = 10
 LINK_PARAMETER_NAMES = ("m", "msx", "msy", "msz", "Ixx", "Ixy", "Ixz", "Iyy", "Iyz", "Izz")
@@ -115,7 +115,7 @@ def parameter_names(n_joints: int) -> list[str]:
     return [f"{name}{i + 1}" for i in range(n_joints) for name in LINK_PARAMETER_NAMES]
 
 
-def inertia_matrix(xx_xy_xz_yy_yz_zz: Array) -> Array:
+def inertia_matrix(xx_xy_xz_yy_yz_zz: ArrayLike) -> Array:
     """The symmetric 3x3 tensor from its six entries ``xx xy xz yy yz zz``."""
     xx, xy, xz, yy, yz, zz = np.asarray(xx_xy_xz_yy_yz_zz, dtype=float)
     return np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])

@@ -5,10 +5,13 @@ Vectors are ``(..., 3)``, rotations ``(..., 3, 3)``, homogeneous transforms ``(4
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
-Array = NDArray[np.float64]
+Array = NDArray[Any]
+ArrayLike = Array | list[float] | tuple[float, ...]
 
 
 def skew(v: Array) -> Array:
@@ -52,7 +55,7 @@ def rot_z(angle: float) -> Array:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def transform(rotation: Array | None = None, translation: Array | None = None) -> Array:
+def transform(rotation: ArrayLike | None = None, translation: ArrayLike | None = None) -> Array:
     """A 4x4 homogeneous transform from a rotation and a translation."""
     out = np.eye(4)
     if rotation is not None:

@@ -1,0 +1,128 @@
+"""The model against independent references: Pinocchio's RNEA and regressor, closed form."""
+
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+import pytest
+from conftest import ROBOTS, random_motion, random_robot
+
+from identify import dynamics as dyn
+from identify.pinocchio_bridge import KHOSLA_TO_PINOCCHIO_ORDER, parameter_map, to_pinocchio
+from identify.robot import Inertial, change_link_frame, inertial_from_parameters, link_parameters
+from identify.robot_file import load_robot
+
+
+def _pin_reference(robot, q, qd, qdd):  # type: ignore[no-untyped-def]
+    model = to_pinocchio(robot)
+    data = model.createData()
+    tau = np.array([pin.rnea(model, data, q[k], qd[k], qdd[k]) for k in range(q.shape[0])])
+    y = np.array([pin.computeJointTorqueRegressor(model, data, q[k], qd[k], qdd[k]) for k in range(q.shape[0])])
+    return tau, y
+
+
+def test_khosla_model_equals_classic_ne_and_pinocchio_rnea(any_robot):  # type: ignore[no-untyped-def]
+    q, qd, qdd = random_motion(40, any_robot.n_joints, seed=1)
+    tau_pin, _ = _pin_reference(any_robot, q, qd, qdd)
+    phi = any_robot.modeled_parameters()
+    scale = np.abs(tau_pin).max()
+    assert np.abs(dyn.regressor(any_robot, q, qd, qdd) @ phi - tau_pin).max() <= 1e-9 * scale
+    assert np.abs(dyn.inverse_dynamics(any_robot, q, qd, qdd) - tau_pin).max() <= 1e-9 * scale
+
+
+def test_regressor_equals_pinocchio_regressor_after_parameter_map(any_robot):  # type: ignore[no-untyped-def]
+    q, qd, qdd = random_motion(25, any_robot.n_joints, seed=2)
+    _, y = _pin_reference(any_robot, q, qd, qdd)
+    m = dyn.regressor(any_robot, q, qd, qdd)
+    t = parameter_map(any_robot)
+    assert np.abs(y @ t - m).max() <= 1e-9 * np.abs(m).max()
+
+
+def test_fast_regressor_equals_literal_k_and_r_assembly(any_robot):  # type: ignore[no-untyped-def]
+    q, qd, qdd = random_motion(30, any_robot.n_joints, seed=3)
+    fast = dyn.regressor(any_robot, q, qd, qdd, chunk=7)  # several chunks, one ragged
+    literal = dyn.regressor_blocks(any_robot, q, qd, qdd)
+    assert np.abs(fast - literal).max() <= 1e-12 * np.abs(literal).max()
+    # block upper triangular (eq. 18 after eq. 17): joint j does not see links before it
+    for j in range(any_robot.n_joints):
+        assert np.all(fast[:, j, : 10 * j] == 0.0)
+
+
+def test_standard_dh_matrices_are_khoslas_letter_for_letter():  # type: ignore[no-untyped-def]
+    robot = random_robot(4, "dh", None, seed=5)
+    q, qd, qdd = random_motion(5, 4, seed=6)
+    motions = dyn.forward_recursion(robot, q, qd, qdd)
+    for i in range(1, 4):
+        # Khosla Table 1: p_i = A_i^T P_i = [a_i, d_i sin(alpha_i), d_i cos(alpha_i)], constant
+        p_i = np.einsum("nba,nb->na", motions[i].A, motions[i].P)
+        assert np.allclose(p_i, p_i[0])
+        assert np.allclose(-motions[i].rho, p_i)
+        r = dyn.pseudo_rotation(motions[i], motions[i - 1].rho)
+        p_prev = -motions[i - 1].rho
+        expected = np.zeros_like(r)
+        expected[:, :3, :3] = motions[i].A
+        expected[:, 3:, 3:] = motions[i].A
+        expected[:, 3:, :3] = np.cross(p_prev[:, None, :], motions[i].A.transpose(0, 2, 1)).transpose(0, 2, 1)
+        assert np.allclose(r, expected)
+
+
+def test_parameter_order_map_is_explicit():  # type: ignore[no-untyped-def]
+    # Khosla: Ixx Ixy Ixz Iyy Iyz Izz; Pinocchio: Ixx Ixy Iyy Ixz Iyz Izz
+    phi = np.arange(10.0)
+    assert list(phi[KHOSLA_TO_PINOCCHIO_ORDER]) == [0, 1, 2, 3, 4, 5, 7, 6, 8, 9]
+    inertial = Inertial(2.0, (0.1, -0.2, 0.3), (0.5, 0.01, -0.02, 0.4, 0.03, 0.3))
+    p = link_parameters(inertial)
+    ref = pin.Inertia(2.0, np.array([0.1, -0.2, 0.3]), np.array([[0.5, 0.01, -0.02], [0.01, 0.4, 0.03], [-0.02, 0.03, 0.3]]))
+    assert np.allclose(p[KHOSLA_TO_PINOCCHIO_ORDER], ref.toDynamicParameters())
+    back = inertial_from_parameters(p)
+    assert np.allclose(back.com_m, inertial.com_m) and np.allclose(back.inertia_kgm2, inertial.inertia_kgm2)
+
+
+def test_frame_change_matches_pinocchio_se3_action():  # type: ignore[no-untyped-def]
+    rng = np.random.default_rng(9)
+    inertia = pin.Inertia.Random()
+    placement = pin.SE3.Random()
+    p = inertia.toDynamicParameters()[np.argsort(KHOSLA_TO_PINOCCHIO_ORDER)]
+    moved = change_link_frame(p, placement.rotation, placement.translation)
+    assert np.allclose(moved[KHOSLA_TO_PINOCCHIO_ORDER], placement.act(inertia).toDynamicParameters())
+    assert rng is not None
+
+
+def test_planar_two_link_closed_form():  # type: ignore[no-untyped-def]
+    """Textbook 2R planar arm: M(q) qdd + C(q, qd) qd + G(q) with COM distances lc."""
+    robot = load_robot(ROBOTS / "planar2.yaml")
+    l1 = 0.5
+    m1, m2 = 4.0, 2.0
+    lc1, lc2 = 0.25, 0.2  # COM at -0.25 from the distal frame = 0.25 from the joint
+    i1, i2 = 0.085, 0.027
+    g = 9.81
+    q, qd, qdd = random_motion(20, 2, seed=4)
+    c2, s2 = np.cos(q[:, 1]), np.sin(q[:, 1])
+    m11 = i1 + i2 + m1 * lc1**2 + m2 * (l1**2 + lc2**2 + 2 * l1 * lc2 * c2)
+    m12 = i2 + m2 * (lc2**2 + l1 * lc2 * c2)
+    m22 = i2 + m2 * lc2**2
+    h = m2 * l1 * lc2 * s2
+    g1 = (m1 * lc1 + m2 * l1) * g * np.cos(q[:, 0]) + m2 * lc2 * g * np.cos(q[:, 0] + q[:, 1])
+    g2 = m2 * lc2 * g * np.cos(q[:, 0] + q[:, 1])
+    tau1 = m11 * qdd[:, 0] + m12 * qdd[:, 1] - h * (2 * qd[:, 0] * qd[:, 1] + qd[:, 1] ** 2) + g1
+    tau2 = m12 * qdd[:, 0] + m22 * qdd[:, 1] + h * qd[:, 0] ** 2 + g2
+    tau = dyn.regressor(robot, q, qd, qdd) @ robot.modeled_parameters()
+    assert np.allclose(tau, np.column_stack([tau1, tau2]), rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.parametrize("name", ["ur5", "kuka_lwr4"])
+def test_urdf_robots_match_pinocchio_on_the_urdf_itself(name):  # type: ignore[no-untyped-def]
+    robot = load_robot(ROBOTS / f"{name}.yaml")
+    model = pin.buildModelFromUrdf(str(ROBOTS / f"{name}.urdf"))
+    model.gravity.linear = robot.gravity
+    data = model.createData()
+    q, qd, qdd = random_motion(15, robot.n_joints, seed=7)
+    ref = np.array([pin.rnea(model, data, q[k], qd[k], qdd[k]) for k in range(15)])
+    got = dyn.regressor(robot, q, qd, qdd) @ robot.modeled_parameters()
+    assert np.abs(got - ref).max() <= 1e-9 * np.abs(ref).max()
+
+
+def test_shape_errors_name_the_array():  # type: ignore[no-untyped-def]
+    robot = random_robot(3, "dh", None, seed=1)
+    with pytest.raises(ValueError, match="qd must be"):
+        dyn.regressor(robot, np.zeros((4, 3)), np.zeros((4, 2)), np.zeros((4, 3)))

@@ -1,0 +1,136 @@
+"""End to end: simulated data with known parameters through ``armid identify``."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pinocchio as pin
+import pytest
+from conftest import ROBOTS, SHARED
+
+from armid.cli import main
+from identify.errors import RobotFileError
+from identify.pinocchio_bridge import to_pinocchio
+from identify.recordings import write_csv
+from identify.robot_file import load_robot
+from identify.trajectories import random_fourier_trajectory
+
+
+def _simulate(robot_file, path, seed, noise=0.0, with_qdd=True, duration=8.0):  # type: ignore[no-untyped-def]
+    """Torques from Pinocchio's RNEA on a Fourier trajectory, plus declared friction."""
+    robot = load_robot(robot_file)
+    model = to_pinocchio(robot)
+    data = model.createData()
+    traj = random_fourier_trajectory(robot, harmonics=5, base_frequency_hz=0.125, fill=0.7, seed=seed)
+    t = np.arange(0.0, duration, 0.002)
+    q, qd, qdd = traj.evaluate(t)
+    tau = np.array([pin.rnea(model, data, q[k], qd[k], qdd[k]) for k in range(t.size)])
+    rng = np.random.default_rng(seed + 50)
+    tau += 0.5 * qd + 0.8 * np.sign(qd)  # viscous and Coulomb, as puma560.yaml declares
+    tau += noise * rng.normal(size=tau.shape) * np.std(tau, axis=0)
+    cols = {"q": q, "qd": qd}
+    if with_qdd:
+        cols["qdd"] = qdd
+    cols["tau"] = tau
+    write_csv(path, t, cols)
+
+
+def test_noise_free_validation_error_below_1e6(tmp_path):  # type: ignore[no-untyped-def]
+    robot = ROBOTS / "puma560.yaml"
+    _simulate(robot, tmp_path / "a.csv", seed=3)
+    _simulate(robot, tmp_path / "b.csv", seed=4)
+    out = tmp_path / "r.json"
+    pred = tmp_path / "pred.csv"
+    code = main(["identify", str(tmp_path / "a.csv"), "--robot", str(robot), "--validate", str(tmp_path / "b.csv"), "--json", str(out), "--predictions", str(pred), "--report", str(tmp_path / "rep")])
+    assert code == 0
+    doc = json.loads(out.read_text())
+    assert doc["validation"]["relative_error"] < 1e-6
+    assert {"robot", "n_joints", "samples", "condition_number", "parameters", "base_parameters", "effects", "fit", "validation"} <= set(doc)
+    assert len(doc["parameters"]) == 60 and len(doc["base_parameters"]) == 48
+    fc = [e["parameters"]["fc"] for e in doc["effects"] if e["effect"] == "coulomb_friction"]
+    assert np.allclose(fc, 0.8, atol=1e-6)
+    header = pred.read_text().splitlines()[0]
+    assert header == "t," + ",".join(f"tau_hat{j}" for j in range(1, 7))
+    assert (tmp_path / "rep" / "report.md").exists() and (tmp_path / "rep" / "joint6.png").exists()
+    for p in doc["parameters"]:
+        assert (p["value"] is None) == (p["identifiability"] != "unique")
+
+
+@pytest.mark.parametrize("seed", [5, 6])
+def test_noisy_estimates_within_three_sigma(tmp_path, seed):  # type: ignore[no-untyped-def]
+    robot_file = ROBOTS / "puma560.yaml"
+    _simulate(robot_file, tmp_path / "a.csv", seed=seed, noise=0.02, with_qdd=False)
+    out = tmp_path / "r.json"
+    assert main(["identify", str(tmp_path / "a.csv"), "--robot", str(robot_file), "--json", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    inertial = [b for b in doc["base_parameters"] if not b["expression"].startswith(("fv", "fc"))]
+    z = np.array([(b["value"] - b["modeled"]) / b["std"] for b in inertial])
+    assert len(z) == 36
+    assert np.all(np.abs(z) < 3.0 + 0.5), z  # 3 sigma; 36 draws may brush 3.0
+    assert np.mean(np.abs(z) < 3.0) >= 0.94
+    friction = {(e["effect"], e["joint"]): (e["parameters"], e["std"]) for e in doc["effects"]}
+    for (name, _), (value, std) in friction.items():
+        key = "fv" if name == "viscous_friction" else "fc"
+        assert abs(value[key] - (0.5 if key == "fv" else 0.8)) < 3.5 * std[key]
+
+
+@pytest.mark.parametrize(
+    "text, field",
+    [
+        ("name: x\njoints: []\n", "joints"),
+        ("name: x\njoints:\n  - {a: 0, alpha: 0, d: 0}\n", "joints[0].theta"),
+        ("name: x\njoints:\n  - {a: 0, alpha: zero, d: 0, theta: 0}\n", "joints[0].alpha"),
+        ("name: x\nconvention: craig\njoints:\n  - {a: 0, alpha: 0, d: 0, theta: 0}\n", "convention"),
+        ("name: x\njoints:\n  - {a: 0, alpha: 0, d: 0, theta: 0, type: spherical}\n", "joints[0].type"),
+        ("name: x\njoints:\n  - {a: 0, alpha: 0, d: 0, theta: 0, limits: {position: [1, -1]}}\n", "joints[0].limits.position"),
+        ("name: x\njoints:\n  - {a: 0, alpha: 0, d: 0, theta: 0, inertial: {mass: 1, com: [0, 0]}}\n", "joints[0].inertial.inertia"),
+        ("name: x\njoints:\n  - {a: 0, alpha: 0, d: 0, theta: 0}\neffects: [{effect: magic, joint: 1}]\n", "effects[0].effect"),
+        ("name: x\njoints:\n  - {a: 0, alpha: 0, d: 0, theta: 0}\neffects: [{effect: coulomb_friction, joint: 4}]\n", "effects[0].joint"),
+        ("name: x\njoints: [\n", "line"),
+        ("name: x\nurdf: nothere.urdf\njoints: [{name: a}]\n", "urdf"),
+    ],
+)
+def test_malformed_robot_file_names_file_and_field(tmp_path, text, field):  # type: ignore[no-untyped-def]
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    with pytest.raises(RobotFileError) as err:
+        load_robot(path)
+    assert str(err.value).startswith(f"{path}: {field}")
+
+
+def test_unknown_urdf_joint_lists_the_real_ones(tmp_path):  # type: ignore[no-untyped-def]
+    path = tmp_path / "r.yaml"
+    path.write_text(f"name: x\nurdf: {ROBOTS / 'ur5.urdf'}\njoints: [{{name: shoulder_pan_joint}}, {{name: elbow}}]\n")
+    with pytest.raises(RobotFileError, match=r"joints\[1\].name: no joint 'elbow'.*elbow_joint"):
+        load_robot(path)
+
+
+def test_cli_bad_input_exits_2_with_one_line(tmp_path):  # type: ignore[no-untyped-def]
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t,q1\n0,1\n")
+    proc = subprocess.run(
+        [sys.executable, "-m", "armid.cli", "identify", str(bad), "--robot", str(ROBOTS / "planar2.yaml")],
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "bad.csv" in lines[0] and "Traceback" not in proc.stderr
+    proc = subprocess.run([sys.executable, "-m", "armid.cli", "identify", "--robot"], capture_output=True, text=True)
+    assert proc.returncode == 2
+
+
+@pytest.mark.skipif(not (SHARED / "data" / "kuka_lwr4" / "measurements_1.npz").exists(), reason="shared KUKA data not beside the repository")
+def test_kuka_lwr4_real_data_identifies_and_validates(tmp_path):  # type: ignore[no-untyped-def]
+    data = SHARED / "data" / "kuka_lwr4"
+    out = tmp_path / "k.json"
+    code = main(["identify", str(data / "measurements_1.npz"), "--robot", str(ROBOTS / "kuka_lwr4.yaml"), "--validate", str(data / "measurements_2.npz"), "--json", str(out)])
+    assert code == 0
+    doc = json.loads(out.read_text())
+    assert doc["n_joints"] == 7 and doc["samples"] > 4000
+    # the identified model must beat the CAD model with friction reported for this data
+    published_rms = [0.36, 1.55, 0.49, 0.98, 0.63, 0.49, 0.27]
+    assert np.all(np.array(doc["validation"]["rms"]) < published_rms)
