@@ -40,6 +40,9 @@ def _identify(args: argparse.Namespace) -> int:
     for path, prep in zip(list(args.data) + list(args.validate or []), experiments + validation):
         for note in prep.notes:
             print(f"{path}: {note}", file=sys.stderr)
+    for out in (args.json, args.predictions):
+        if out:
+            Path(out).parent.mkdir(parents=True, exist_ok=True)
     if args.json:
         Path(args.json).write_text(json.dumps(doc, indent=1) + "\n")
     segments = [s for p in (validation or experiments) for s in p.segments]
