@@ -15,7 +15,7 @@ from identify.robot import Robot
 from identify.robot_file import load_robot
 
 
-def _classes(base, names):  # type: ignore[no-untyped-def]
+def _classes(base):  # type: ignore[no-untyped-def]
     return dict(zip(base.names, base.classes()))
 
 
@@ -31,7 +31,7 @@ def test_planar_two_link_base_parameters_in_closed_form():  # type: ignore[no-un
     assert f"msx2 + {a2:.4g}*m2" in exprs
     assert "msy2" in exprs and "msy1" in exprs
     assert f"msx1 + {a1:.4g}*m1 + {a1:.4g}*m2" in exprs
-    cls = _classes(base, robot.parameter_names)
+    cls = _classes(base)
     assert cls["msy1"] == "unique" and cls["msy2"] == "unique"
     assert cls["m2"] == "combination" and cls["Izz1"] == "combination"
     for name in ("Ixx1", "Iyy1", "Ixy1", "msz1", "Ixx2", "Iyz2", "msz2"):
@@ -49,14 +49,14 @@ def test_puma560_has_its_known_36_base_inertial_parameters():  # type: ignore[no
     base = structural_base(robot, effects=[])
     assert base.n_base == 36
     # link 1 only turns about its (vertical) axis: only one of its 10 parameters counts
-    cls = _classes(base, robot.parameter_names)
+    cls = _classes(base)
     assert [cls[f"{p}1"] for p in ("m", "msx", "msy", "msz", "Ixx", "Ixy", "Ixz", "Iyz", "Izz")] == ["unidentifiable"] * 9
 
 
 def test_table2_style_mass_combination_on_a_wrist():  # type: ignore[no-untyped-def]
     # the PUMA's m4, m5, m6 appear only together, as Khosla's m5 + m4 (Table 2)
     base = structural_base(load_robot(ROBOTS / "puma560.yaml"), effects=[])
-    cls = _classes(base, base.names)
+    cls = _classes(base)
     assert cls["m5"] == "combination" and cls["m6"] == "combination"
     assert any("0.4318*m4 + 0.4318*m5 + 0.4318*m6" in e for e in base.expressions())
 
