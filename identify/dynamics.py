@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from .robot import Robot, inertia_matrix
@@ -242,134 +243,194 @@ def regressor_blocks(robot: Robot, q: Array, qd: Array, qdd: Array) -> Array:
     return out
 
 
-def regressor(robot: Robot, q: Array, qd: Array, qdd: Array, chunk: int = 2048) -> Array:
+def regressor(robot: Robot, q: Array, qd: Array, qdd: Array, out: Array | None = None) -> Array:
     """The block upper-triangular matrix ``M(q, qd, qdd)`` of ``tau = M phi`` (eq. 18).
 
-    Returns (n_samples, N, 10 N), a view on memory laid out sample-last (``(N, 10 N, n)`` in
-    C order; ``np.ascontiguousarray`` it where C order matters). Block ``(j, i)`` is ``s_j^T R_{j+1} ... R_i K_i`` (eqs.
-    16-17). The rows ``s_j^T R^j_i`` of all joints ``j <= i`` are carried together from link
-    to link and multiplied into ``K_i`` in closed form (:func:`regressor_blocks` without the
-    zeros of ``K_i``). Samples are processed ``chunk`` at a time in component-major layout so
-    that every operation runs on contiguous vectors that stay in cache.
+    Returns (n_samples, N, 10 N) in C order. Block ``(j, i)`` is ``s_j^T R_{j+1} ... R_i K_i``
+    (eqs. 16-17): the rows ``s_j^T R^j_i`` of all joints ``j <= i`` are carried together from
+    link to link and multiplied into ``K_i`` in closed form, which is :func:`regressor_blocks`
+    without the zeros of ``K_i``. A compiled kernel runs it per sample, in parallel. ``out``
+    (n, N, 10 N), possibly a view into a wider array, receives the result when given.
     """
     q, qd, qdd = check_joint_arrays(robot, q, qd, qdd)
     n, nj = q.shape
-    out = np.zeros((nj, 10 * nj, n))
-    consts = _joint_constants(robot)
+    if out is None:
+        out = np.empty((n, nj, 10 * nj))
+    elif out.shape != (n, nj, 10 * nj):
+        raise ValueError(f"out has shape {out.shape}, expected {(n, nj, 10 * nj)}")
+    revolute = np.array([j.revolute for j in robot.joints])
+    axis = np.array([j.axis for j in robot.joints], dtype=float).reshape(nj, 3)
+    pre = np.array([j.pre for j in robot.joints], dtype=float).reshape(nj, 4, 4)
+    post = np.array([j.post for j in robot.joints], dtype=float).reshape(nj, 4, 4)
     g = -np.asarray(robot.gravity, dtype=float)
-    qt, qdt, qddt = q.T.copy(), qd.T.copy(), qdd.T.copy()
-    for start in range(0, n, chunk):
-        sl = slice(start, min(start + chunk, n))
-        out[:, :, sl] = _regressor_chunk(consts, g, qt[:, sl], qdt[:, sl], qddt[:, sl])
-    return out.transpose(2, 0, 1)
-
-
-def _joint_constants(robot: Robot) -> list[tuple[bool, Array, Array, Array, Array, Array, Array]]:
-    """Per joint: revolute?, axis (joint frame), pre R, pre t, post R, post t, axis in link frame."""
-    out = []
-    for j in robot.joints:
-        r1 = j.post[:3, :3]
-        out.append((j.revolute, j.axis, j.pre[:3, :3], j.pre[:3, 3], r1, j.post[:3, 3], r1.T @ j.axis))
+    _regressor_kernel(revolute, axis, np.ascontiguousarray(pre[:, :3, :3]), np.ascontiguousarray(pre[:, :3, 3]),
+                      np.ascontiguousarray(post[:, :3, :3]), np.ascontiguousarray(post[:, :3, 3]), g,
+                      np.ascontiguousarray(q), np.ascontiguousarray(qd), np.ascontiguousarray(qdd), out)
     return out
 
 
-def _regressor_chunk(consts: list, g: Array, q: Array, qd: Array, qdd: Array) -> Array:  # type: ignore[type-arg]
-    """Forward recursion and regressor for one chunk; joint arrays are (N, m) -> (N, 10N, m)."""
-    nj, m = q.shape
-    w = np.zeros((3, m))
-    dw = np.zeros((3, m))
-    dv = np.repeat(g[:, None], m, axis=1)
-    links = []
-    for i, (revolute, axis, r0, t0, r1, t1, u) in enumerate(consts):
-        if revolute:
-            # A = r0 Rq r1 with Rq = c E + s [a x] + (1 - c) a a^T, expanded per entry
-            c, s_ = np.cos(q[i]), np.sin(q[i])
-            e0 = r0 @ r1
-            e1 = r0 @ _skew(axis) @ r1
-            e2 = r0 @ np.outer(axis, axis) @ r1
-            a = e2[:, :, None] + c * (e0 - e2)[:, :, None] + s_ * e1[:, :, None]
-            p = (r0 @ np.outer(axis, axis) @ t1 + t0)[:, None] + c * (r0 @ (t1 - np.outer(axis, axis) @ t1))[:, None]
-            p = p + s_ * (r0 @ np.cross(axis, t1))[:, None]
+@numba.njit(cache=True, inline="always")
+def _cross_into(a: Array, b: Array, out: Array) -> None:
+    out[0] = a[1] * b[2] - a[2] * b[1]
+    out[1] = a[2] * b[0] - a[0] * b[2]
+    out[2] = a[0] * b[1] - a[1] * b[0]
+
+
+@numba.njit(cache=True, inline="always")
+def _rot_t_into(a: Array, x: Array, out: Array) -> None:
+    """``out = A^T x``."""
+    for c in range(3):
+        out[c] = a[0, c] * x[0] + a[1, c] * x[1] + a[2, c] * x[2]
+
+
+@numba.njit(cache=True, parallel=True)
+def _regressor_kernel(revolute, axis, r0, t0, r1, t1, g, q, qd, qdd, out):  # type: ignore[no-untyped-def]
+    """Per sample: the forward recursion (eqs. 1-6) fused with the carried rows of eq. 17.
+
+    Joint i is ``T = [r0|t0] J(axis, q) [r1|t1]``; ``u`` is its axis in link frame i.
+    """
+    n, nj = q.shape
+    block = 256
+    for blk in numba.prange((n + block - 1) // block):
+        w = np.empty(3)
+        dw = np.empty(3)
+        dv = np.empty(3)
+        rho_prev = np.empty(3)
+        a = np.empty((3, 3))
+        rq = np.empty((3, 3))
+        tmp = np.empty((3, 3))
+        p = np.empty(3)
+        rho = np.empty(3)
+        x3 = np.empty(3)
+        y3 = np.empty(3)
+        z3 = np.empty(3)
+        u = np.empty(3)
+        b = np.empty((3, 3))
+        rf = np.empty((nj, 3))
+        rn = np.empty((nj, 3))
+        for k in range(blk * block, min(n, blk * block + block)):
+            _sample_regressor(revolute, axis, r0, t0, r1, t1, g, q[k], qd[k], qdd[k], out[k],
+                              w, dw, dv, rho_prev, a, rq, tmp, p, rho, x3, y3, z3, u, b, rf, rn)
+
+
+@numba.njit(cache=True)
+def _sample_regressor(revolute, axis, r0, t0, r1, t1, g, q, qd, qdd, out,  # type: ignore[no-untyped-def]
+                      w, dw, dv, rho_prev, a, rq, tmp, p, rho, x3, y3, z3, u, b, rf, rn):
+    """One sample of :func:`_regressor_kernel`, with scratch arrays passed in (no allocation)."""
+    nj = q.shape[0]
+    w[:] = 0.0
+    dw[:] = 0.0
+    dv[:] = g
+    rho_prev[:] = 0.0
+    for i in range(nj):
+        e = axis[i]
+        # joint rotation Rq (Rodrigues) and A = r0 Rq r1, p = t0 + r0 (Rq t1) or r0 (t1 + e q)
+        if revolute[i]:
+            c = np.cos(q[i])
+            s = np.sin(q[i])
+            for r in range(3):
+                for col in range(3):
+                    rq[r, col] = (1.0 - c) * e[r] * e[col] + (c if r == col else 0.0)
+            rq[0, 1] -= s * e[2]
+            rq[0, 2] += s * e[1]
+            rq[1, 0] += s * e[2]
+            rq[1, 2] -= s * e[0]
+            rq[2, 0] -= s * e[1]
+            rq[2, 1] += s * e[0]
+            for r in range(3):
+                x3[r] = rq[r, 0] * t1[i, 0] + rq[r, 1] * t1[i, 1] + rq[r, 2] * t1[i, 2]
         else:
-            a = np.repeat((r0 @ r1)[:, :, None], m, axis=2)
-            p = (t0 + r0 @ t1)[:, None] + (r0 @ axis)[:, None] * q[i]
-        rho = _rot_t3(a, t0[:, None] - p)
-        w_prev, dw_prev = _rot_t3(a, w), _rot_t3(a, dw)
-        t0b = np.repeat(t0[:, None], m, axis=1)
-        acc_axis = _rot_t3(a, dv + _cross3(dw, t0b) + _cross3(w, _cross3(w, t0b)))
-        uq = u[:, None] * qd[i]
-        if revolute:
-            w = w_prev + uq
-            dw = dw_prev + u[:, None] * qdd[i] + _cross3(w_prev, uq)
-            dv = acc_axis - _cross3(dw, rho) - _cross3(w, _cross3(w, rho))
+            for r in range(3):
+                for col in range(3):
+                    rq[r, col] = 1.0 if r == col else 0.0
+                x3[r] = t1[i, r] + e[r] * q[i]
+        for r in range(3):
+            p[r] = t0[i, r] + r0[i, r, 0] * x3[0] + r0[i, r, 1] * x3[1] + r0[i, r, 2] * x3[2]
+            for col in range(3):
+                tmp[r, col] = r0[i, r, 0] * rq[0, col] + r0[i, r, 1] * rq[1, col] + r0[i, r, 2] * rq[2, col]
+        for r in range(3):
+            for col in range(3):
+                a[r, col] = tmp[r, 0] * r1[i, 0, col] + tmp[r, 1] * r1[i, 1, col] + tmp[r, 2] * r1[i, 2, col]
+        for r in range(3):
+            u[r] = r1[i, 0, r] * e[0] + r1[i, 1, r] * e[1] + r1[i, 2, r] * e[2]
+            x3[r] = t0[i, r] - p[r]
+        _rot_t_into(a, x3, rho)
+        # linear acceleration of the joint point, then into frame i (eqs. 3-6)
+        _cross_into(w, t0[i], x3)
+        _cross_into(w, x3, y3)
+        _cross_into(dw, t0[i], x3)
+        for r in range(3):
+            z3[r] = dv[r] + x3[r] + y3[r]
+        _rot_t_into(a, z3, dv)
+        _rot_t_into(a, w, x3)
+        _rot_t_into(a, dw, y3)
+        qdi = qd[i]
+        qddi = qdd[i]
+        if revolute[i]:
+            for r in range(3):
+                w[r] = x3[r] + u[r] * qdi
+                z3[r] = u[r] * qdi
+            _cross_into(x3, z3, dw)
+            for r in range(3):
+                dw[r] += y3[r] + u[r] * qddi
         else:
-            w, dw = w_prev, dw_prev
-            dv = acc_axis - _cross3(dw, rho) - _cross3(w, _cross3(w, rho)) + u[:, None] * qdd[i] + 2.0 * _cross3(w, uq)
-        # B = [dw x] + [w x]^2 = [dw x] + w w^T - |w|^2 E
-        b = w[:, None, :] * w[None, :, :]
-        w2 = b[0, 0] + b[1, 1] + b[2, 2]
-        for k in range(3):
-            b[k, k] -= w2
+            for r in range(3):
+                w[r] = x3[r]
+                dw[r] = y3[r]
+                z3[r] = u[r] * qdi
+            _cross_into(w, z3, x3)
+            for r in range(3):
+                dv[r] += u[r] * qddi + 2.0 * x3[r]
+        _cross_into(dw, rho, x3)
+        _cross_into(w, rho, y3)
+        _cross_into(w, y3, z3)
+        for r in range(3):
+            dv[r] -= x3[r] + z3[r]
+        # B = [dw x] + w w^T - |w|^2 E
+        w2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+        for r in range(3):
+            for col in range(3):
+                b[r, col] = w[r] * w[col] - (w2 if r == col else 0.0)
         b[0, 1] -= dw[2]
         b[0, 2] += dw[1]
         b[1, 0] += dw[2]
         b[1, 2] -= dw[0]
         b[2, 0] -= dw[1]
         b[2, 1] += dw[0]
-        c_axis = _rot3(a, rho) + p  # axis point of joint i in frame i-1 (constant)
-        links.append((w, dw, dv, rho, b, a, c_axis, revolute, u))
-    out = np.zeros((nj, 10 * nj, m))
-    rf = np.zeros((0, 3, m))
-    rn = np.zeros((0, 3, m))
-    for i, (w, dw, dv, rho, b, a, c_axis, revolute, u) in enumerate(links):
+        # carried rows <- rows R_i: rf' = A^T (rf + rn x d), rn' = A^T rn, d = c_i - rho_{i-1}
         if i > 0:
-            # rows <- rows R_i: rf' = A^T (rf + rn x d), rn' = A^T rn, d = c_i - rho_{i-1}
-            d = c_axis - links[i - 1][3]
-            rf = _rot_t3(a, rf + _cross3(rn, d))
-            rn = _rot_t3(a, rn)
-        s_f = np.zeros((1, 3, m))
-        s_n = np.zeros((1, 3, m))
-        (s_n if revolute else s_f)[0] += u[:, None]
-        rf = np.concatenate([rf, s_f])
-        rn = np.concatenate([rn, s_n])
-        f0 = rf + _cross3(rho, rn)  # rows taken about the origin of frame i
-        blk = out[: i + 1, 10 * i : 10 * i + 10]
-        blk[:, 0] = f0[:, 0] * dv[0] + f0[:, 1] * dv[1] + f0[:, 2] * dv[2]
-        x = _cross3(dv, rn)
-        for k in range(3):
-            blk[:, 1 + k] = b[0, k] * f0[:, 0] + b[1, k] * f0[:, 1] + b[2, k] * f0[:, 2] + x[:, k]
-        y = _cross3(rn, w)
-        blk[:, 4:] = _dot_t3(dw, rn) + _dot_t3(w, y)
-    return out
-
-
-def _skew(v: Array) -> Array:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
-def _cross3(a: Array, b: Array) -> Array:
-    """Cross product of component-major (..., 3, m) arrays."""
-    a0, a1, a2 = a[..., 0, :], a[..., 1, :], a[..., 2, :]
-    b0, b1, b2 = b[..., 0, :], b[..., 1, :], b[..., 2, :]
-    return np.stack((a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0), axis=-2)
-
-
-def _rot_t3(a: Array, x: Array) -> Array:
-    """``A^T x`` for component-major a (3, 3, m), x (..., 3, m)."""
-    x0, x1, x2 = x[..., 0, :], x[..., 1, :], x[..., 2, :]
-    return np.stack([a[0, k] * x0 + a[1, k] * x1 + a[2, k] * x2 for k in range(3)], axis=-2)
-
-
-def _rot3(a: Array, x: Array) -> Array:
-    """``A x`` for component-major a (3, 3, m), x (..., 3, m)."""
-    x0, x1, x2 = x[..., 0, :], x[..., 1, :], x[..., 2, :]
-    return np.stack([a[k, 0] * x0 + a[k, 1] * x1 + a[k, 2] * x2 for k in range(3)], axis=-2)
-
-
-def _dot_t3(x: Array, y: Array) -> Array:
-    """``[. x]^T y`` for component-major x (3, m), y (..., 3, m) -> (..., 6, m)."""
-    y0, y1, y2 = y[..., 0, :], y[..., 1, :], y[..., 2, :]
-    return np.stack(
-        (x[0] * y0, x[1] * y0 + x[0] * y1, x[2] * y0 + x[0] * y2, x[1] * y1, x[2] * y1 + x[1] * y2, x[2] * y2),
-        axis=-2,
-    )
+            for r in range(3):
+                z3[r] = a[r, 0] * rho[0] + a[r, 1] * rho[1] + a[r, 2] * rho[2] + p[r] - rho_prev[r]
+            for j in range(i):
+                _cross_into(rn[j], z3, x3)
+                for r in range(3):
+                    x3[r] += rf[j, r]
+                _rot_t_into(a, x3, rf[j])
+                for r in range(3):
+                    y3[r] = rn[j, r]
+                _rot_t_into(a, y3, rn[j])
+        for r in range(3):
+            rf[i, r] = 0.0 if revolute[i] else u[r]
+            rn[i, r] = u[r] if revolute[i] else 0.0
+            rho_prev[r] = rho[r]
+        col0 = 10 * i
+        for j in range(nj):
+            row = out[j, col0 : col0 + 10]
+            if j > i:
+                row[:] = 0.0
+                continue
+            fn = rn[j]
+            _cross_into(rho, fn, x3)
+            for r in range(3):
+                x3[r] += rf[j, r]  # the row taken about the origin of frame i
+            row[0] = x3[0] * dv[0] + x3[1] * dv[1] + x3[2] * dv[2]
+            _cross_into(dv, fn, y3)
+            for col in range(3):
+                row[1 + col] = b[0, col] * x3[0] + b[1, col] * x3[1] + b[2, col] * x3[2] + y3[col]
+            _cross_into(fn, w, y3)
+            row[4] = dw[0] * fn[0] + w[0] * y3[0]
+            row[5] = dw[1] * fn[0] + dw[0] * fn[1] + w[1] * y3[0] + w[0] * y3[1]
+            row[6] = dw[2] * fn[0] + dw[0] * fn[2] + w[2] * y3[0] + w[0] * y3[2]
+            row[7] = dw[1] * fn[1] + w[1] * y3[1]
+            row[8] = dw[2] * fn[1] + dw[1] * fn[2] + w[2] * y3[1] + w[1] * y3[2]
+            row[9] = dw[2] * fn[2] + w[2] * y3[2]

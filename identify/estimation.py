@@ -4,7 +4,8 @@ Weighted least squares whitens each joint's equations by that joint's noise leve
 estimated from the ordinary fit (Gautier and Poignet's per-joint weighting): joints differ
 in torque scale and sensor noise by orders of magnitude, and an unweighted fit lets the
 large ones drown the small. Standard deviations come from
-``cov = s^2 (W^T W)^{-1}`` of the (whitened) problem.
+``cov = s^2 (W^T W)^{-1}`` of the (whitened) problem. Both fits, the residuals and the
+covariance come from one QR pass over the data, per joint (:class:`JointFactors`).
 """
 
 from __future__ import annotations
@@ -12,7 +13,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import qr, solve_triangular
+from scipy.linalg import solve_triangular
+from scipy.linalg.lapack import dgeqrf, dgeqrf_lwork
 
 from .errors import IdentificationError
 from .spatial import Array
@@ -37,50 +39,112 @@ class LeastSquares:
             return 100.0 * self.std / np.abs(self.beta)
 
 
-def _qr_solve(w: Array, y: Array) -> tuple[Array, Array, Array]:
-    """``beta``, residual and ``(W^T W)^{-1}`` from the R factor of a QR of ``w``.
+@dataclass(frozen=True)
+class JointFactors:
+    """Per joint ``j``, the R factor of ``[W_j | y_j]`` (its rows of the regressor, its torques).
 
-    Only R is formed (no Q: the tall factor costs more than the fit); ``beta`` comes from
-    the corrected semi-normal equations ``R^T R beta = W^T y`` with one step of refinement
-    (Bjorck), as accurate as a full QR solve for these well-posed problems.
+    Everything least squares needs is in these small triangles: the fit of any per-joint
+    weighting, each joint's residual, the covariance and the excitation. One pass over the
+    data makes them; no tall matrix is copied, weighted or factored again.
     """
-    r = qr(w, mode="r", check_finite=False)[0][: w.shape[1]]
+
+    r: list[Array]
+    counts: Array
+
+    @property
+    def n_parameters(self) -> int:
+        return self.r[0].shape[1] - 1
+
+    def combined(self, weights: Array | None = None) -> Array:
+        """The (p+1, p+1) R factor of the whole (row-weighted) augmented system."""
+        weights = np.ones(len(self.r)) if weights is None else weights
+        stacked = np.vstack([wt * r for wt, r in zip(weights, self.r)])
+        return _r_factor(stacked)
+
+    def select(self, columns: Array) -> JointFactors:
+        """The factors of ``[W_j[:, columns] | y_j]``: a column subset of ``W = QR`` is ``Q R[:, columns]``."""
+        keep = np.append(np.asarray(columns), self.n_parameters)
+        return JointFactors([_r_factor(r[:, keep]) for r in self.r], self.counts)
+
+    def residual_squares(self, beta: Array) -> Array:
+        """``|y_j - W_j beta|^2`` per joint, from the triangles alone."""
+        x = np.append(beta, -1.0)
+        return np.array([float(np.sum((r @ x) ** 2)) for r in self.r])
+
+
+def _r_factor(a: Array) -> Array:
+    """Upper-triangular R of ``a = QR`` (LAPACK geqrf; Q is never formed)."""
+    m, p = a.shape
+    lwork = int(dgeqrf_lwork(m, p)[0])
+    qr_raw, _, _, info = dgeqrf(np.asfortranarray(a), lwork=max(lwork, 1), overwrite_a=True)
+    if info != 0:
+        raise IdentificationError(f"QR factorisation failed (LAPACK info {info})")
+    r = np.triu(qr_raw[: min(m, p)])
+    return r if m >= p else np.vstack([r, np.zeros((p - m, p))])
+
+
+def joint_factors(w: Array, y: Array, joint_of_row: Array, n_joints: int) -> JointFactors:
+    """Factor each joint's rows of ``[w | y]`` (see :class:`JointFactors`)."""
+    columns = []
+    for j in range(n_joints):
+        idx = np.flatnonzero(joint_of_row == j)
+        columns.append(np.vstack([w[idx].T, y[idx][None]]))
+    return factor_columns(columns)
+
+
+def factor_columns(columns: Array | list[Array]) -> JointFactors:
+    """:class:`JointFactors` from each joint's ``[W_j | y_j]`` stored column by column.
+
+    ``columns[j]`` is (p+1, n_j) in C order, i.e. the Fortran-ordered matrix LAPACK factors
+    in place; it is overwritten.
+    """
+    factors, counts = [], []
+    for j, cols in enumerate(columns):
+        if not np.isfinite(cols).all():
+            bad = int(np.flatnonzero(~np.isfinite(cols).all(axis=0))[0])
+            raise IdentificationError(f"joint {j + 1}, sample {bad}: the regressor or the torque is NaN or infinite")
+        factors.append(_r_factor(cols.T))
+        counts.append(cols.shape[1])
+    return JointFactors(factors, np.array(counts, dtype=float))
+
+
+def _solve(r_aug: Array) -> tuple[Array, Array]:
+    """``beta`` and ``(W^T W)^{-1}`` from the R factor of ``[W | y]``."""
+    p = r_aug.shape[1] - 1
+    r = r_aug[:p, :p]
     diag = np.abs(np.diag(r))
     if diag.size and diag.min() <= 1e-13 * diag.max():
         raise IdentificationError("the regressor is rank deficient: some base parameter is not excited by the data")
-
-    def normal_solve(rhs: Array) -> Array:
-        return solve_triangular(r, solve_triangular(r, rhs, trans="T"))
-
-    beta = normal_solve(w.T @ y)
-    res = y - w @ beta
-    beta = beta + normal_solve(w.T @ res)
-    rinv = solve_triangular(r, np.eye(r.shape[0]))
-    return beta, y - w @ beta, rinv @ rinv.T
+    beta = solve_triangular(r, r_aug[:p, p])
+    rinv = solve_triangular(r, np.eye(p))
+    return beta, rinv @ rinv.T
 
 
 def least_squares(w: Array, y: Array, joint_of_row: Array, n_joints: int, weighting: str = "wls") -> LeastSquares:
     """Solve ``w beta ~ y``; ``joint_of_row`` (rows,) tells which joint each equation is."""
+    return solve_factors(joint_factors(w, y, joint_of_row, n_joints), weighting)
+
+
+def solve_factors(factors: JointFactors, weighting: str = "wls") -> LeastSquares:
+    """Ordinary or per-joint weighted least squares from :func:`joint_factors`."""
     if weighting not in WEIGHTINGS:
         raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
-    rows, p = w.shape
+    p = factors.n_parameters
+    counts = factors.counts
+    rows = float(counts.sum())
     if rows <= p:
-        raise IdentificationError(f"{rows} equations for {p} base parameters: record more samples")
-    beta, res, unscaled = _qr_solve(w, y)
-    counts = np.bincount(joint_of_row, minlength=n_joints).astype(float)
-    sq = np.bincount(joint_of_row, weights=res**2, minlength=n_joints)
+        raise IdentificationError(f"{int(rows)} equations for {p} base parameters: record more samples")
+    beta, unscaled = _solve(factors.combined())
+    sq = factors.residual_squares(beta)
     dof = np.maximum(counts - p * counts / rows, 1.0)
     sigma = np.sqrt(sq / dof)
+    s2 = float(sq.sum()) / (rows - p)
     if weighting == "wls":
         floor = max(float(sigma.max()) * 1e-6, 1e-300)
         weights = 1.0 / np.maximum(sigma, floor)
-        wr = weights[joint_of_row]
-        beta, res_w, unscaled = _qr_solve(w * wr[:, None], y * wr)
-        s2 = float(res_w @ res_w) / (rows - p)
-        res = res_w / wr
-        sq = np.bincount(joint_of_row, weights=res**2, minlength=n_joints)
+        beta, unscaled = _solve(factors.combined(weights))
+        sq = factors.residual_squares(beta)
+        s2 = float(np.sum(sq * weights**2)) / (rows - p)
         sigma = np.sqrt(sq / dof)
-    else:
-        s2 = float(res @ res) / (rows - p)
     cov = s2 * unscaled
     return LeastSquares(beta, cov, np.sqrt(np.maximum(np.diag(cov), 0.0)), sigma, weighting)

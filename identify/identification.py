@@ -17,7 +17,7 @@ import numpy as np
 from .dynamics import regressor
 from .effects import LinearEffect, effect_columns, linear_effect
 from .errors import IdentificationError, PoorExcitationWarning
-from .estimation import LeastSquares, least_squares
+from .estimation import JointFactors, LeastSquares, factor_columns, solve_factors
 from .identifiability import UNIQUE, BaseParameters, Excitation, base_parameters, excitation, preferred_order
 from .metrics import summary
 from .preprocess import Prepared, Segment
@@ -56,9 +56,12 @@ def random_motion(robot: Robot, n_samples: int, seed: int = 0) -> tuple[Array, A
 
 def stacked_regressor(robot: Robot, effects: list[LinearEffect], q: Array, qd: Array, qdd: Array) -> Array:
     """(n N, 10 N + k) rows of eq. (18) with effect columns, sample by sample."""
-    m = regressor(robot, q, qd, qdd)
-    if effects:
-        m = np.concatenate([m, effect_columns(effects, q, qd, qdd)], axis=2)
+    n, nj = np.shape(q)
+    cols = effect_columns(effects, q, qd, qdd) if effects else None
+    m = np.empty((n, nj, 10 * nj + (cols.shape[2] if cols is not None else 0)))
+    regressor(robot, q, qd, qdd, out=m[:, :, : 10 * nj])
+    if cols is not None:
+        m[:, :, 10 * nj :] = cols
     return m.reshape(-1, m.shape[2])
 
 
@@ -168,15 +171,27 @@ def _num(x: float) -> float | None:
     return None if not np.isfinite(x) else float(x)
 
 
-def _system(robot: Robot, effects: list[LinearEffect], segments: list[Segment]) -> tuple[Array, Array, Array]:
-    ws, ys = [], []
+def _system(robot: Robot, effects: list[LinearEffect], segments: list[Segment]) -> Array:
+    """The equations of all segments, joint by joint: (N, p+1, n); row ``k`` of ``[j]`` is
+    column ``k`` of ``[W_j | tau_j]``, the layout LAPACK factors without a transpose."""
+    nj = robot.n_joints
+    n_cols = 10 * nj + sum(len(e.parameter_names) for e in effects)
+    system = np.empty((nj, n_cols + 1, sum(s.n_samples for s in segments)))
+    start = 0
     for seg in segments:
-        ws.append(stacked_regressor(robot, effects, seg.q, seg.qd, seg.qdd))
-        ys.append(seg.tau.reshape(-1))
-    w = np.concatenate(ws) if len(ws) > 1 else ws[0]
-    y = np.concatenate(ys)
-    joints = np.tile(np.arange(robot.n_joints), y.size // robot.n_joints)
-    return w, y, joints
+        view = system[:, :, start : start + seg.n_samples].transpose(2, 0, 1)  # (n, N, p+1)
+        regressor(robot, seg.q, seg.qd, seg.qdd, out=view[:, :, : 10 * nj])
+        if effects:
+            view[:, :, 10 * nj : n_cols] = effect_columns(effects, seg.q, seg.qd, seg.qdd)
+        view[:, :, n_cols] = seg.tau
+        start += seg.n_samples
+    return system
+
+
+def _factors(system: Array, columns: Array) -> JointFactors:
+    """Per-joint R factors of the chosen regressor columns and the torque."""
+    keep = np.append(columns, system.shape[1] - 1)
+    return factor_columns([system[j][keep] for j in range(system.shape[0])])
 
 
 def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepared] | None = None, options: IdentifyOptions | None = None) -> IdentificationResult:
@@ -187,22 +202,29 @@ def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     segments = [s for p in experiments for s in p.segments]
     if not segments:
         raise IdentificationError("no usable samples in the identification data")
-    w, y, joints = _system(robot, effects, segments)
+    system = _system(robot, effects, segments)
     base = structural_base(robot, effects, options.seed)
     notes = [f"{s}" for p in experiments for s in p.notes]
+    factors = _factors(system, base.independent)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", PoorExcitationWarning)
-        exc = excitation(base.base_matrix(w), base.expressions(), options.max_condition)
+        # the singular values and column norms of the regressor are those of its R factor
+        exc = excitation(factors.combined()[:-1, :-1], base.expressions(), options.max_condition)
     if exc.rank < base.n_base:
         # the data excites less than the kinematics allow: regroup on the data itself
-        base = base_parameters(w, names, preferred_order(robot.n_joints, len(names) - robot.n_parameters), rtol=1e-7)
+        every = _factors(system, np.arange(len(names)))
+        order = preferred_order(robot.n_joints, len(names) - robot.n_parameters)
+        base = base_parameters(every.combined()[:-1, :-1], names, order, rtol=1e-7)
         notes.append(f"the data excites {exc.rank} of the {exc.n_base} structural base parameters; regrouped on the data")
+        factors = every.select(base.independent)
     for c in caught:
         warnings.warn(c.message, PoorExcitationWarning, stacklevel=2)
-    wb = base.base_matrix(w)
-    est = least_squares(wb, y, joints, robot.n_joints, options.weighting)
-    n = y.size // robot.n_joints
-    fit = summary(y.reshape(n, -1), (wb @ est.beta).reshape(n, -1))
+    est = solve_factors(factors, options.weighting)
+    coef = np.zeros(len(names))
+    coef[base.independent] = est.beta
+    tau = system[:, -1].T
+    n = tau.shape[0]
+    fit = summary(tau, np.stack([system[j, :-1].T @ coef for j in range(robot.n_joints)], axis=1))
     result = IdentificationResult(robot, names, effects, base, est, exc, n, fit, notes=notes)
     if validation:
         segs = [s for p in validation for s in p.segments]

@@ -40,7 +40,7 @@ def test_regressor_equals_pinocchio_regressor_after_parameter_map(any_robot):  #
 
 def test_fast_regressor_equals_literal_k_and_r_assembly(any_robot):  # type: ignore[no-untyped-def]
     q, qd, qdd = random_motion(30, any_robot.n_joints, seed=3)
-    fast = dyn.regressor(any_robot, q, qd, qdd, chunk=7)  # several chunks, one ragged
+    fast = dyn.regressor(any_robot, q, qd, qdd)
     literal = dyn.regressor_blocks(any_robot, q, qd, qdd)
     assert np.abs(fast - literal).max() <= 1e-12 * np.abs(literal).max()
     # block upper triangular (eq. 18 after eq. 17): joint j does not see links before it
