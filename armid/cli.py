@@ -64,6 +64,45 @@ def _identify(args: argparse.Namespace) -> int:
     return 0
 
 
+def _sim(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+    import time
+
+    from drivers.rig import load_rig
+    from sim_bus.arm import SimulatedArm
+
+    rig = load_rig(args.rig)
+    changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
+    if changes:
+        rig = rig.with_bus(**changes)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    arm = SimulatedArm(rig, seed=args.seed)
+    print(f"armid sim: {rig.name}: {rig.n_joints} drives (nodes {', '.join(str(d.node_id) for d in rig.drives)}) "
+          f"on {rig.bus.interface}:{rig.bus.channel}, lock-step with SYNC at {rig.period_s * 1000:g} ms", file=sys.stderr, flush=True)
+    if args.ready:
+        Path(args.ready).write_text("ready\n")
+    start = time.monotonic()
+    try:
+        while not stop.wait(0.05):
+            if args.duration and time.monotonic() - start > args.duration:
+                break
+    finally:
+        arm.close()
+        if args.log:
+            _write_sim_log(arm, Path(args.log))
+    st = arm.status()
+    print(f"armid sim: {st['syncs']} SYNC periods simulated ({st['time_s']:.3f} s of arm time)", file=sys.stderr)
+    return 0
+
+
+def _write_sim_log(arm: object, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, **arm.log.arrays())  # type: ignore[attr-defined]
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="armid", description="Robot dynamics identification (Khosla 1987) from servo data.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -78,6 +117,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lowpass", type=float, metavar="HZ", help="zero-phase low-pass before differentiating")
     p.add_argument("--max-gap-factor", type=float, default=20.0, help="split where a step exceeds this many median steps")
     p.set_defaults(run=_identify)
+
+    p = sub.add_parser("sim", help="simulated arm on a CAN bus (virtual, udp_multicast, socketcan)")
+    p.add_argument("--rig", required=True, help="rig file (config/rigs/sim.yaml)")
+    p.add_argument("--interface", help="override the rig's python-can interface")
+    p.add_argument("--channel", help="override the rig's channel")
+    p.add_argument("--seed", type=int, help="override the simulation seed")
+    p.add_argument("--duration", type=float, help="stop after this many seconds (default: until SIGINT/SIGTERM)")
+    p.add_argument("--log", metavar="NPZ", help="on exit, write the simulated state per SYNC")
+    p.add_argument("--ready", metavar="FILE", help="write this file once the drives are on the bus")
+    p.set_defaults(run=_sim)
     return parser
 
 
@@ -85,12 +134,10 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.run(args))
-    except (RobotFileError, RecordingError, IdentificationError) as err:
-        print(f"armid {args.command}: error: {err}", file=sys.stderr)
-        return 2
     except ArmidError as err:
+        # bad input (files, recordings, data that cannot give an estimate, refused plans) is 2
         print(f"armid {args.command}: error: {err}", file=sys.stderr)
-        return 1
+        return 2 if isinstance(err, ValueError | RobotFileError | RecordingError | IdentificationError) else 1
     except OSError as err:
         print(f"armid {args.command}: error: {err}", file=sys.stderr)
         return 2

@@ -1,0 +1,39 @@
+"""The 2 ms control law of excitation: PD plus feed-forward from the modeled parameters.
+
+``tau = RNEA(q_r, qd_r, qdd_r) + Kp (q_r - q) + Kd (qd_r - qd)``: the feed-forward does the
+work (computed from the parameters the robot file models, Pinocchio's RNEA on the same
+model as :mod:`identify.pinocchio_bridge`), the PD only corrects the model's error. Default
+gains put each joint at 5 Hz, critically damped, on the diagonal of its mass matrix at
+the reference pose: stiff enough to track, slow enough for one cycle of delay at 2 ms.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from identify.pinocchio_bridge import to_pinocchio
+from identify.robot import Robot
+from identify.spatial import Array
+
+
+class ComputedTorque:
+    def __init__(self, robot: Robot, phi: Array | None = None, kp: Array | None = None, kd: Array | None = None,
+                 bandwidth_hz: float = 5.0, q_nominal: Array | None = None) -> None:
+        import pinocchio as pin
+
+        self._pin = pin
+        self.model = to_pinocchio(robot, phi)
+        self.data = self.model.createData()
+        n = robot.n_joints
+        q0 = np.zeros(n) if q_nominal is None else np.asarray(q_nominal, float)
+        mass = pin.crba(self.model, self.data, q0)
+        diag = np.maximum(np.diag(mass), 1e-3)
+        w = 2.0 * np.pi * bandwidth_hz
+        self.kp = w**2 * diag if kp is None else np.asarray(kp, float)
+        self.kd = 2.0 * w * diag if kd is None else np.asarray(kd, float)
+
+    def feed_forward(self, q_ref: Array, qd_ref: Array, qdd_ref: Array) -> Array:
+        return np.asarray(self._pin.rnea(self.model, self.data, q_ref, qd_ref, qdd_ref)).copy()
+
+    def __call__(self, q: Array, qd: Array, q_ref: Array, qd_ref: Array, qdd_ref: Array) -> Array:
+        return self.feed_forward(q_ref, qd_ref, qdd_ref) + self.kp * (q_ref - q) + self.kd * (qd_ref - qd)

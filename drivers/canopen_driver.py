@@ -1,0 +1,510 @@
+"""CiA 402 servo drives over CANopen (python-can + canopen), behind :class:`Driver`.
+
+Start-up, per drive, over SDO: heartbeat producer (0x1017) and consumer of the master
+(0x1016), SYNC COB-ID and cycle period (0x1005, 0x1006), mode of operation (0x6060), the
+PDO mapping of the rig's plan (:mod:`drivers.pdo_plan`), written and then read back and
+compared, and the motor data (encoder 0x608F, gear 0x6091, rated current 0x6075) read
+back and compared with the rig. Then NMT start, the master's heartbeat, and SYNC with a
+counter: a sequence of 240 frames that the kernel's broadcast manager cycles on socketcan,
+a thread otherwise.
+
+Each cycle's record is keyed by the SYNC counter: a TPDO belongs to the oldest open cycle
+that still waits for it and whose SYNC went out before the frame (a drive answers SYNCs in
+order, and cannot answer one not yet sent). A record goes out as soon as every expected
+frame is in, or three periods after its SYNC with the missing joints marked invalid.
+"""
+
+from __future__ import annotations
+
+import gc
+import queue
+import struct
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+
+import can
+import canopen
+import numpy as np
+from canopen.sdo import SdoAbortedError, SdoCommunicationError, SdoVariable
+
+from identify.spatial import Array
+
+from .interface import DriveConfigError, DriveFault, Driver, DriverError, HeartbeatLost, Sample
+from .pdo_plan import PLANS, PdoSpec, check_bus_budget
+from .rig import Rig
+
+EDS = str(__import__("pathlib").Path(__file__).resolve().parent.parent / "config" / "drives" / "armid_cia402.eds")
+
+SYNC_COUNTER_OVERFLOW = 240
+TARGET_POSITION = (0x607A, 0, 32)
+
+EMCY_MEANINGS = {
+    0x0000: "error reset or no error",
+    0x1000: "generic error",
+    0x2310: "continuous over-current",
+    0x3210: "DC link over-voltage",
+    0x3220: "DC link under-voltage",
+    0x4310: "drive over-temperature",
+    0x5530: "EEPROM fault",
+    0x7121: "motor blocked",
+    0x7305: "incremental encoder fault",
+    0x8100: "communication error (SYNC lost when the data say SYNC)",
+    0x8110: "CAN overrun, frames lost",
+    0x8120: "CAN in error passive mode",
+    0x8130: "life guard or heartbeat error: the drive lost the master's heartbeat",
+    0x8140: "recovered from bus off",
+    0x8210: "PDO not processed due to length error",
+    0x8220: "PDO length exceeded",
+    0x8250: "RPDO timeout",
+    0x8400: "velocity limit exceeded (velocity speed controller)",
+    0x8611: "following error",
+    0x8612: "position limit exceeded (reference limit)",
+    0xFF00: "device-specific fault",
+}
+
+_FMT = {(True, 8): "b", (True, 16): "h", (True, 32): "i", (False, 8): "B", (False, 16): "H", (False, 32): "I"}
+
+STATE_MASK = 0x006F
+OPERATION_ENABLED = 0x0027
+FAULT_BITS = 0x0008
+
+
+def emcy_meaning(code: int, data: bytes = b"") -> str:
+    if code in EMCY_MEANINGS:
+        text = EMCY_MEANINGS[code]
+    else:
+        text = canopen.emcy.EmcyError(code, 0, data, 0.0).get_desc() or "unknown code"
+    return f"{text} (data {data.hex()})" if data.strip(b"\x00") else text
+
+
+@dataclass
+class _Tpdo:
+    joint: int
+    number: int
+    every: int
+    unpack: struct.Struct
+    fields: list[tuple[int, int]]
+
+
+@dataclass
+class _Cycle:
+    cycle: int
+    counter: int
+    time_s: float
+    sample: Sample
+    expected: set[tuple[int, int]] = field(default_factory=set)
+
+
+class CanopenDriver(Driver):
+    """The rig's CiA 402 drives. ``bus`` may be given (tests); else it is opened from the rig."""
+
+    def __init__(self, rig: Rig, bus: can.BusABC | None = None, deadline_periods: float = 3.0) -> None:
+        super().__init__()
+        self.rig = rig
+        self.n_joints = rig.n_joints
+        self.period_s = rig.period_s
+        self.deadline_periods = deadline_periods
+        self.plan: tuple[PdoSpec, ...] = PLANS[rig.pdo_plan]
+        self.units = [d.units for d in rig.drives]
+        self._bus = bus
+        self._own_bus = bus is None
+        self.network: canopen.Network | None = None
+        self.nodes: list[canopen.RemoteNode] = []
+        self._tpdo: dict[int, _Tpdo] = {}
+        self._lock = threading.Lock()
+        self._open: list[_Cycle] = []
+        self._out: queue.Queue[Sample] = queue.Queue(maxsize=100_000)
+        self._faults: queue.Queue[DriveFault] = queue.Queue()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._cycle = 0
+        self._last = Sample.empty(0, 0.0, self.n_joints)
+        self._target = np.zeros(self.n_joints, np.int64)  # per mille of rated torque
+        self._target_position = np.zeros(self.n_joints, np.int64)
+        self._position_mode = False
+        self._controlword = np.zeros(self.n_joints, np.int64)
+        self._sent_controlword = np.full(self.n_joints, -1, np.int64)
+        self._commanded = np.zeros(self.n_joints)
+        self._in_force = np.zeros(self.n_joints)
+        self._heartbeat = np.zeros(self.n_joints)
+        self._silent = np.zeros(self.n_joints, bool)
+        self._hb_task: can.broadcastmanager.CyclicSendTaskABC | None = None
+        self._bcm_task: can.broadcastmanager.CyclicSendTaskABC | None = None
+        self.late_frames = np.zeros(self.n_joints, np.int64)
+        self.lost_cycles = np.zeros(self.n_joints, np.int64)
+        self.error_frames = 0
+        self.sync_late = 0
+        self.drive_configuration: list[dict[str, int]] = []
+        self._node_ids = {d.node_id: d.joint for d in rig.drives}
+
+    @property
+    def torque_constants(self) -> Array:
+        return np.array([u.torque_constant for u in self.units])
+
+    # --- start-up ---
+    def start(self) -> None:
+        r = self.rig
+        # a thread waiting for the GIL waits up to the switch interval (5 ms by default):
+        # more than two cycles. A 2 ms loop needs the interpreter to switch ten times faster.
+        sys.setswitchinterval(min(sys.getswitchinterval(), self.period_s / 10))
+        check_bus_budget(r.pdo_plan, r.n_joints, r.period_s, r.bus.bitrate, r.heartbeat_ms)
+        if self._bus is None:
+            kwargs = r.bus.kwargs()
+            if r.bus.interface == "socketcan":
+                kwargs["receive_own_messages"] = True
+            self._bus = can.Bus(**kwargs)
+        self.network = canopen.Network(self._bus)
+        self.network.connect()
+        assert self.network.notifier is not None
+        self.network.notifier.add_listener(_Watcher(self))
+        for d in r.drives:
+            node = canopen.RemoteNode(d.node_id, EDS)
+            self.network.add_node(node)
+            node.sdo.RESPONSE_TIMEOUT = 0.5
+            node.emcy.add_callback(lambda err, j=d.joint, n=d.node_id: self._on_emcy(j, n, err))
+            self.network.subscribe(0x700 + d.node_id, self._on_heartbeat)
+            self.nodes.append(node)
+        self.network.send_message(0, bytes([0x80, 0]))  # all nodes to pre-operational
+        for d, node in zip(r.drives, self.nodes):
+            self.drive_configuration.append(self._configure(d.joint, node))
+        self._heartbeat[:] = time.monotonic()
+        self._hb_task = self._bus.send_periodic(
+            can.Message(arbitration_id=0x700 + r.master_node_id, data=[0x05], is_extended_id=False), r.master_heartbeat_ms / 1000.0
+        )
+        self.network.send_message(0, bytes([0x01, 0]))  # NMT start all
+        # a full garbage collection walks every object of the process and stalls all threads
+        # for many milliseconds; what exists after start-up is never garbage, so freeze it
+        gc.collect()
+        gc.freeze()
+        self._thread = threading.Thread(target=self._sync_loop, name="armid-sync", daemon=True)
+        self._thread.start()
+
+    def _sdo(self, joint: int, node: canopen.RemoteNode, index: int, sub: int, value: int | None = None) -> int:
+        if index not in node.object_dictionary:
+            raise DriveConfigError(f"joint {joint + 1} (node {node.id}): object 0x{index:04X} is not in the drive's EDS")
+        try:
+            obj = node.sdo[index]
+            if not isinstance(obj, SdoVariable):
+                obj = obj[sub]
+            if value is None:
+                return int(obj.raw)
+            obj.raw = value
+            return value
+        except SdoAbortedError as err:
+            raise DriveConfigError(f"joint {joint + 1} (node {node.id}): SDO 0x{index:04X}:{sub:02X} aborted: {err}") from err
+        except SdoCommunicationError as err:
+            raise DriveConfigError(f"joint {joint + 1} (node {node.id}): no SDO answer for 0x{index:04X}:{sub:02X} ({err})") from err
+
+    def _configure(self, joint: int, node: canopen.RemoteNode) -> dict[str, int]:
+        r = self.rig
+        u = self.units[joint]
+        self._sdo(joint, node, 0x1017, 0, r.heartbeat_ms)
+        self._sdo(joint, node, 0x1016, 1, (r.master_node_id << 16) | (3 * r.master_heartbeat_ms))
+        self._sdo(joint, node, 0x1005, 0, 0x80)
+        self._sdo(joint, node, 0x1006, 0, int(round(r.period_s * 1e6)))
+        self._sdo(joint, node, 0x1019, 0, SYNC_COUNTER_OVERFLOW)
+        self._sdo(joint, node, 0x6060, 0, 10)
+        readback = {
+            "encoder_increments": self._sdo(joint, node, 0x608F, 1),
+            "encoder_motor_revolutions": self._sdo(joint, node, 0x608F, 2),
+            "gear_motor_revolutions": self._sdo(joint, node, 0x6091, 1),
+            "gear_shaft_revolutions": self._sdo(joint, node, 0x6091, 2),
+            "rated_current_ma": self._sdo(joint, node, 0x6075, 0),
+            "rated_torque_mnm": self._sdo(joint, node, 0x6076, 0),
+            "max_torque_permille": self._sdo(joint, node, 0x6072, 0),
+            "vendor_id": self._sdo(joint, node, 0x1018, 1),
+            "product_code": self._sdo(joint, node, 0x1018, 2),
+            "serial_number": self._sdo(joint, node, 0x1018, 4),
+        }
+        counts = readback["encoder_increments"] / max(readback["encoder_motor_revolutions"], 1)
+        gear = readback["gear_motor_revolutions"] / max(readback["gear_shaft_revolutions"], 1)
+        checks = [("0x608F encoder increments per revolution", counts, u.counts_per_rev),
+                  ("0x6091 gear ratio", gear, u.gear_ratio), ("0x6075 rated current (A)", readback["rated_current_ma"] / 1000.0, u.rated_current_a)]
+        for what, drive_value, rig_value in checks:
+            if abs(drive_value - rig_value) > 1e-3 * abs(rig_value):
+                raise DriveConfigError(f"joint {joint + 1} (node {node.id}): {what} is {drive_value:g} in the drive, {rig_value:g} in {r.source}")
+        self._map_pdos(joint, node)
+        return readback
+
+    def _map_pdos(self, joint: int, node: canopen.RemoteNode) -> None:
+        """Write the plan's PDO mapping by SDO, read it back, check it, build the decoders."""
+        try:
+            node.tpdo.read()
+            node.rpdo.read()
+            specs = list(self.plan) + [PdoSpec("rpdo", 3, (TARGET_POSITION,), every=0)]
+            for pdos, direction, base in ((node.tpdo, "tpdo", 0x180), (node.rpdo, "rpdo", 0x200)):
+                for number in range(1, 5):
+                    m = pdos[number]
+                    spec = next((s for s in specs if s.direction == direction and s.number == number), None)
+                    m.clear()
+                    if spec is None:
+                        m.enabled = False
+                        m.cob_id = base + 0x100 * (number - 1) + node.id
+                    else:
+                        for index, sub, bits in spec.entries:
+                            m.add_variable(index, sub, bits)
+                        m.enabled = True
+                        m.cob_id = base + 0x100 * (number - 1) + node.id
+                        m.trans_type = spec.every if (direction == "tpdo" and spec.every) else 1
+                pdos.save()
+            node.tpdo.read()
+            node.rpdo.read()
+        except SdoAbortedError as err:
+            raise DriveConfigError(f"joint {joint + 1} (node {node.id}): PDO mapping refused by SDO abort: {err}") from err
+        for pdos in (node.tpdo, node.rpdo):
+            for m in pdos.map.values():
+                if m.on_message in self.network.subscribers.get(m.cob_id, []):
+                    self.network.unsubscribe(m.cob_id, m.on_message)  # we decode TPDOs ourselves
+        for spec in self.plan:
+            m = (node.tpdo if spec.direction == "tpdo" else node.rpdo)[spec.number]
+            got = [(v.index, v.subindex, v.length) for v in m.map]
+            if not m.enabled or got != list(spec.entries):
+                raise DriveConfigError(f"joint {joint + 1} (node {node.id}): {spec.direction.upper()}{spec.number} reads back as {got}, expected {list(spec.entries)}")
+            if spec.direction == "tpdo":
+                if m.trans_type != spec.every:
+                    raise DriveConfigError(f"joint {joint + 1} (node {node.id}): TPDO{spec.number} transmission type reads back as {m.trans_type}, expected {spec.every}")
+                fmt = "<" + "".join(_FMT[(v.od.data_type in (2, 3, 4), v.length)] for v in m.map)
+                self._tpdo[m.cob_id] = _Tpdo(joint, spec.number, spec.every, struct.Struct(fmt), [(v.index, v.subindex) for v in m.map])
+                self.network.subscribe(m.cob_id, self._on_tpdo)
+
+    # --- cyclic ---
+    def _sync_loop(self) -> None:
+        assert self._bus is not None
+        period = self.period_s
+        next_t = time.perf_counter()
+        counter = 0
+        while not self._stop.is_set():
+            next_t += period
+            delay = next_t - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+            elif delay < -period:
+                self.sync_late += 1
+                next_t = time.perf_counter()
+            counter = counter % SYNC_COUNTER_OVERFLOW + 1
+            self._cycle += 1
+            now = time.time()
+            with self._lock:
+                self._open_cycle(self._cycle, counter, now)
+            try:
+                self._bus.send(can.Message(arbitration_id=0x80, data=[counter], is_extended_id=False))
+                self._send_commands()
+            except can.CanError as err:
+                self._event("bus", f"cannot send SYNC {counter}: {err}")
+            self._watchdog()
+
+    def _open_cycle(self, cycle: int, counter: int, now: float) -> None:
+        # Normally a cycle closes when its frames are in, or when a frame stamped after its
+        # deadline shows that bus time has passed it (in _on_tpdo). Only when no frame comes
+        # at all does the wall clock close it, later, so that a stall of this process is not
+        # mistaken for frames lost on the bus.
+        fallback = max(self.deadline_periods * self.period_s, 0.05)
+        while self._open and now - self._open[0].time_s >= fallback:
+            self._emit(self._open.pop(0))
+        s = Sample.empty(cycle, now, self.n_joints)
+        s.position[:], s.velocity[:] = self._last.position, self._last.velocity
+        s.measured_current[:], s.status[:] = self._last.measured_current, self._last.status
+        s.commanded_current[:] = self._in_force
+        self._in_force = self._commanded.copy()
+        expected = {(t.joint, t.number) for t in self._tpdo.values() if counter % t.every == 0 and not self._silent[t.joint]}
+        c = _Cycle(cycle, counter, now, s, expected)
+        self._open.append(c)
+        self._last = s
+
+    def _emit(self, c: _Cycle) -> None:
+        s = c.sample
+        for joint, _ in c.expected:
+            s.valid[joint] = False
+            self.lost_cycles[joint] += 1
+        try:
+            self._out.put_nowait(s)
+        except queue.Full:
+            self._out.get_nowait()
+            self._out.put_nowait(s)
+            self._event("overflow", "the reader is too slow: the oldest sample was dropped")
+
+    def _flush_complete(self) -> None:
+        while self._open and not self._open[0].expected:
+            self._emit(self._open.pop(0))
+
+    def _on_tpdo(self, can_id: int, data: bytes, timestamp: float) -> None:
+        t = self._tpdo[can_id]
+        if len(data) != t.unpack.size:
+            self._event("frame_length", f"joint {t.joint + 1}: TPDO{t.number} (COB-ID 0x{can_id:03X}) has {len(data)} bytes, the mapping has {t.unpack.size}", t.joint)
+            return
+        values = t.unpack.unpack(data)
+        key = (t.joint, t.number)
+        with self._lock:
+            # the oldest open cycle that still waits for this frame and whose SYNC went out
+            # before it: frames keep their order, and a frame cannot answer a later SYNC
+            target = next((c for c in self._open if key in c.expected and c.time_s <= timestamp + 1e-4), None)
+            if target is None:
+                self.late_frames[t.joint] += 1
+                return
+            target.expected.discard(key)
+            u = self.units[t.joint]
+            s = target.sample
+            for (index, _), v in zip(t.fields, values):
+                if index == 0x6064:
+                    s.position[t.joint] = v / u.counts_per_rad
+                elif index == 0x606C:
+                    s.velocity[t.joint] = v / u.counts_per_rad
+                    s.velocity_fresh[t.joint] = True
+                elif index == 0x6078:
+                    s.measured_current[t.joint] = v / 1000.0 * u.rated_current_a
+                elif index == 0x6041:
+                    s.status[t.joint] = v
+            if not any(j == t.joint for j, _ in target.expected):
+                s.valid[t.joint] = True
+            deadline = self.deadline_periods * self.period_s
+            while self._open and self._open[0] is not target and timestamp - self._open[0].time_s > deadline:
+                self._emit(self._open.pop(0))
+            self._flush_complete()
+
+    def _send_commands(self) -> None:
+        assert self.network is not None
+        for d in self.rig.drives:
+            j = d.joint
+            if self._position_mode:
+                self.network.send_message(0x400 + d.node_id, struct.pack("<i", int(self._target_position[j])))
+            else:
+                self.network.send_message(0x200 + d.node_id, struct.pack("<h", int(self._target[j])))
+            if self._controlword[j] != self._sent_controlword[j]:
+                self.network.send_message(0x300 + d.node_id, struct.pack("<H", int(self._controlword[j])))
+                self._sent_controlword[j] = self._controlword[j]
+
+    def _watchdog(self) -> None:
+        now = time.monotonic()
+        limit = 3 * self.rig.heartbeat_ms / 1000.0
+        for d in self.rig.drives:
+            j = d.joint
+            if not self._silent[j] and now - self._heartbeat[j] > limit:
+                self._silent[j] = True
+                others = [k for k in range(self.n_joints) if k != j]
+                self.quick_stop(others)
+                fault = HeartbeatLost(j, d.node_id, 0x8130, f"no heartbeat for {now - self._heartbeat[j]:.3f} s (3 periods: {limit:.3f} s); the other drives were quick-stopped")
+                self._faults.put(fault)
+                self._event("heartbeat_lost", str(fault), j)
+
+    def _on_heartbeat(self, can_id: int, data: bytes, timestamp: float) -> None:
+        j = self._node_ids[can_id - 0x700]
+        self._heartbeat[j] = time.monotonic()
+        if self._silent[j]:
+            self._silent[j] = False
+            self._event("heartbeat_back", f"joint {j + 1} (node {can_id - 0x700}) is back (NMT state 0x{data[0]:02X})", j)
+
+    def _on_emcy(self, joint: int, node_id: int, err: canopen.emcy.EmcyError) -> None:
+        if err.code == 0:
+            self._event("emcy_reset", f"joint {joint + 1} (node {node_id}): error reset", joint)
+            return
+        fault = DriveFault(joint, node_id, err.code, emcy_meaning(err.code, bytes(err.data)))
+        self._faults.put(fault)
+        self._event("emcy", str(fault), joint)
+
+    # --- the interface ---
+    def read(self, timeout: float | None = None) -> Sample:
+        try:
+            raise self._faults.get_nowait()
+        except queue.Empty:
+            pass
+        if self.network is not None:
+            self.network.check()
+        try:
+            return self._out.get(timeout=timeout if timeout is not None else 10 * self.period_s + 1.0)
+        except queue.Empty:
+            raise DriverError(f"no cycle within {timeout} s: is SYNC running and the bus up?") from None
+
+    def command_torque(self, torque: Array) -> None:
+        tau = np.asarray(torque, float)
+        if tau.shape != (self.n_joints,) or not np.isfinite(tau).all():
+            raise ValueError(f"torque command must be {self.n_joints} finite values, got {tau}")
+        current = tau / self.torque_constants
+        rated = np.array([u.rated_current_a for u in self.units])
+        permille = np.clip(np.round(current / rated * 1000.0), -32768, 32767).astype(np.int64)
+        self._target = permille
+        self._commanded = permille / 1000.0 * rated
+        self._position_mode = False
+
+    def command_position(self, position: Array) -> None:
+        q = np.asarray(position, float)
+        if q.shape != (self.n_joints,) or not np.isfinite(q).all():
+            raise ValueError(f"position command must be {self.n_joints} finite values, got {q}")
+        if not self._position_mode:
+            for j, node in enumerate(self.nodes):
+                self._sdo(j, node, 0x6060, 0, 8)
+            self._position_mode = True
+        self._target_position = np.round(q * np.array([u.counts_per_rad for u in self.units])).astype(np.int64)
+
+    def set_controlword(self, joints: list[int], controlword: int) -> None:
+        for j in joints:
+            self._controlword[j] = controlword
+
+    def enable(self, timeout: float = 1.0) -> None:
+        """Shutdown -> switch on -> enable operation, each acknowledged by the statusword."""
+        joints = list(range(self.n_joints))
+        for cw, state in ((0x80, None), (0x06, 0x21), (0x07, 0x23), (0x0F, OPERATION_ENABLED)):
+            self.set_controlword(joints, cw)
+            if state is None:
+                time.sleep(4 * self.period_s)
+                continue
+            deadline = time.monotonic() + timeout
+            while True:
+                status = self._last.status.copy()
+                if all((s & STATE_MASK) == state for s in status):
+                    break
+                if time.monotonic() > deadline:
+                    bad = [f"joint {j + 1}: statusword 0x{int(s):04X}" for j, s in enumerate(status) if (s & STATE_MASK) != state]
+                    raise DriverError(f"drives did not reach state 0x{state:02X} within {timeout} s ({'; '.join(bad)})")
+                time.sleep(self.period_s)
+
+    def disable(self) -> None:
+        self.command_torque(np.zeros(self.n_joints))
+        self.set_controlword(list(range(self.n_joints)), 0x00)
+
+    def quick_stop(self, joints: list[int] | None = None) -> None:
+        joints = list(range(self.n_joints)) if joints is None else joints
+        target = self._target.copy()
+        target[joints] = 0
+        self._target = target
+        self.set_controlword(joints, 0x02)
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=1.0)
+        for task in (self._hb_task, self._bcm_task):
+            if task is not None:
+                task.stop()
+        if self.network is not None:
+            if self._own_bus:
+                self.network.disconnect()
+            elif self.network.notifier is not None:
+                self.network.notifier.stop(0.5)
+        self.network = None
+
+
+class _Watcher(can.Listener):
+    """Sees every frame: error frames and frames from nodes the rig does not have."""
+
+    def __init__(self, driver: CanopenDriver) -> None:
+        self.driver = driver
+        self._errors: list[float] = []
+        self._unknown: set[int] = set()
+
+    def on_message_received(self, msg: can.Message) -> None:
+        d = self.driver
+        if msg.is_error_frame:
+            d.error_frames += 1
+            now = time.monotonic()
+            self._errors = [t for t in self._errors if now - t < 0.1] + [now]
+            if len(self._errors) == 20:
+                d._event("error_frames", f"{len(self._errors)} CAN error frames within 100 ms (total {d.error_frames}): check wiring and termination")
+            return
+        cob = msg.arbitration_id
+        func, node = cob & 0x780, cob & 0x7F
+        if func in (0x080, 0x180, 0x280, 0x380, 0x480, 0x580, 0x700) and node and cob != 0x80:
+            if node not in d._node_ids and node != d.rig.master_node_id and node not in self._unknown:
+                self._unknown.add(node)
+                d._event("unknown_node", f"frame COB-ID 0x{cob:03X} from node {node}, which the rig {d.rig.source} does not have")

@@ -1,0 +1,143 @@
+"""The one driver interface every amplifier family implements (CANopen, Dynamixel serial).
+
+A driver yields one :class:`Sample` per cycle, in SI joint units, and takes commands.
+Faults are typed: a drive's EMCY or a lost heartbeat is raised by :meth:`Driver.read` as a
+:class:`DriveFault` once, after which reading goes on; what does not stop the arm (a frame
+of the wrong length, an unknown node, error frames) is an :class:`Event` in
+:meth:`Driver.events`.
+"""
+
+from __future__ import annotations
+
+import abc
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from identify.errors import ArmidError
+from identify.spatial import Array
+
+
+class DriverError(ArmidError):
+    """The driver cannot go on (configuration refused, bus gone, timeout)."""
+
+
+class DriveConfigError(DriverError, ValueError):
+    """A drive refused or disagrees with the configuration: names node, object, problem."""
+
+
+class DriveFault(DriverError):
+    """A drive reported a fault (EMCY) or went silent; ``joint`` is 0-based."""
+
+    def __init__(self, joint: int, node_id: int, code: int, meaning: str, time_s: float | None = None) -> None:
+        self.joint, self.node_id, self.code, self.meaning = joint, node_id, code, meaning
+        self.time_s = time.time() if time_s is None else time_s
+        super().__init__(f"joint {joint + 1} (node {node_id}): fault 0x{code:04X}: {meaning}")
+
+
+class HeartbeatLost(DriveFault):
+    """No heartbeat from a drive within 3 of its periods."""
+
+
+@dataclass(frozen=True)
+class Event:
+    """Something the operator should know that did not stop the arm."""
+
+    kind: str  # "frame_length" | "unknown_node" | "error_frames" | "sdo_abort" | "late" | ...
+    message: str
+    joint: int | None = None
+    time_s: float = field(default_factory=time.time)
+
+
+@dataclass
+class Sample:
+    """One cycle of every joint, keyed by the cycle counter (not by arrival time).
+
+    ``valid[j]`` is False when joint j's frames for this cycle did not arrive by the
+    deadline; its values are then the last known ones. ``velocity_fresh[j]`` is False when
+    the plan did not carry velocity this cycle (the value is the last reported one).
+    ``commanded_current`` is what was in force during the period that ends at this cycle.
+    """
+
+    cycle: int
+    time_s: float
+    valid: Array
+    position: Array
+    velocity: Array
+    velocity_fresh: Array
+    commanded_current: Array
+    measured_current: Array
+    status: Array  # statusword per joint (0 when unknown)
+
+    @staticmethod
+    def empty(cycle: int, time_s: float, n: int) -> Sample:
+        z = np.zeros(n)
+        return Sample(cycle, time_s, np.zeros(n, bool), z.copy(), z.copy(), np.zeros(n, bool), z.copy(), z.copy(), np.zeros(n, np.int64))
+
+
+class Driver(abc.ABC):
+    """Reads one :class:`Sample` per cycle and sends commands to the amplifiers."""
+
+    n_joints: int
+    period_s: float
+
+    def __init__(self) -> None:
+        self._events: deque[Event] = deque(maxlen=10_000)
+
+    @abc.abstractmethod
+    def start(self) -> None:
+        """Configure the amplifiers and start cycling (drives stay disabled)."""
+
+    @abc.abstractmethod
+    def read(self, timeout: float | None = None) -> Sample:
+        """The next cycle's sample; raises a pending :class:`DriveFault` first."""
+
+    @abc.abstractmethod
+    def command_torque(self, torque: Array) -> None:
+        """Joint torques (N*m or N) for the next cycle (converted through each torque constant)."""
+
+    def command_current(self, current: Array) -> None:
+        """Motor currents (A) for the next cycle."""
+        self.command_torque(np.asarray(current, float) * self.torque_constants)
+
+    @abc.abstractmethod
+    def command_position(self, position: Array) -> None:
+        """Joint positions for the amplifiers' own position loops (cyclic synchronous position)."""
+
+    @abc.abstractmethod
+    def enable(self, timeout: float = 1.0) -> None:
+        """Bring every drive to operation enabled; raises if one does not get there."""
+
+    @abc.abstractmethod
+    def disable(self) -> None:
+        """Remove power from every motor (brakes hold)."""
+
+    @abc.abstractmethod
+    def quick_stop(self, joints: list[int] | None = None) -> None:
+        """Quick-stop the given joints (default: all)."""
+
+    @abc.abstractmethod
+    def close(self) -> None:
+        """Stop cycling and release the bus."""
+
+    @property
+    @abc.abstractmethod
+    def torque_constants(self) -> Array: ...
+
+    def events(self) -> list[Event]:
+        """Events since the last call."""
+        out = list(self._events)
+        self._events.clear()
+        return out
+
+    def _event(self, kind: str, message: str, joint: int | None = None) -> None:
+        self._events.append(Event(kind, message, joint))
+
+    def __enter__(self) -> Driver:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

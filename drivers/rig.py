@@ -1,0 +1,191 @@
+"""Rig files (``config/rigs/*.yaml``): which robot, which bus, which drive on which joint.
+
+A rig binds a robot description to hardware: the CAN interface and channel, the cycle
+period, the CANopen node id and motor of each joint (encoder, gear, rated current), the PDO
+plan, heartbeat times, and, for the simulated arm, what the simulation adds. Every error
+names the file and the field.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from identify.errors import ArmidError
+from identify.robot import Robot
+from identify.robot_file import load_robot
+
+
+class RigFileError(ArmidError, ValueError):
+    """A rig file is malformed: names the file, the field and the problem."""
+
+    def __init__(self, source: str, field: str, problem: str) -> None:
+        self.source, self.field, self.problem = source, field, problem
+        super().__init__(f"{source}: {field}: {problem}" if field else f"{source}: {problem}")
+
+
+@dataclass(frozen=True)
+class DriveUnits:
+    """A drive's motor: encoder, gear, rating; the joint's torque constant (gear included).
+
+    Position is counted in encoder increments at the motor, velocity in increments/s,
+    torque and current in per mille of the motor's rated torque and current (CiA 402).
+    """
+
+    counts_per_rev: int = 4096
+    gear_ratio: float = 100.0
+    rated_current_a: float = 5.0
+    torque_constant: float = 10.0  # N*m per A at the joint
+
+    @property
+    def counts_per_rad(self) -> float:
+        return self.counts_per_rev * self.gear_ratio / (2.0 * np.pi)
+
+    @property
+    def rated_motor_torque_nm(self) -> float:
+        return self.torque_constant / self.gear_ratio * self.rated_current_a
+
+
+@dataclass(frozen=True)
+class DriveConfig:
+    node_id: int
+    joint: int  # 0-based
+    units: DriveUnits
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    interface: str = "virtual"
+    channel: str = "armid"
+    bitrate: int = 1_000_000
+    options: dict[str, Any] = field(default_factory=dict)
+
+    def kwargs(self) -> dict[str, Any]:
+        """Keyword arguments of ``can.Bus``."""
+        out: dict[str, Any] = {"interface": self.interface, "channel": self.channel}
+        if self.interface not in ("virtual", "udp_multicast"):
+            out["bitrate"] = self.bitrate
+        return {**out, **self.options}
+
+
+@dataclass(frozen=True)
+class Rig:
+    name: str
+    robot: Robot
+    bus: BusConfig
+    drives: tuple[DriveConfig, ...]
+    period_s: float = 0.002
+    pdo_plan: str = "alternate_velocity"
+    master_node_id: int = 127
+    heartbeat_ms: int = 100  # the drives' producer time
+    master_heartbeat_ms: int = 50
+    simulation: dict[str, Any] = field(default_factory=dict)
+    source: str = "<rig>"
+
+    @property
+    def n_joints(self) -> int:
+        return self.robot.n_joints
+
+    def with_bus(self, **changes: Any) -> Rig:
+        from dataclasses import replace
+
+        return replace(self, bus=replace(self.bus, **changes))
+
+
+def load_rig(path: str | Path) -> Rig:
+    """Read and check a rig YAML file; the robot path is relative to the rig file."""
+    import yaml
+
+    path = Path(path)
+    src = str(path)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise RigFileError(src, "", "no such file") from None
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        raise RigFileError(src, f"line {mark.line + 1}" if mark else "YAML", "not valid YAML") from err
+    return rig_from_dict(doc, src, path.parent)
+
+
+def rig_from_dict(doc: Any, src: str = "<rig>", base_dir: Path | None = None) -> Rig:
+    if not isinstance(doc, dict):
+        raise RigFileError(src, "", "must be a mapping")
+    base_dir = base_dir or Path.cwd()
+
+    def need(key: str) -> Any:
+        if key not in doc:
+            raise RigFileError(src, key, "missing")
+        return doc[key]
+
+    robot_ref = need("robot")
+    robot = load_robot(base_dir / str(robot_ref)) if not isinstance(robot_ref, Robot) else robot_ref
+    bus_doc = doc.get("bus", {}) or {}
+    if not isinstance(bus_doc, dict):
+        raise RigFileError(src, "bus", "must be a mapping")
+    known_bus = {"interface", "channel", "bitrate"}
+    bus = BusConfig(
+        interface=str(bus_doc.get("interface", "virtual")),
+        channel=str(bus_doc.get("channel", "armid")),
+        bitrate=_int(bus_doc.get("bitrate", 1_000_000), src, "bus.bitrate", 10_000, 8_000_000),
+        options={k: v for k, v in bus_doc.items() if k not in known_bus},
+    )
+    drives_doc = need("drives")
+    if not isinstance(drives_doc, list) or len(drives_doc) != robot.n_joints:
+        raise RigFileError(src, "drives", f"must list one drive per joint ({robot.n_joints})")
+    drives = []
+    seen: set[int] = set()
+    for j, d in enumerate(drives_doc):
+        where = f"drives[{j}]"
+        if not isinstance(d, dict):
+            raise RigFileError(src, where, "must be a mapping")
+        node = _int(d.get("node_id"), src, f"{where}.node_id", 1, 127)
+        if node in seen:
+            raise RigFileError(src, f"{where}.node_id", f"node id {node} is used twice")
+        seen.add(node)
+        units = DriveUnits(
+            counts_per_rev=_int(d.get("counts_per_rev", 4096), src, f"{where}.counts_per_rev", 1, 2**31),
+            gear_ratio=_float(d.get("gear_ratio", 1.0), src, f"{where}.gear_ratio", positive=True),
+            rated_current_a=_float(d.get("rated_current_a"), src, f"{where}.rated_current_a", positive=True),
+            torque_constant=robot.joints[j].torque_constant,
+        )
+        drives.append(DriveConfig(node, j, units))
+    rig = Rig(
+        name=str(doc.get("name", robot.name)),
+        robot=robot,
+        bus=bus,
+        drives=tuple(drives),
+        period_s=_float(doc.get("period_s", 0.002), src, "period_s", positive=True),
+        pdo_plan=str(doc.get("pdo_plan", "alternate_velocity")),
+        master_node_id=_int(doc.get("master_node_id", 127), src, "master_node_id", 1, 127),
+        heartbeat_ms=_int(doc.get("heartbeat_ms", 100), src, "heartbeat_ms", 1, 65535),
+        master_heartbeat_ms=_int(doc.get("master_heartbeat_ms", 50), src, "master_heartbeat_ms", 1, 65535),
+        simulation=dict(doc.get("simulation") or {}),
+        source=src,
+    )
+    if rig.master_node_id in seen:
+        raise RigFileError(src, "master_node_id", f"{rig.master_node_id} is also a drive's node id")
+    from .pdo_plan import PLANS
+
+    if rig.pdo_plan not in PLANS:
+        raise RigFileError(src, "pdo_plan", f"unknown plan {rig.pdo_plan!r}; known: {', '.join(PLANS)}")
+    return rig
+
+
+def _int(value: Any, src: str, where: str, lo: int, hi: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | float) or int(value) != value:
+        raise RigFileError(src, where, f"must be an integer, got {value!r}")
+    if not lo <= int(value) <= hi:
+        raise RigFileError(src, where, f"must be in {lo}..{hi}, got {value}")
+    return int(value)
+
+
+def _float(value: Any, src: str, where: str, positive: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value):
+        raise RigFileError(src, where, f"must be a number, got {value!r}")
+    if positive and value <= 0:
+        raise RigFileError(src, where, f"must be positive, got {value}")
+    return float(value)

@@ -1,0 +1,138 @@
+"""The simulated arm on a CAN bus: one :class:`SimulatedDrive` per joint around one physics.
+
+Lock-step with SYNC: each SYNC the arm latches the drives' synchronous RPDOs, asks each
+drive for its current, advances the physics one period, and lets every drive send its
+TPDOs. Time on the arm is the SYNC count times the period, whatever the wall clock does,
+so a run is deterministic for a given seed and command sequence. ``log`` keeps the
+physics' state per SYNC for tests that compare what the driver read with the truth.
+"""
+
+from __future__ import annotations
+
+import gc
+import sys
+import threading
+import time
+from collections import deque
+from typing import Any
+
+import can
+import canopen
+import numpy as np
+
+from drivers.rig import Rig
+
+from .drive import SimulatedDrive
+from .physics import ArmPhysics, Measurement, simulation_config
+
+
+class StateLog:
+    """The physics' state per SYNC in a ring of arrays (no Python object per entry, so the
+    garbage collector has nothing to walk while the arm runs)."""
+
+    def __init__(self, size: int, n: int) -> None:
+        self.size = size
+        self.count = 0
+        self.sync = np.zeros(size, np.int64)
+        self.counter = np.zeros(size, np.int64)
+        self.time_s = np.zeros(size)
+        self.position = np.zeros((size, n))
+        self.velocity = np.zeros((size, n))
+        self.current = np.zeros((size, n))
+        self.true_position = np.zeros((size, n))
+
+    def append(self, sync: int, counter: int | None, m: Measurement) -> None:
+        k = self.count % self.size
+        self.sync[k], self.counter[k], self.time_s[k] = sync, -1 if counter is None else counter, m.time_s
+        self.position[k], self.velocity[k], self.current[k], self.true_position[k] = m.position, m.velocity, m.current, m.true_position
+        self.count += 1
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Oldest first."""
+        n = min(self.count, self.size)
+        order = (np.arange(n) + (self.count - n)) % self.size
+        return {k: getattr(self, k)[order] for k in ("sync", "counter", "time_s", "position", "velocity", "current", "true_position")}
+
+
+class SimulatedArm:
+    """Run the rig's arm on ``bus`` (or on a bus opened from the rig) until :meth:`close`."""
+
+    def __init__(self, rig: Rig, bus: can.BusABC | None = None, seed: int | None = None, log_size: int = 200_000) -> None:
+        self.rig = rig
+        # a thread waiting for the GIL waits up to the switch interval (5 ms by default):
+        # more than two cycles. A 2 ms loop needs the interpreter to switch ten times faster.
+        sys.setswitchinterval(min(sys.getswitchinterval(), rig.period_s / 10))
+        sim = dict(rig.simulation)
+        self.seed = int(sim.get("seed", 0) if seed is None else seed)
+        self.config = simulation_config(sim, rig.n_joints, f"{rig.source}: simulation")
+        self.physics = ArmPhysics(rig.robot, self.config, rig.period_s, self.seed)
+        self._own_bus = bus is None
+        self.bus = bus if bus is not None else can.Bus(**rig.bus.kwargs())
+        self.network = canopen.Network(self.bus)
+        self.network.connect()
+        sync_timeout = float(sim.get("sync_timeout_s", 0.02))
+        self.drives = [SimulatedDrive(d.node_id, d.joint, d.units, self.network, sync_timeout) for d in rig.drives]
+        self.network.subscribe(0x80, self._on_sync)
+        self.network.subscribe(0x700 + rig.master_node_id, self._on_master_heartbeat)
+        self.log = StateLog(log_size, rig.n_joints)
+        self.syncs = 0
+        self._stop = threading.Event()
+        self._watchdog = threading.Thread(target=self._watch, name="armid-sim-watchdog", daemon=True)
+        gc.collect()
+        gc.freeze()  # see CanopenDriver.start: keep full collections short while running
+        self._watchdog.start()
+        self.step_seconds: deque[float] = deque(maxlen=100_000)
+
+    def _on_sync(self, can_id: int, data: bytes, timestamp: float) -> None:
+        start = time.perf_counter()
+        counter = data[0] if len(data) >= 1 else None
+        now = time.monotonic()
+        for d in self.drives:
+            d.latch()
+        p, v = self.physics.position, self.physics.velocity
+        demand = np.array([d.current_demand(p[d.joint], v[d.joint]) for d in self.drives])
+        braked = np.array([not d.powered for d in self.drives])
+        m = self.physics.step(demand, braked)
+        self.syncs += 1
+        self.log.append(self.syncs, counter, m)
+        for d in self.drives:
+            d.on_sync(counter, m, now)
+        self.step_seconds.append(time.perf_counter() - start)
+
+    def _on_master_heartbeat(self, can_id: int, data: bytes, timestamp: float) -> None:
+        for d in self.drives:
+            d.on_master_heartbeat(can_id - 0x700, timestamp)
+
+    def _watch(self) -> None:
+        while not self._stop.wait(0.002):
+            now = time.monotonic()
+            for d in self.drives:
+                d.watchdog(now)
+
+    def drive(self, joint: int) -> SimulatedDrive:
+        return self.drives[joint]
+
+    def status(self) -> dict[str, Any]:
+        return {
+            "syncs": self.syncs,
+            "time_s": self.physics.time_s,
+            "states": [d.state.name for d in self.drives],
+            "nmt": [d.node.nmt.state for d in self.drives],
+            "position": self.physics.position.tolist(),
+        }
+
+    def close(self) -> None:
+        self._stop.set()
+        self._watchdog.join(timeout=1.0)
+        for d in self.drives:
+            d.node.nmt.stop_heartbeat()
+        if self._own_bus:
+            self.network.disconnect()
+        elif self.network.notifier is not None:
+            self.network.notifier.stop(0.5)
+
+    def __enter__(self) -> SimulatedArm:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,309 @@
+"""The simulated arm's physics: rigid-body forward dynamics plus what real arms add.
+
+Pinocchio's ABA integrates the robot description (with the "true" parameters, which
+need not be the modeled ones) one SYNC period at a time, in fixed sub-steps, with
+semi-implicit Euler: ``v += a dt; q += v dt``. Its second difference of position is then
+exactly the acceleration of the sample, so a noise-free run satisfies the rigid-body
+model to rounding, which is what tests of identification need.
+
+On top of the rigid body, per joint and each off by default: Coulomb, viscous and Stribeck
+friction, rotor inertia (Pinocchio's armature), a torque-constant error (the motor makes
+``gain * kt * i`` while everyone believes ``kt * i``), cogging, a position spring, a
+torque offset, a delay between the current and the position measurements; arm-wide: a
+tilted gravity vector and a payload attached and removed while running. Sensors: a
+first-order current loop, current noise; position and velocity are quantised by the
+drives that report them. Deterministic for a given seed.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import numpy as np
+
+from identify.pinocchio_bridge import to_pinocchio
+from identify.robot import Robot
+from identify.spatial import Array
+
+EFFECT_FIELDS = ("coulomb", "viscous", "stribeck", "stribeck_velocity", "rotor_inertia", "torque_gain", "cogging",
+                 "cogging_period", "cogging_phase", "spring", "spring_rest", "offset", "delay_s")
+
+
+@dataclass(frozen=True)
+class JointEffects:
+    """Effects of one joint, in joint units (N*m, N*m*s/rad, rad, s).
+
+    Friction is ``(coulomb + stribeck exp(-(qd/stribeck_velocity)^2)) sign(qd) + viscous qd``,
+    with the sign smoothed over ``|qd| < 1e-3`` rad/s. Cogging is ``cogging sin(2 pi q /
+    cogging_period + cogging_phase)``. The spring pulls with ``spring (q - spring_rest)``.
+    ``offset`` is a constant torque on the joint that the motor current does not show (a
+    cable, a counterbalance): the current then reads ``offset / kt`` low. ``delay_s`` delays the
+    position and velocity the drive reports relative to its current.
+    """
+
+    coulomb: float = 0.0
+    viscous: float = 0.0
+    stribeck: float = 0.0
+    stribeck_velocity: float = 0.1
+    rotor_inertia: float = 0.0
+    torque_gain: float = 1.0
+    cogging: float = 0.0
+    cogging_period: float = 2.0 * np.pi / 12.0
+    cogging_phase: float = 0.0
+    spring: float = 0.0
+    spring_rest: float = 0.0
+    offset: float = 0.0
+    delay_s: float = 0.0
+
+    def friction_slope(self, qd: float) -> float:
+        """d(friction)/d(qd) >= 0: integrated implicitly, so that stiff friction stays stable."""
+        s = 1.0 - np.tanh(qd / 1e-3) ** 2
+        x = qd / self.stribeck_velocity
+        stribeck = self.stribeck * np.exp(-(x**2)) * (s / 1e-3 - 2.0 * x / self.stribeck_velocity * np.tanh(qd / 1e-3))
+        return float(max(0.0, self.viscous + self.coulomb * s / 1e-3 + stribeck))
+
+    def torque(self, q: float, qd: float) -> float:
+        """Torque the effects take away from the motor's (friction, spring, cogging)."""
+        s = np.tanh(qd / 1e-3)
+        x = min(abs(qd / self.stribeck_velocity), 30.0)
+        t = (self.coulomb + self.stribeck * np.exp(-(x**2))) * s + self.viscous * qd
+        if self.cogging:
+            t += self.cogging * np.sin(2.0 * np.pi * q / self.cogging_period + self.cogging_phase)
+        if self.spring:
+            t += self.spring * (q - self.spring_rest)
+        return float(t)
+
+
+@dataclass(frozen=True)
+class Payload:
+    """A rigid payload in the last link's frame: mass (kg), centre of mass (m), inertia
+    about the centre of mass (kg m^2, xx xy xz yy yz zz)."""
+
+    mass: float
+    com: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    inertia: tuple[float, float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class SimulationConfig:
+    """What the simulated arm adds to its robot description."""
+
+    joints: tuple[JointEffects, ...] = ()
+    gravity_tilt_rad: tuple[float, float] = (0.0, 0.0)  # about base x, then base y
+    current_noise_a: float = 0.0  # std of the measured current
+    current_time_constant_s: float = 0.0  # first-order current loop
+    substeps: int = 4
+    parameters: tuple[float, ...] | None = None  # true Khosla parameters (default: modeled)
+    initial_position: tuple[float, ...] | None = None
+
+    def effects(self, joint: int) -> JointEffects:
+        return self.joints[joint] if joint < len(self.joints) else JointEffects()
+
+
+def simulation_config(data: dict[str, Any] | None, n_joints: int, where: str = "simulation") -> SimulationConfig:
+    """Parse the ``simulation:`` mapping of a rig file (see ``config/rigs/sim.yaml``)."""
+    from identify.errors import RobotFileError
+
+    data = dict(data or {})
+    effects = [dict() for _ in range(n_joints)]
+    allowed = {f.name for f in fields(JointEffects)}
+    for k, entry in enumerate(data.pop("effects", []) or []):
+        if not isinstance(entry, dict) or "joint" not in entry:
+            raise RobotFileError(where, f"effects[{k}]", "must be a mapping with a 1-based 'joint' and effect values")
+        joints = range(n_joints) if entry["joint"] in (None, "all") else [int(entry["joint"]) - 1]
+        for j in joints:
+            if not 0 <= j < n_joints:
+                raise RobotFileError(where, f"effects[{k}].joint", f"must be 1..{n_joints}, got {entry['joint']}")
+            for name, value in entry.items():
+                if name == "joint":
+                    continue
+                if name not in allowed:
+                    raise RobotFileError(where, f"effects[{k}].{name}", f"unknown effect; known: {', '.join(sorted(allowed))}")
+                effects[j][name] = float(value)
+    tilt = data.pop("gravity_tilt_rad", (0.0, 0.0))
+    cfg = SimulationConfig(
+        joints=tuple(JointEffects(**e) for e in effects),
+        gravity_tilt_rad=(float(tilt[0]), float(tilt[1])),
+        current_noise_a=float(data.pop("current_noise_a", 0.0)),
+        current_time_constant_s=float(data.pop("current_time_constant_s", 0.0)),
+        substeps=int(data.pop("substeps", 4)),
+        initial_position=tuple(float(x) for x in data["initial_position"]) if data.get("initial_position") is not None else None,
+    )
+    data.pop("initial_position", None)
+    data.pop("seed", None)
+    data.pop("sync_timeout_s", None)
+    if data:
+        raise RobotFileError(where, next(iter(data)), "unknown simulation setting")
+    return cfg
+
+
+@dataclass
+class Measurement:
+    """What the sensors show after a step, in SI joint units (not yet quantised)."""
+
+    time_s: float
+    position: Array
+    velocity: Array
+    current: Array  # measured, A
+    true_position: Array
+    true_velocity: Array
+    true_acceleration: Array
+
+
+@dataclass
+class _State:
+    q: Array
+    qd: Array
+    current: Array
+    time_s: float = 0.0
+    history: deque = field(default_factory=deque)  # type: ignore[type-arg]
+
+
+class ArmPhysics:
+    """Forward dynamics of ``robot`` stepped one period at a time by current commands.
+
+    ``torque_constant`` (A -> N*m at the joint) is what the drives believe; the motor
+    makes ``torque_gain`` times that.
+    """
+
+    def __init__(self, robot: Robot, config: SimulationConfig, period_s: float, seed: int = 0) -> None:
+        import pinocchio as pin
+
+        self._pin = pin
+        self.robot = robot
+        self.config = config
+        self.period_s = period_s
+        self.n = robot.n_joints
+        phi = np.asarray(config.parameters, float) if config.parameters is not None else robot.modeled_parameters()
+        self.model = to_pinocchio(robot, phi)
+        self.model.armature = np.array([config.effects(j).rotor_inertia for j in range(self.n)])
+        ax, ay = config.gravity_tilt_rad
+        rx = np.array([[1, 0, 0], [0, np.cos(ax), -np.sin(ax)], [0, np.sin(ax), np.cos(ax)]])
+        ry = np.array([[np.cos(ay), 0, np.sin(ay)], [0, 1, 0], [-np.sin(ay), 0, np.cos(ay)]])
+        self.model.gravity = pin.Motion(ry @ rx @ np.asarray(robot.gravity, float), np.zeros(3))
+        self._data = self.model.createData()
+        self._last_inertia = self.model.inertias[self.n].copy()
+        self.kt = np.array([j.torque_constant for j in robot.joints], float)
+        self.gain = np.array([config.effects(j).torque_gain for j in range(self.n)])
+        self.offset = np.array([config.effects(j).offset for j in range(self.n)])
+        self.rng = np.random.default_rng(seed)
+        q0 = np.asarray(config.initial_position, float) if config.initial_position is not None else np.zeros(self.n)
+        self.dt = period_s / config.substeps
+        self.delay_steps = np.array([int(round(config.effects(j).delay_s / self.dt)) for j in range(self.n)])
+        self._state = _State(q0.copy(), np.zeros(self.n), np.zeros(self.n))
+        self._last_acc = np.zeros(self.n)
+        self._lock = threading.Lock()
+        self._pending_payload: list[Payload | None] = []
+        fx = [config.effects(j) for j in range(self.n)]
+        self._fc = np.array([e.coulomb for e in fx])
+        self._fv = np.array([e.viscous for e in fx])
+        self._fs = np.array([e.stribeck for e in fx])
+        self._vs = np.array([e.stribeck_velocity for e in fx])
+        self._cog = np.array([e.cogging for e in fx])
+        self._cog_period = np.array([e.cogging_period for e in fx])
+        self._cog_phase = np.array([e.cogging_phase for e in fx])
+        self._spring = np.array([e.spring for e in fx])
+        self._rest = np.array([e.spring_rest for e in fx])
+        self.payload: Payload | None = None
+
+    # --- payload, settable from any thread; applied at the next step ---
+    def attach_payload(self, payload: Payload | None) -> None:
+        with self._lock:
+            self._pending_payload.append(payload)
+
+    def _apply_payload(self, payload: Payload | None) -> None:
+        pin = self._pin
+        inertia = self._last_inertia.copy()
+        if payload is not None:
+            post = self.robot.joints[-1].post
+            r, t = post[:3, :3], post[:3, 3]
+            xx, xy, xz, yy, yz, zz = payload.inertia
+            i_com = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+            inertia = inertia + pin.Inertia(payload.mass, r @ np.asarray(payload.com, float) + t, r @ i_com @ r.T)
+        self.model.inertias[self.n] = inertia
+        self.payload = payload
+
+    @property
+    def position(self) -> Array:
+        return self._state.q.copy()
+
+    @property
+    def velocity(self) -> Array:
+        return self._state.qd.copy()
+
+    @property
+    def time_s(self) -> float:
+        return self._state.time_s
+
+    def effect_torque(self, q: Array, qd: Array) -> Array:
+        """:meth:`JointEffects.torque` of every joint, vectorised."""
+        s = np.tanh(qd / 1e-3)
+        x = np.minimum(np.abs(qd / self._vs), 30.0)
+        t = (self._fc + self._fs * np.exp(-(x**2))) * s + self._fv * qd
+        return t + self._cog * np.sin(2.0 * np.pi * q / self._cog_period + self._cog_phase) + self._spring * (q - self._rest)
+
+    def friction_slope(self, qd: Array) -> Array:
+        """:meth:`JointEffects.friction_slope` of every joint, vectorised."""
+        th = np.tanh(qd / 1e-3)
+        s = 1.0 - th**2
+        x = np.minimum(np.abs(qd / self._vs), 30.0)
+        stribeck = self._fs * np.exp(-(x**2)) * (s / 1e-3 - 2.0 * (qd / self._vs) / self._vs * th)
+        return np.maximum(0.0, self._fv + self._fc * s / 1e-3 + stribeck)
+
+    def _acceleration(self, q: Array, qd: Array, tau: Array, braked: Array | None) -> Array:
+        """Solve ``(M + dt D) a = tau - b(q, qd)``; D is the friction slope (linearly implicit
+        Euler for friction, stable however stiff); braked joints have ``a = 0``."""
+        pin = self._pin
+        free = np.ones(self.n, bool) if braked is None else ~np.asarray(braked, bool)
+        qd = np.where(free, qd, 0.0)
+        mass = pin.crba(self.model, self._data, q)
+        mass = np.triu(mass) + np.triu(mass, 1).T
+        bias = pin.rnea(self.model, self._data, q, qd, np.zeros(self.n))
+        slope = self.friction_slope(qd)
+        acc = np.zeros(self.n)
+        if free.any():
+            lhs = mass[np.ix_(free, free)] + self.dt * np.diag(slope[free])
+            acc[free] = np.linalg.solve(lhs, (tau - bias)[free])
+        return acc
+
+    def step(self, current_command: Array, braked: Array | None = None) -> Measurement:
+        """Advance one period under ``current_command`` (A per joint); return the sensors.
+
+        Joints with ``braked`` set are held by their brakes: their velocity and acceleration
+        are zero and the others move with the constrained dynamics ``M_ff a_f = tau_f - b_f``.
+        """
+        with self._lock:
+            while self._pending_payload:
+                self._apply_payload(self._pending_payload.pop(0))
+        s = self._state
+        cmd = np.asarray(current_command, float)
+        tau_c = self.config.current_time_constant_s
+        alpha = 1.0 - np.exp(-self.dt / tau_c) if tau_c > 0 else 1.0
+        acc = self._last_acc
+        max_delay = int(self.delay_steps.max()) if self.n else 0
+        for _ in range(self.config.substeps):
+            s.current = s.current + alpha * (cmd - s.current)
+            tau = self.gain * self.kt * s.current + self.offset - self.effect_torque(s.q, s.qd)
+            acc = self._acceleration(s.q, s.qd, tau, braked)
+            s.qd = s.qd + acc * self.dt
+            if braked is not None:
+                s.qd = np.where(braked, 0.0, s.qd)
+            s.q = s.q + s.qd * self.dt
+            s.time_s += self.dt
+            if max_delay:
+                s.history.append((s.q.copy(), s.qd.copy()))
+                while len(s.history) > max_delay + 1:
+                    s.history.popleft()
+        self._last_acc = acc
+        q_seen, qd_seen = s.q.copy(), s.qd.copy()
+        if max_delay:
+            for j, d in enumerate(self.delay_steps):
+                if d:
+                    old = s.history[max(0, len(s.history) - 1 - d)]
+                    q_seen[j], qd_seen[j] = old[0][j], old[1][j]
+        noise = self.rng.normal(0.0, self.config.current_noise_a, self.n) if self.config.current_noise_a else 0.0
+        measured = s.current + noise
+        return Measurement(s.time_s, q_seen, qd_seen, measured, s.q.copy(), s.qd.copy(), acc)

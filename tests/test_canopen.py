@@ -1,0 +1,286 @@
+"""The simulated CiA 402 arm and the CANopen driver, on real python-can buses."""
+
+from __future__ import annotations
+
+import os
+import socket
+import struct
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import can
+import numpy as np
+import pytest
+
+from daq.control import ComputedTorque
+from drivers.canopen_driver import CanopenDriver
+from drivers.interface import DriveConfigError, DriveFault, HeartbeatLost
+from drivers.pdo_plan import BusBudgetError, bus_load, check_bus_budget, frame_bits
+from drivers.rig import RigFileError, load_rig, rig_from_dict
+from sim_bus.arm import SimulatedArm
+from sim_bus.drive import EMCY_POSITION_LIMIT, State, next_state
+
+ROOT = Path(__file__).resolve().parent.parent
+SIM_RIG = ROOT / "config" / "rigs" / "sim.yaml"
+
+
+def _rig(channel: str, interface: str = "virtual"):  # type: ignore[no-untyped-def]
+    return load_rig(SIM_RIG).with_bus(channel=channel, interface=interface)
+
+
+class _Bench:
+    """Simulated arm and driver on one virtual channel, each with its own bus handle."""
+
+    def __init__(self) -> None:
+        self.channel = f"armid-test-{uuid.uuid4().hex[:8]}"
+        self.rig = _rig(self.channel)
+        self.arm = SimulatedArm(self.rig, bus=can.Bus(interface="virtual", channel=self.channel))
+        self.driver = CanopenDriver(self.rig, bus=can.Bus(interface="virtual", channel=self.channel))
+        self.driver.start()
+        self.control = ComputedTorque(self.rig.robot, q_nominal=self.arm.physics.position)
+
+    def hold(self, cycles: int, raise_faults: bool = True) -> list:  # type: ignore[type-arg]
+        """Hold the start pose with PD plus gravity feed-forward; return the samples."""
+        q_ref = np.asarray(self.rig.simulation["initial_position"], float)
+        out = []
+        for _ in range(cycles):
+            s = self.driver.read(1.0)
+            out.append(s)
+            z = np.zeros_like(q_ref)
+            self.driver.command_torque(self.control(s.position, s.velocity, q_ref, z, z))
+        return out
+
+    def close(self) -> None:
+        self.driver.close()
+        self.arm.close()
+
+
+@pytest.fixture
+def bench():  # type: ignore[no-untyped-def]
+    b = _Bench()
+    yield b
+    b.close()
+
+
+def test_bus_budget_numbers_and_refusal() -> None:
+    assert frame_bits(8) == 135 and frame_bits(0) == 55 and frame_bits(2) == 75
+    assert bus_load("alternate_velocity", 6, 0.002, 1_000_000).load == pytest.approx(0.7796, abs=1e-3)
+    with pytest.raises(BusBudgetError, match=r"95\.2%.*alternate cycles.*two buses.*CAN FD"):
+        check_bus_budget("full", 6, 0.002, 1_000_000)
+    assert check_bus_budget("full", 6, 0.004, 1_000_000).load < 0.5
+
+
+def test_cia402_state_machine() -> None:
+    s = State.SWITCH_ON_DISABLED
+    for cw, expected in ((0x06, State.READY_TO_SWITCH_ON), (0x07, State.SWITCHED_ON), (0x0F, State.OPERATION_ENABLED),
+                         (0x02, State.QUICK_STOP_ACTIVE), (0x00, State.SWITCH_ON_DISABLED)):
+        s = next_state(s, cw, 0)
+        assert s == expected
+    assert next_state(State.SWITCH_ON_DISABLED, 0x0F, 0) == State.SWITCH_ON_DISABLED  # no skipping states
+    assert next_state(State.FAULT, 0x0F, 0) == State.FAULT
+    assert next_state(State.FAULT, 0x80, 0x00) == State.SWITCH_ON_DISABLED  # rising edge of fault reset
+    assert next_state(State.FAULT, 0x80, 0x80) == State.FAULT
+
+
+def test_rig_file_errors_name_field(tmp_path: Path) -> None:
+    doc = {"robot": str(ROOT / "config/robots/planar2.yaml"), "drives": [{"node_id": 1, "rated_current_a": 1.0}]}
+    with pytest.raises(RigFileError, match=r"drives: must list one drive per joint \(2\)"):
+        rig_from_dict(doc, "rig.yaml")
+    doc["drives"] = [{"node_id": 1, "rated_current_a": 1.0}, {"node_id": 1, "rated_current_a": 1.0}]
+    with pytest.raises(RigFileError, match=r"drives\[1\]\.node_id: node id 1 is used twice"):
+        rig_from_dict(doc, "rig.yaml")
+    doc["drives"][1] = {"node_id": 2, "rated_current_a": "lots"}
+    with pytest.raises(RigFileError, match=r"drives\[1\]\.rated_current_a: must be a number"):
+        rig_from_dict(doc, "rig.yaml")
+
+
+def _check_against_simulator(samples: list, log: dict, rig) -> None:  # type: ignore[no-untyped-def,type-arg]
+    """Every sample equals the simulator's state of the same SYNC to the encoder's resolution."""
+    by_sync = {int(k): _M(p, v, c) for k, p, v, c in zip(log["sync"], log["position"], log["velocity"], log["current"])}
+    counts = np.array([d.units.counts_per_rad for d in rig.drives])
+    rated = np.array([d.units.rated_current_a for d in rig.drives])
+    compared = 0
+    for s in samples:
+        m = by_sync.get(s.cycle)
+        if m is None:
+            continue
+        assert np.all(np.abs(s.position - m.position) <= 0.5 / counts + 1e-12)
+        fresh = s.velocity_fresh
+        assert np.all(np.abs(s.velocity - m.velocity)[fresh] <= (0.5 / counts + 1e-12)[fresh])
+        assert np.all(np.abs(s.measured_current - m.current) <= 0.5e-3 * rated + 1e-12)
+        compared += 1
+    assert compared >= 0.9 * len(samples)
+
+
+def test_virtual_bus_10_s_six_axes_no_lost_cycle(bench: _Bench) -> None:
+    bench.hold(50)
+    bench.driver.enable()
+    samples = bench.hold(5000)  # 10 s at 2 ms
+    cycles = np.array([s.cycle for s in samples])
+    assert np.all(np.diff(cycles) == 1), "cycles must come in order with no gap"
+    bad = [(s.cycle, np.flatnonzero(~s.valid).tolist()) for s in samples if not s.valid.all()]
+    assert not bad, f"lost cycles per joint: {bench.driver.lost_cycles}; (cycle, joints): {bad[:10]}, late frames {bench.driver.late_frames}"
+    assert bench.driver.lost_cycles.sum() == 0
+    assert all(d.state == State.OPERATION_ENABLED for d in bench.arm.drives)
+    # every second cycle carries velocity (the alternate_velocity plan)
+    fresh = np.array([s.velocity_fresh.all() for s in samples])
+    assert 0.45 < fresh.mean() < 0.55
+    _check_against_simulator(samples, bench.arm.log.arrays(), bench.rig)
+    # the arm held its pose under gravity: PD plus feed-forward works through the bus
+    q_ref = np.asarray(bench.rig.simulation["initial_position"])
+    assert np.abs(samples[-1].position - q_ref).max() < 0.05
+
+
+def test_silent_drive_detected_within_3_heartbeats_and_others_quick_stopped(bench: _Bench) -> None:
+    bench.hold(20)
+    bench.driver.enable()
+    bench.hold(50)
+    silent_at = time.monotonic()
+    bench.arm.drive(2).go_silent()
+    with pytest.raises(HeartbeatLost) as caught:
+        bench.hold(1000)
+    detected = time.monotonic() - silent_at
+    assert caught.value.joint == 2 and caught.value.node_id == 3
+    assert detected <= 3 * bench.rig.heartbeat_ms / 1000.0 + 0.02
+    bench.hold(10, raise_faults=False)
+    states = [d.state for i, d in enumerate(bench.arm.drives) if i != 2]
+    assert all(s in (State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED) for s in states), states
+
+
+def test_emcy_reaches_the_caller_as_a_typed_fault(bench: _Bench) -> None:
+    bench.hold(20)
+    bench.driver.enable()
+    bench.hold(20)
+    node = bench.driver.nodes[1]
+    pos = int(bench.hold(1)[-1].position[1] * bench.rig.drives[1].units.counts_per_rad)
+    node.sdo[0x607D][2].raw = pos - 10  # the drive is now beyond its own software limit
+    with pytest.raises(DriveFault) as caught:
+        bench.hold(200)
+    assert caught.value.code == EMCY_POSITION_LIMIT and caught.value.joint == 1
+    assert "position limit" in caught.value.meaning
+    assert bench.arm.drive(1).state == State.FAULT
+
+
+def test_master_heartbeat_loss_faults_the_drives(bench: _Bench) -> None:
+    bench.hold(20)
+    bench.driver.enable()
+    bench.hold(20)
+    assert bench.driver._hb_task is not None
+    bench.driver._hb_task.stop()  # the master's heartbeat stops (its process hangs, say)
+    with pytest.raises(DriveFault) as caught:
+        bench.hold(500)
+    assert caught.value.code == 0x8130
+
+
+def test_bad_frames_do_not_crash_the_driver_and_are_reported(bench: _Bench) -> None:
+    bench.hold(20)
+    intruder = can.Bus(interface="virtual", channel=bench.channel)
+    try:
+        intruder.send(can.Message(arbitration_id=0x181, data=[1, 2, 3], is_extended_id=False))  # wrong length
+        intruder.send(can.Message(arbitration_id=0x18A, data=[0] * 6, is_extended_id=False))  # unknown node 10
+        for _ in range(30):
+            intruder.send(can.Message(is_error_frame=True, arbitration_id=0x20000004, data=[0] * 8))
+        samples = bench.hold(100)
+    finally:
+        intruder.shutdown()
+    kinds = {e.kind: e.message for e in bench.driver.events()}
+    assert "has 3 bytes, the mapping has 6" in kinds["frame_length"]
+    assert "node 10" in kinds["unknown_node"]
+    assert "error frames" in kinds["error_frames"]
+    assert samples[-1].valid.all()
+    # an SDO abort is a typed error naming node and object; the driver goes on
+    with pytest.raises(DriveConfigError, match=r"node 1.*0x6041:00 aborted.*read only"):
+        bench.driver._sdo(0, bench.driver.nodes[0], 0x6041, 0, 5)
+    assert bench.hold(10)[-1].valid.all()
+
+
+def test_drive_that_disagrees_with_the_rig_is_refused() -> None:
+    channel = f"armid-test-{uuid.uuid4().hex[:8]}"
+    rig = _rig(channel)
+    arm = SimulatedArm(rig, bus=can.Bus(interface="virtual", channel=channel))
+    arm.drive(3).node.data_store[0x6091][1] = struct.pack("<I", 50_000)  # gear 50 in the drive
+    driver = CanopenDriver(rig, bus=can.Bus(interface="virtual", channel=channel))
+    try:
+        with pytest.raises(DriveConfigError, match=r"joint 4 \(node 4\): 0x6091 gear ratio is 50 in the drive, 76 in"):
+            driver.start()
+    finally:
+        driver.close()
+        arm.close()
+
+
+def _multicast_available() -> str | None:
+    try:
+        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        s.close()
+        return None
+    except OSError as err:
+        return f"no UDP sockets: {err}"
+
+
+@pytest.mark.skipif(_multicast_available() is not None, reason=str(_multicast_available()))
+def test_udp_multicast_two_processes_10_s(tmp_path: Path) -> None:
+    group = f"239.74.{np.random.default_rng().integers(1, 250)}.{np.random.default_rng().integers(1, 250)}"
+    rig = _rig(group, "udp_multicast")
+    ready, log = tmp_path / "ready", tmp_path / "sim.npz"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "armid.cli", "sim", "--rig", str(SIM_RIG), "--interface", "udp_multicast", "--channel", group,
+         "--ready", str(ready), "--log", str(log)],
+        cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        for _ in range(200):
+            if ready.exists():
+                break
+            time.sleep(0.05)
+        assert ready.exists(), "the simulator did not come up"
+        driver = CanopenDriver(rig)
+        driver.start()
+        control = ComputedTorque(rig.robot, q_nominal=np.asarray(rig.simulation["initial_position"]))
+        q_ref = np.asarray(rig.simulation["initial_position"], float)
+        samples = []
+        try:
+            for k in range(5050):
+                s = driver.read(1.0)
+                samples.append(s)
+                if k == 20:
+                    driver.enable()
+                z = np.zeros(rig.n_joints)
+                driver.command_torque(control(s.position, s.velocity, q_ref, z, z))
+        finally:
+            driver.close()
+    finally:
+        proc.terminate()
+        proc.wait(10)
+    assert np.all(np.diff([s.cycle for s in samples]) == 1)
+    bad = [(s.cycle, np.flatnonzero(~s.valid).tolist()) for s in samples if not s.valid.all()]
+    assert not bad, f"lost cycles per joint: {driver.lost_cycles}; (cycle, joints): {bad[:10]}, late frames {driver.late_frames}"
+    _check_against_simulator(samples, dict(np.load(log)), rig)
+
+
+class _M:
+    def __init__(self, position, velocity, current):  # type: ignore[no-untyped-def]
+        self.position, self.velocity, self.current = position, velocity, current
+
+
+def test_socketcan_vcan0() -> None:
+    if not hasattr(socket, "AF_CAN"):
+        pytest.skip("this kernel/Python has no AF_CAN (SocketCAN): the vcan0 test needs Linux with the can modules")
+    try:
+        s = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+        s.bind(("vcan0",))
+        s.close()
+    except OSError as err:
+        pytest.skip(f"no vcan0 interface here ({err}); `ip link add dev vcan0 type vcan && ip link set up vcan0` enables this test")
+    rig = _rig("vcan0", "socketcan")
+    arm = SimulatedArm(rig, bus=can.Bus(interface="socketcan", channel="vcan0"))
+    driver = CanopenDriver(rig)
+    try:
+        driver.start()
+        samples = [driver.read(1.0) for _ in range(500)]
+    finally:
+        driver.close()
+        arm.close()
+    assert all(s.valid.all() for s in samples)
