@@ -4,7 +4,7 @@
 work (computed from the parameters the robot file models, Pinocchio's RNEA on the same
 model as :mod:`identify.pinocchio_bridge`), the PD only corrects the model's error. Default
 gains put each joint at 5 Hz, critically damped, on the diagonal of its mass matrix at
-the reference pose: stiff enough to track, slow enough for one cycle of delay at 2 ms.
+the reference pose (rotor inertias included when given): stiff enough to track, slow enough for one cycle of delay at 2 ms.
 """
 
 from __future__ import annotations
@@ -18,13 +18,15 @@ from identify.spatial import Array
 
 class ComputedTorque:
     def __init__(self, robot: Robot, phi: Array | None = None, kp: Array | None = None, kd: Array | None = None,
-                 bandwidth_hz: float = 5.0, q_nominal: Array | None = None) -> None:
+                 bandwidth_hz: float = 5.0, q_nominal: Array | None = None, armature: Array | None = None) -> None:
         import pinocchio as pin
 
         self._pin = pin
         self.model = to_pinocchio(robot, phi)
-        self.data = self.model.createData()
         n = robot.n_joints
+        if armature is not None:
+            self.model.armature = np.asarray(armature, float)  # rotor inertias, where known
+        self.data = self.model.createData()
         q0 = np.zeros(n) if q_nominal is None else np.asarray(q_nominal, float)
         mass = pin.crba(self.model, self.data, q0)
         diag = np.maximum(np.diag(mass), 1e-3)

@@ -31,3 +31,17 @@ def summary(tau: Array, tau_hat: Array) -> dict[str, Any]:
         "rms": [float(x) for x in rms(tau, tau_hat)],
         "relative": [float(x) for x in relative(tau, tau_hat)],
     }
+
+
+def masked_summary(tau: Array, tau_hat: Array, used: Array) -> dict[str, Any]:
+    """:func:`summary` over the equations ``used`` (n, N) only (the others count as absent)."""
+    used = np.asarray(used, bool)
+    e = np.where(used, tau - tau_hat, 0.0)
+    y = np.where(used, tau, 0.0)
+    count = np.maximum(used.sum(axis=0), 1)
+    return {
+        "relative_error": float(np.linalg.norm(e) / max(np.linalg.norm(y), 1e-300)),
+        "rms": [float(x) for x in np.sqrt((e**2).sum(axis=0) / count)],
+        "relative": [float(x) for x in np.linalg.norm(e, axis=0) / np.maximum(np.linalg.norm(y, axis=0), 1e-300)],
+        "equations": int(used.sum()),
+    }

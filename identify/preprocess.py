@@ -32,6 +32,10 @@ class PrepareOptions:
     jitter_tolerance: float = 0.05
     lowpass_hz: float | None = None
     min_segment_samples: int = 20
+    # the torque (current) of a sample was held over the period before its time stamp, as a
+    # drive's current between two SYNCs is: it then belongs half a period earlier than the
+    # positions, and is re-timed onto the sample instants by averaging neighbours
+    torque_hold: bool = False
 
 
 @dataclass
@@ -167,6 +171,8 @@ def _uniform(source: str, t: Array, q: Array, tau: Array, qd: Array | None, qdd:
         qdd = None if qdd is None else np.column_stack([np.interp(grid, t, c) for c in qdd.T])
         tau = np.column_stack([np.interp(grid, t, c) for c in tau.T])
         t = grid
+    if options.torque_hold and tau.shape[0] > 1:
+        tau = np.vstack([0.5 * (tau[:-1] + tau[1:]), tau[-1:]])
     if options.lowpass_hz:
         q = lowpass(q, period, options.lowpass_hz)
         tau = lowpass(tau, period, options.lowpass_hz)
@@ -177,6 +183,12 @@ def _uniform(source: str, t: Array, q: Array, tau: Array, qd: Array | None, qdd:
     if qdd is None:
         qdd = five_point_derivative(qd, period)
     valid = np.all(np.isfinite(qd), axis=1) & np.all(np.isfinite(qdd), axis=1)
+    if options.lowpass_hz:
+        # a forward-backward filter starts and ends with a transient that differentiation
+        # turns into large accelerations: leave out three time constants at both ends
+        edge = int(np.ceil(3.0 / (options.lowpass_hz * period)))
+        valid[:edge] = False
+        valid[max(valid.size - edge, 0) :] = False
     if not valid.any():
         return None
     return Segment(source, t[valid], q[valid], qd[valid], qdd[valid], tau[valid])

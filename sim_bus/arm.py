@@ -70,7 +70,7 @@ class SimulatedArm:
         self.bus = bus if bus is not None else can.Bus(**rig.bus.kwargs())
         self.network = canopen.Network(self.bus)
         self.network.connect()
-        sync_timeout = float(sim.get("sync_timeout_s", 0.02))
+        sync_timeout = float(sim.get("sync_timeout_s", 0.1))
         self.drives = [SimulatedDrive(d.node_id, d.joint, d.units, self.network, sync_timeout) for d in rig.drives]
         self.network.subscribe(0x80, self._on_sync)
         self.network.subscribe(0x700 + rig.master_node_id, self._on_master_heartbeat)

@@ -1,0 +1,99 @@
+"""CANopen acquisition at 2 ms with 6 axes: lost cycles, SYNC period p50/p99/max, CPU per cycle.
+
+    python benchmarks/bench_canopen.py [seconds] [virtual|udp_multicast ...]
+
+``virtual``: simulated arm and driver in this process. ``udp_multicast``: the arm runs as
+``armid sim`` in another process. The SYNC period is measured on the bus by a listener of
+its own (the frames' timestamps); CPU per cycle is this process's CPU time over the
+cycles (for ``virtual`` it includes the simulated arm).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+import time
+import uuid
+from pathlib import Path
+
+import can
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from daq.control import ComputedTorque  # noqa: E402
+from drivers.canopen_driver import CanopenDriver  # noqa: E402
+from drivers.rig import load_rig  # noqa: E402
+from sim_bus.arm import SimulatedArm  # noqa: E402
+
+RIG = ROOT / "config" / "rigs" / "sim.yaml"
+
+
+class SyncTimes(can.Listener):
+    def __init__(self) -> None:
+        self.times: list[float] = []
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.arbitration_id == 0x80:
+            self.times.append(msg.timestamp)
+
+
+def run(interface: str, seconds: float) -> str:
+    channel = f"armid-bench-{uuid.uuid4().hex[:6]}" if interface == "virtual" else f"239.74.{np.random.randint(1, 250)}.{np.random.randint(1, 250)}"
+    rig = load_rig(RIG).with_bus(interface=interface, channel=channel)
+    arm = proc = None
+    tmp = tempfile.TemporaryDirectory()
+    if interface == "virtual":
+        arm = SimulatedArm(rig, bus=can.Bus(interface="virtual", channel=channel))
+    else:
+        ready = Path(tmp.name) / "ready"
+        proc = subprocess.Popen([sys.executable, "-m", "armid.cli", "sim", "--rig", str(RIG), "--interface", interface,
+                                 "--channel", channel, "--ready", str(ready)], cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+        while not ready.exists():
+            time.sleep(0.05)
+    listener_bus = can.Bus(**rig.bus.kwargs())
+    sync = SyncTimes()
+    notifier = can.Notifier(listener_bus, [sync])
+    driver = CanopenDriver(rig)
+    driver.start()
+    q_ref = np.asarray(rig.simulation["initial_position"], float)
+    control = ComputedTorque(rig.robot, q_nominal=q_ref)
+    z = np.zeros(rig.n_joints)
+    for k in range(20):
+        driver.read(1.0)
+    driver.enable()
+    n = int(seconds / rig.period_s)
+    cpu0, wall0 = time.process_time(), time.perf_counter()
+    invalid = 0
+    for _ in range(n):
+        s = driver.read(1.0)
+        invalid += int(not s.valid.all())
+        driver.command_torque(control(s.position, s.velocity, q_ref, z, z))
+    cpu = time.process_time() - cpu0
+    wall = time.perf_counter() - wall0
+    driver.close()
+    notifier.stop()
+    listener_bus.shutdown()
+    if arm is not None:
+        arm.close()
+    if proc is not None:
+        proc.terminate()
+        proc.wait(10)
+    tmp.cleanup()
+    periods = np.diff(np.array(sync.times)) * 1e3
+    p50, p99 = np.percentile(periods, [50, 99])
+    return (
+        f"{interface}: {n} cycles in {wall:.1f} s, 6 axes at {rig.period_s * 1e3:g} ms: lost cycles {int(driver.lost_cycles.max())} "
+        f"(samples with a missing joint: {invalid}), late frames {int(driver.late_frames.sum())}; SYNC period p50 {p50:.3f} ms, "
+        f"p99 {p99:.3f} ms, max {periods.max():.3f} ms; CPU per cycle {cpu / n * 1e3:.3f} ms"
+        + (" (driver and simulated arm)" if interface == "virtual" else " (driver only)")
+    )
+
+
+if __name__ == "__main__":
+    seconds = float(sys.argv[1]) if len(sys.argv) > 1 else 60.0
+    for iface in sys.argv[2:] or ["virtual", "udp_multicast"]:
+        print(run(iface, seconds), flush=True)
