@@ -64,6 +64,43 @@ def _identify(args: argparse.Namespace) -> int:
     return 0
 
 
+def _diagnose(args: argparse.Namespace) -> int:
+    from identify.diagnosis import diagnose
+    from identify.preprocess import PrepareOptions, prepare
+    from identify.recordings import read_recording, write_csv
+    from identify.robot_file import load_robot
+
+    robot = load_robot(args.robot)
+    options = PrepareOptions(max_gap_factor=args.max_gap_factor, lowpass_hz=args.lowpass, torque_hold=args.torque_hold)
+    experiments = [prepare(read_recording(p, robot), robot, options) for p in args.data]
+    validation = [prepare(read_recording(p, robot), robot, options) for p in args.validate]
+    for path, prep in zip(list(args.data) + list(args.validate), experiments + validation):
+        for note in prep.notes:
+            print(f"{path}: {note}", file=sys.stderr)
+    diag = diagnose(robot, experiments, validation)
+    doc = diag.to_json()
+    for out in (args.json, args.predictions):
+        if out:
+            Path(out).parent.mkdir(parents=True, exist_ok=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(doc, indent=1) + "\n")
+    if args.predictions:
+        t = diag.validation_motion[0]
+        write_csv(args.predictions, t, {"tau_hat": diag.residual_after[1]})
+    if args.report:
+        from .report import write_diagnosis_report
+
+        write_diagnosis_report(diag, robot.name, Path(args.report))
+    for f in diag.found:
+        print(f.sentence())
+    if not diag.found:
+        print("nothing significant found: the declared model explains the data to its noise")
+    for a in diag.absorbed:
+        print(f"absorbed (not a finding): {a['effect']} on joint {a['joint']} joins {a['into']}")
+    print(f"{robot.name}: validation error {100 * doc['before']['relative_error']:.3g} % -> {100 * doc['after']['relative_error']:.3g} %")
+    return 0
+
+
 def _sim(args: argparse.Namespace) -> int:
     import signal
     import threading
@@ -117,6 +154,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lowpass", type=float, metavar="HZ", help="zero-phase low-pass before differentiating")
     p.add_argument("--max-gap-factor", type=float, default=20.0, help="split where a step exceeds this many median steps")
     p.set_defaults(run=_identify)
+
+    p = sub.add_parser("diagnose", help="residual analysis: find undeclared effects, add them, refit, error before/after")
+    p.add_argument("data", nargs="+", help="recordings to identify on (CSV or .npz)")
+    p.add_argument("--robot", required=True, help="robot description (config/robots/*.yaml)")
+    p.add_argument("--validate", nargs="+", metavar="DATA", required=True, help="held-out recordings: every score is measured on them")
+    p.add_argument("--json", metavar="OUT", help="write the findings and the errors before and after as JSON")
+    p.add_argument("--report", metavar="DIR", help="write diagnosis.md with residual plots per joint")
+    p.add_argument("--predictions", metavar="CSV", help="write the final model's predicted validation torques (t, tau_hat1..n)")
+    p.add_argument("--lowpass", type=float, metavar="HZ", help="zero-phase low-pass before differentiating")
+    p.add_argument("--torque-hold", action="store_true", help="torques were held over the period before each sample (drive currents between SYNCs)")
+    p.add_argument("--max-gap-factor", type=float, default=20.0, help="split where a step exceeds this many median steps")
+    p.set_defaults(run=_diagnose)
 
     p = sub.add_parser("sim", help="simulated arm on a CAN bus (virtual, udp_multicast, socketcan)")
     p.add_argument("--rig", required=True, help="rig file (config/rigs/sim.yaml)")

@@ -68,3 +68,53 @@ def write_report(result: IdentificationResult, doc: dict[str, Any], segments: li
     path = out_dir / "report.md"
     path.write_text("\n".join(lines) + "\n")
     return path
+
+
+def write_diagnosis_report(diag: Any, robot_name: str, out_dir: Path) -> Path:
+    """``diagnosis.md``: one sentence per finding, before/after errors, and per joint the
+    held-out residual against velocity (friction), position (cogging, spring, tilt),
+    acceleration (rotor inertia) and time (drift), before and after."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tau, before = diag.residual_before
+    _, after = diag.residual_after
+    t, q, qd, qdd = diag.validation_motion
+    used = diag.used if diag.used is not None else np.ones_like(tau, bool)
+    plots = []
+    for j in range(tau.shape[1]):
+        u = used[:, j]
+        fig, axes = plt.subplots(1, 4, figsize=(15, 3.4), sharey=True)
+        for ax, x, label in zip(axes, (qd[:, j], q[:, j], qdd[:, j], t), ("velocity", "position", "acceleration", "time [s]")):
+            ax.plot(x[u], (tau - before)[u, j], ".", ms=1.5, alpha=0.4, color="tab:red", label="before")
+            ax.plot(x[u], (tau - after)[u, j], ".", ms=1.5, alpha=0.4, color="tab:blue", label="after")
+            ax.set_xlabel(label)
+        axes[0].set_ylabel(f"residual, joint {j + 1}")
+        axes[0].legend(loc="upper right", markerscale=6)
+        fig.suptitle(f"{robot_name} joint {j + 1}: held-out residual before (red) and after (blue) the findings")
+        fig.tight_layout()
+        name = f"diagnosis_joint{j + 1}.png"
+        fig.savefig(out_dir / name, dpi=90)
+        plt.close(fig)
+        plots.append(name)
+    b, a = diag.before, diag.after
+    lines = [f"# Diagnosis: {robot_name}", "",
+             f"Held-out (validation) relative error **{100 * b['relative_error']:.3g} % -> {100 * a['relative_error']:.3g} %** "
+             f"over {b.get('equations', '?')} joint equations (a joint's equation is left out while it is at rest or reversing).", ""]
+    lines += ["## Findings", ""]
+    lines += [f"- {f.sentence()}" for f in diag.found] or ["- nothing significant: the declared model explains the data to its noise"]
+    if diag.absorbed:
+        lines += ["", "## Absorbed by the rigid-body model (not findings)", ""]
+        lines += [f"- {x['effect'].replace('_', ' ')} on joint {x['joint']}: its columns lie in the model's span; it joins `{x['into']}`" for x in diag.absorbed]
+    lines += ["", f"Declared in the robot file (part of the base model): {', '.join(diag.base_effects) or 'nothing'}.", "",
+              "## Error per joint", "", "| joint | RMS before | RMS after | relative before | relative after |", "|---|---|---|---|---|"]
+    for j in range(tau.shape[1]):
+        lines.append(f"| {j + 1} | {b['rms'][j]:.4g} | {a['rms'][j]:.4g} | {100 * b['relative'][j]:.3g} % | {100 * a['relative'][j]:.3g} % |")
+    lines += ["", "## Residual against velocity, position, acceleration and time", ""]
+    lines += [f"![joint {k + 1}]({p})" for k, p in enumerate(plots)]
+    path = out_dir / "diagnosis.md"
+    path.write_text("\n".join(lines) + "\n")
+    return path

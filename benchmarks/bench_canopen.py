@@ -58,31 +58,33 @@ def run(interface: str, seconds: float) -> str:
     sync = SyncTimes()
     notifier = can.Notifier(listener_bus, [sync])
     driver = CanopenDriver(rig)
-    driver.start()
-    q_ref = np.asarray(rig.simulation["initial_position"], float)
-    control = ComputedTorque(rig.robot, q_nominal=q_ref)
-    z = np.zeros(rig.n_joints)
-    for k in range(20):
-        driver.read(1.0)
-    driver.enable()
-    n = int(seconds / rig.period_s)
-    cpu0, wall0 = time.process_time(), time.perf_counter()
-    invalid = 0
-    for _ in range(n):
-        s = driver.read(1.0)
-        invalid += int(not s.valid.all())
-        driver.command_torque(control(s.position, s.velocity, q_ref, z, z))
-    cpu = time.process_time() - cpu0
-    wall = time.perf_counter() - wall0
-    driver.close()
-    notifier.stop()
-    listener_bus.shutdown()
-    if arm is not None:
-        arm.close()
-    if proc is not None:
-        proc.terminate()
-        proc.wait(10)
-    tmp.cleanup()
+    try:
+        driver.start()
+        q_ref = np.asarray(rig.simulation["initial_position"], float)
+        control = ComputedTorque(rig.robot, q_nominal=q_ref)
+        z = np.zeros(rig.n_joints)
+        for _ in range(20):
+            driver.read(1.0)
+        driver.enable()
+        n = int(seconds / rig.period_s)
+        cpu0, wall0 = time.process_time(), time.perf_counter()
+        invalid = 0
+        for _ in range(n):
+            s = driver.read(1.0)
+            invalid += int(not s.valid.all())
+            driver.command_torque(control(s.position, s.velocity, q_ref, z, z))
+        cpu = time.process_time() - cpu0
+        wall = time.perf_counter() - wall0
+    finally:
+        driver.close()
+        notifier.stop()
+        listener_bus.shutdown()
+        if arm is not None:
+            arm.close()
+        if proc is not None:
+            proc.terminate()
+            proc.wait(10)
+        tmp.cleanup()
     periods = np.diff(np.array(sync.times)) * 1e3
     p50, p99 = np.percentile(periods, [50, 99])
     return (

@@ -5,8 +5,8 @@ Start-up, per drive, over SDO: heartbeat producer (0x1017) and consumer of the m
 PDO mapping of the rig's plan (:mod:`drivers.pdo_plan`), written and then read back and
 compared, and the motor data (encoder 0x608F, gear 0x6091, rated current 0x6075) read
 back and compared with the rig. Then NMT start, the master's heartbeat, and SYNC with a
-counter: a sequence of 240 frames that the kernel's broadcast manager cycles on socketcan,
-a thread otherwise.
+counter: a sequence of 240 frames that the kernel's broadcast manager cycles on socketcan
+(each echoed SYNC opens its cycle at its kernel time stamp), a thread otherwise.
 
 Each cycle's record is keyed by the SYNC counter: a TPDO belongs to the oldest open cycle
 that still waits for it and whose SYNC went out before the frame (a drive answers SYNCs in
@@ -178,8 +178,15 @@ class CanopenDriver(Driver):
         # for many milliseconds; what exists after start-up is never garbage, so freeze it
         gc.collect()
         gc.freeze()
-        self._thread = threading.Thread(target=self._sync_loop, name="armid-sync", daemon=True)
-        self._thread.start()
+        if r.bus.interface == "socketcan":
+            # the kernel's broadcast manager cycles 240 SYNC frames with counters 1..240; the
+            # bus echoes each one back (receive_own_messages), and the echo opens its cycle
+            frames = [can.Message(arbitration_id=0x80, data=[c], is_extended_id=False) for c in range(1, SYNC_COUNTER_OVERFLOW + 1)]
+            self.network.subscribe(0x80, self._on_sync_echo)
+            self._bcm_task = self._bus.send_periodic(frames, r.period_s)
+        else:
+            self._thread = threading.Thread(target=self._sync_loop, name="armid-sync", daemon=True)
+            self._thread.start()
 
     def _sdo(self, joint: int, node: canopen.RemoteNode, index: int, sub: int, value: int | None = None) -> int:
         if index not in node.object_dictionary:
@@ -295,12 +302,23 @@ class CanopenDriver(Driver):
                 self._event("bus", f"cannot send SYNC {counter}: {err}")
             self._watchdog()
 
+    def _on_sync_echo(self, can_id: int, data: bytes, timestamp: float) -> None:
+        """A SYNC the broadcast manager sent, seen on the bus: its cycle starts at its stamp."""
+        self._cycle += 1
+        with self._lock:
+            self._open_cycle(self._cycle, data[0] if data else 0, timestamp)
+        try:
+            self._send_commands()
+        except can.CanError as err:
+            self._event("bus", f"cannot send commands after SYNC: {err}")
+        self._watchdog()
+
     def _open_cycle(self, cycle: int, counter: int, now: float) -> None:
         # Normally a cycle closes when its frames are in, or when a frame stamped after its
         # deadline shows that bus time has passed it (in _on_tpdo). Only when no frame comes
         # at all does the wall clock close it, later, so that a stall of this process is not
         # mistaken for frames lost on the bus.
-        fallback = max(self.deadline_periods * self.period_s, 0.05)
+        fallback = max(self.deadline_periods * self.period_s, 0.5)
         while self._open and now - self._open[0].time_s >= fallback:
             self._emit(self._open.pop(0))
         s = Sample.empty(cycle, now, self.n_joints)

@@ -92,6 +92,7 @@ class _Data:
     qdd: Array
     tau: Array
     period: float
+    t: Array | None = None
 
     @property
     def n_joints(self) -> int:
@@ -117,13 +118,14 @@ class _Data:
             elif steps < 0:
                 x[:-steps, j] = x[-steps, j]
             return x
-        return _Data(shift(self.q), shift(self.qd), shift(self.qdd), self.tau, self.period)
+        return _Data(shift(self.q), shift(self.qd), shift(self.qdd), self.tau, self.period, self.t)
 
 
 def _stack(prepared: list[Prepared]) -> _Data:
     segs = [s for p in prepared for s in p.segments]
     period = float(np.median(np.diff(segs[0].t)))
-    return _Data(*(np.concatenate([getattr(s, k) for s in segs]) for k in ("q", "qd", "qdd", "tau")), period)
+    q, qd, qdd, tau, t = (np.concatenate([getattr(s, k) for s in segs]) for k in ("q", "qd", "qdd", "tau", "t"))
+    return _Data(q, qd, qdd, tau, period, t)
 
 
 @dataclass(frozen=True)
@@ -192,6 +194,7 @@ class Diagnosis:
     residual_before: tuple[Array, Array] | None = None  # validation (tau, tau_hat) before
     residual_after: tuple[Array, Array] | None = None
     validation_motion: tuple[Array, Array, Array, Array] | None = None  # t, q, qd, qdd
+    used: Array | None = None  # (n, N) validation equations the scores used
 
     def to_json(self) -> dict[str, Any]:
         return {"found": [f.to_json() for f in self.found], "absorbed": self.absorbed, "declared": self.base_effects,
@@ -216,12 +219,12 @@ def _candidates(robot: Robot, data: _Data, present: set[tuple[str, int | None]],
             if (name, j) not in present:
                 out.append(Candidate(name, j, setting, labels, block=fn))
 
-        lin("viscous_friction", lambda d, j=j: d.qd[:, j : j + 1], ("fv",))
-        lin("coulomb_friction", lambda d, j=j: np.sign(d.qd[:, j : j + 1]), ("fc",))
+        lin("viscous_friction", lambda d, j=j: d.qd[:, j : j + 1], ("fv",))  # type: ignore[misc]
+        lin("coulomb_friction", lambda d, j=j: np.sign(d.qd[:, j : j + 1]), ("fc",))  # type: ignore[misc]
         lin("torque_offset", lambda d: np.ones((d.q.shape[0], 1)), ("offset",))
-        lin("rotor_inertia", lambda d, j=j: d.qdd[:, j : j + 1], ("ia",))
+        lin("rotor_inertia", lambda d, j=j: d.qdd[:, j : j + 1], ("ia",))  # type: ignore[misc]
         with_offset = ("torque_offset", j) not in present
-        lin("spring", (lambda d, j=j: np.column_stack([d.q[:, j], np.ones(d.q.shape[0])])) if with_offset else (lambda d, j=j: d.q[:, j : j + 1]),
+        lin("spring", (lambda d, j=j: np.column_stack([d.q[:, j], np.ones(d.q.shape[0])])) if with_offset else (lambda d, j=j: d.q[:, j : j + 1]),  # type: ignore[misc]
             ("stiffness", "offset") if with_offset else ("stiffness",))
         with_coulomb = ("coulomb_friction", j) not in present
         for vs in STRIBECK_VELOCITIES:
@@ -236,18 +239,18 @@ def _candidates(robot: Robot, data: _Data, present: set[tuple[str, int | None]],
                 period = 2.0 * np.pi / k
                 if span < 2.0 * period:
                     continue
-                lin("cogging", lambda d, j=j, p=period: np.column_stack([np.sin(2 * np.pi * d.q[:, j] / p), np.cos(2 * np.pi * d.q[:, j] / p)]),
+                lin("cogging", lambda d, j=j, p=period: np.column_stack([np.sin(2 * np.pi * d.q[:, j] / p), np.cos(2 * np.pi * d.q[:, j] / p)]),  # type: ignore[misc]
                     ("a", "b"), setting=(("period_rad", period),))
         if ("torque_gain", j) not in present:
-            out.append(Candidate("torque_gain", j, (), ("c",), block=lambda d, j=j: ctx["predict"](d)[:, j : j + 1]))
+            out.append(Candidate("torque_gain", j, (), ("c",), block=lambda d, j=j: ctx["predict"](d)[:, j : j + 1]))  # type: ignore[misc]
         if ("time_delay", j) not in present:
-            out.append(Candidate("time_delay", j, (), ("delay_s",), full=lambda d, j=j: ((ctx["predict_smooth"](d.shifted(j, 1)) - ctx["predict_smooth"](d.shifted(j, -1))) / (2 * d.period)).reshape(-1, 1)))
+            out.append(Candidate("time_delay", j, (), ("delay_s",), full=lambda d, j=j: ((ctx["predict_smooth"](d.shifted(j, 1)) - ctx["predict_smooth"](d.shifted(j, -1))) / (2 * d.period)).reshape(-1, 1)))  # type: ignore[misc]
     if ("gravity_tilt", None) not in present:
         def tilt(d: _Data) -> Array:
             g = np.asarray(robot.gravity, float)
             cols = []
             for axis in np.eye(3)[:2]:
-                tilted = replace(robot, gravity=tuple(np.cross(axis, g)))
+                tilted = replace(robot, gravity=np.cross(axis, g))
                 z = np.zeros_like(d.q)
                 cols.append((regressor(tilted, d.q, z, z) @ ctx["phi"]).reshape(-1))
             return np.column_stack(cols)
@@ -424,9 +427,9 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     after_pred = a_v @ beta if found else before_pred
     before = masked_summary(valid.tau, before_pred.reshape(-1, nj), used_v)
     after = masked_summary(valid.tau, after_pred.reshape(-1, nj), used_v)
-    t_v = np.arange(valid.q.shape[0]) * valid.period
+    t_v = valid.t if valid.t is not None else np.arange(valid.q.shape[0]) * valid.period
     return Diagnosis(found, absorbed, before, after, [f"{e.effect}@{e.joint + 1}" for e in effects], rounds,
-                     (valid.tau, before_pred.reshape(-1, nj)), (valid.tau, after_pred.reshape(-1, nj)), (t_v, valid.q, valid.qd, valid.qdd))
+                     (valid.tau, before_pred.reshape(-1, nj)), (valid.tau, after_pred.reshape(-1, nj)), (t_v, valid.q, valid.qd, valid.qdd), used_v)
 
 
 def _merge_offset_into_spring(found: list[Finding], chosen: list[Candidate]) -> tuple[list[Finding], list[Candidate]]:
@@ -450,6 +453,6 @@ def _moving(d: _Data, opts: DiagnoseOptions) -> Array:
 
 
 def _rel(y: Array, y_hat: Array) -> float:
-    return float(np.linalg.norm(y - y_hat) / max(np.linalg.norm(y), 1e-300))
+    return float(np.linalg.norm(y - y_hat)) / max(float(np.linalg.norm(y)), 1e-300)
 
 

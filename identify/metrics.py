@@ -40,7 +40,7 @@ def masked_summary(tau: Array, tau_hat: Array, used: Array) -> dict[str, Any]:
     y = np.where(used, tau, 0.0)
     count = np.maximum(used.sum(axis=0), 1)
     return {
-        "relative_error": float(np.linalg.norm(e) / max(np.linalg.norm(y), 1e-300)),
+        "relative_error": float(np.linalg.norm(e)) / max(float(np.linalg.norm(y)), 1e-300),
         "rms": [float(x) for x in np.sqrt((e**2).sum(axis=0) / count)],
         "relative": [float(x) for x in np.linalg.norm(e, axis=0) / np.maximum(np.linalg.norm(y, axis=0), 1e-300)],
         "equations": int(used.sum()),

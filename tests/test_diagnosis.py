@@ -100,3 +100,29 @@ def test_rotor_inertia_of_the_vertical_first_joint_is_absorbed_not_found() -> No
 def test_nothing_is_found_without_an_undeclared_effect(seed: int) -> None:
     d = _run(seed=seed)
     assert d.found == [], [f.sentence() for f in d.found]
+
+
+def test_armid_diagnose_cli_writes_json_report_and_predictions(tmp_path: Path) -> None:
+    """The command on the shipped example: JSON as INTERFACES.md says, a report, predictions."""
+    import json
+    import subprocess
+    import sys
+
+    out = tmp_path / "out"
+    proc = subprocess.run(
+        [sys.executable, "-m", "armid.cli", "diagnose", str(ROOT / "examples/puma560_excitation.csv"), "--robot",
+         str(ROOT / "config/robots/puma560.yaml"), "--validate", str(ROOT / "examples/puma560_validation.csv"),
+         "--json", str(out / "d.json"), "--report", str(out), "--predictions", str(out / "p.csv")],
+        cwd=ROOT, capture_output=True, text=True, timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads((out / "d.json").read_text())
+    assert set(doc) >= {"found", "before", "after"}
+    assert set(doc["before"]) >= {"relative_error", "rms", "relative"}
+    assert (out / "diagnosis.md").exists() and (out / "diagnosis_joint1.png").exists()
+    header = (out / "p.csv").read_text().splitlines()[0]
+    assert header.split(",")[:2] == ["t", "tau_hat1"]
+    missing = subprocess.run([sys.executable, "-m", "armid.cli", "diagnose", str(tmp_path / "nope.csv"), "--robot",
+                              str(ROOT / "config/robots/puma560.yaml"), "--validate", str(tmp_path / "nope.csv")],
+                             cwd=ROOT, capture_output=True, text=True)
+    assert missing.returncode == 2 and "nope.csv" in missing.stderr and len(missing.stderr.strip().splitlines()) == 1
