@@ -101,6 +101,89 @@ def _diagnose(args: argparse.Namespace) -> int:
     return 0
 
 
+def _record(args: argparse.Namespace) -> int:
+    import platform
+    import signal
+    import threading
+    import time
+
+    import can
+
+    from daq.acquisition import Acquisition, Sink
+    from daq.recorder import McapRecorder
+    from drivers.canopen_driver import CanopenDriver
+    from drivers.rig import load_rig
+
+    rig = load_rig(args.rig)
+    changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
+    if changes:
+        rig = rig.with_bus(**changes)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    simulate = args.simulate if args.simulate is not None else rig.bus.interface == "virtual"
+    arm = None
+    if simulate:
+        from sim_bus.arm import SimulatedArm
+
+        arm = SimulatedArm(rig, bus=can.Bus(**rig.bus.kwargs()))
+    driver = CanopenDriver(rig)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    session = stream = None
+    try:
+        driver.start()
+        assert driver.network is not None and driver.network.notifier is not None
+        can_log = can.Logger(str(out / "can.log"))  # every frame, as python-can's canutils log
+        driver.network.notifier.add_listener(can_log)
+        import armid as _armid_pkg
+
+        metadata = {
+            "robot": rig.robot.name, "rig": rig.name, "rig_file": rig.source, "period_s": rig.period_s, "pdo_plan": rig.pdo_plan,
+            "drives": driver.drive_configuration, "excitation": "none (armid record)",
+            "versions": {"armid": getattr(_armid_pkg, "__version__", "0.1.0"), "python": platform.python_version(),
+                         "python-can": can.__version__},
+        }
+        recorder = McapRecorder(out / "run.mcap", [j.name for j in rig.robot.joints], driver.torque_constants, metadata)
+        sinks = [Sink("recorder", recorder.write, bounded=False)]
+        if not args.no_zenoh:
+            import zenoh
+
+            from daq.stream import Stream, session_config
+
+            session = zenoh.open(session_config(args.zenoh_listen, args.zenoh_connect, args.zenoh_config))
+            stream = Stream(session, rig.robot.name, "recorder", lambda: {"records": acq.sequence, "invalid": acq.invalid.tolist(),
+                                                                          "dropped_by_stream": sinks[-1].dropped})
+            sinks.append(Sink("zenoh", stream.publish, bounded=True, capacity=5000))
+        acq = Acquisition(driver, sinks, on_fault=lambda f: stream.event("fault", joint=f.joint + 1, code=f.code, meaning=f.meaning) if stream else None)
+        if stream:
+            stream.event("start", rig=rig.name)
+        acq.start()
+        start = time.monotonic()
+        print(f"armid record: {rig.name} -> {out / 'run.mcap'} (Ctrl-C stops)", file=sys.stderr, flush=True)
+        while not stop.wait(0.1):
+            if args.duration and time.monotonic() - start >= args.duration:
+                break
+            if acq.error:
+                break
+        acq.stop()
+        recorder.close()
+        can_log.stop()
+        if stream:
+            stream.event("stop", records=acq.sequence)
+        print(f"armid record: {acq.sequence} records, invalid per joint {acq.invalid.tolist()}, lost cycles per joint "
+              f"{driver.lost_cycles.tolist()}" + (f", dropped by the stream {sinks[-1].dropped}" if stream else ""), file=sys.stderr)
+        return 1 if acq.error else 0
+    finally:
+        driver.close()
+        if stream:
+            stream.close()
+        if session is not None:
+            session.close()
+        if arm is not None:
+            arm.close()
+
+
 def _sim(args: argparse.Namespace) -> int:
     import signal
     import threading
@@ -166,6 +249,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--torque-hold", action="store_true", help="torques were held over the period before each sample (drive currents between SYNCs)")
     p.add_argument("--max-gap-factor", type=float, default=20.0, help="split where a step exceeds this many median steps")
     p.set_defaults(run=_diagnose)
+
+    p = sub.add_parser("record", help="record the drives through daq/: MCAP, raw CAN log, live Zenoh stream")
+    p.add_argument("--rig", required=True, help="rig file")
+    p.add_argument("--out", required=True, help="output folder (run.mcap, can.log)")
+    p.add_argument("--duration", type=float, help="seconds to record (default: until Ctrl-C)")
+    p.add_argument("--interface", help="override the rig's python-can interface")
+    p.add_argument("--channel", help="override the rig's channel")
+    p.add_argument("--simulate", action=argparse.BooleanOptionalAction, default=None,
+                   help="run the rig's simulated arm in this process (default: when the bus is virtual)")
+    p.add_argument("--no-zenoh", action="store_true", help="do not stream")
+    p.add_argument("--zenoh-listen", nargs="*", metavar="ENDPOINT", help="Zenoh endpoints to listen on, e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--zenoh-connect", nargs="*", metavar="ENDPOINT", help="Zenoh endpoints to connect to")
+    p.add_argument("--zenoh-config", metavar="JSON5", help="a Zenoh configuration file (config/zenoh/lab.json5)")
+    p.set_defaults(run=_record)
 
     p = sub.add_parser("sim", help="simulated arm on a CAN bus (virtual, udp_multicast, socketcan)")
     p.add_argument("--rig", required=True, help="rig file (config/rigs/sim.yaml)")

@@ -38,6 +38,7 @@ from .rig import Rig
 EDS = str(__import__("pathlib").Path(__file__).resolve().parent.parent / "config" / "drives" / "armid_cia402.eds")
 
 SYNC_COUNTER_OVERFLOW = 240
+STALL_S = 0.05  # a watchdog call this late means this process (not the bus) was stalled
 TARGET_POSITION = (0x607A, 0, 32)
 
 EMCY_MEANINGS = {
@@ -129,6 +130,7 @@ class CanopenDriver(Driver):
         self._commanded = np.zeros(self.n_joints)
         self._in_force = np.zeros(self.n_joints)
         self._heartbeat = np.zeros(self.n_joints)
+        self._last_watch = time.monotonic()
         self._silent = np.zeros(self.n_joints, bool)
         self._hb_task: can.broadcastmanager.CyclicSendTaskABC | None = None
         self._bcm_task: can.broadcastmanager.CyclicSendTaskABC | None = None
@@ -170,6 +172,7 @@ class CanopenDriver(Driver):
         for d, node in zip(r.drives, self.nodes):
             self.drive_configuration.append(self._configure(d.joint, node))
         self._heartbeat[:] = time.monotonic()
+        self._last_watch = time.monotonic()
         self._hb_task = self._bus.send_periodic(
             can.Message(arbitration_id=0x700 + r.master_node_id, data=[0x05], is_extended_id=False), r.master_heartbeat_ms / 1000.0
         )
@@ -396,6 +399,11 @@ class CanopenDriver(Driver):
     def _watchdog(self) -> None:
         now = time.monotonic()
         limit = 3 * self.rig.heartbeat_ms / 1000.0
+        stall = now - self._last_watch - 2 * self.period_s
+        self._last_watch = now
+        if stall > STALL_S:
+            # this process did not run: heartbeats sent meanwhile wait unread in the socket
+            self._heartbeat += stall
         for d in self.rig.drives:
             j = d.joint
             if not self._silent[j] and now - self._heartbeat[j] > limit:

@@ -7,7 +7,7 @@ entry of the catalogue becomes candidate regressor columns on a joint (or the ar
   inertia (``qdd``), spring (``q``, with an offset);
 - nonlinear in one parameter, searched on a grid and linear given it: Stribeck friction
   (``sign(qd) exp(-(qd/v_s)^2)`` over ``v_s``), cogging (``sin, cos(2 pi q / P)`` over the
-  period ``P``, an integer number of periods per turn, then refined);
+  period ``P``, an integer number of periods per turn from 2 to 120);
 - linearised about the current fit: a torque-constant error (the joint's predicted torque:
   the measured torque is the true one over the gain), a delay between current and position
   (the derivative of the prediction when joint j's motion is shifted in time) and a tilt

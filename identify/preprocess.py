@@ -15,7 +15,7 @@ velocity may be missing. :func:`prepare` deals with each explicitly and says wha
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -136,7 +136,8 @@ def prepare(rec: Recording, robot: Robot, options: PrepareOptions | None = None)
         if b - a < options.min_segment_samples:
             short += 1
             continue
-        seg = _uniform(rec.source, t[a:b], q[a:b], tau[a:b], None if qd is None else qd[a:b], None if qdd is None else qdd[a:b], options, notes)
+        seg = _uniform(rec.source, t[a:b], q[a:b], tau[a:b], None if qd is None else qd[a:b], None if qdd is None else qdd[a:b],
+                       replace(options, torque_hold=options.torque_hold or rec.torque_held), notes)
         if seg is not None and seg.n_samples >= 1:
             segments.append(seg)
     if short:

@@ -9,9 +9,12 @@ layout of the shared KUKA LWR4+ data). Recordings written by ``daq/`` (MCAP) are
 from __future__ import annotations
 
 import csv
+import json
 import re
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -38,6 +41,7 @@ class Recording:
     qdd: Array | None = None
     lines: Array | None = None
     notes: list[str] = field(default_factory=list)
+    torque_held: bool = False  # torque held over the period before each stamp (drive currents)
 
     @property
     def n_samples(self) -> int:
@@ -53,8 +57,30 @@ def read_recording(path: str | Path, robot: Robot) -> Recording:
     if suffix == ".npz":
         return _read_npz(path, robot)
     if suffix == ".mcap":
-        raise RecordingError(str(path), "MCAP recordings are read by the daq package (armid record)")
+        return _read_mcap(path, robot)
     return _read_csv(path, robot)
+
+
+MCAP_TOPIC = "/joint_state"
+
+
+def _read_mcap(path: Path, robot: Robot) -> Recording:
+    """A recording from ``armid record``: positions, drive velocities, measured currents
+    times the torque constants; cycles where a joint's frames did not arrive are left out."""
+    arrays, _, notes = read_mcap_arrays(path)
+    if not arrays:
+        raise RecordingError(str(path), "no joint_state record could be read" + (f": {notes[0]}" if notes else ""))
+    n = arrays["position"].shape[1]
+    if n != robot.n_joints:
+        raise RecordingError(str(path), f"{n} joints recorded, robot {robot.name} has {robot.n_joints}")
+    valid = arrays["valid"].all(axis=1)
+    if not valid.all():
+        notes.append(f"left out {int((~valid).sum())} cycles with a joint marked invalid")
+    kt = np.array([j.torque_constant for j in robot.joints])
+    keep = valid
+    return Recording(str(path), arrays["t"][keep], arrays["position"][keep], arrays["measured_current"][keep] * kt,
+                     arrays["velocity"][keep] if arrays["velocity_fresh"].all() else None, None, None,
+                     notes + ["torque = measured current x torque_constant"], torque_held=True)
 
 
 def _read_csv(path: Path, robot: Robot) -> Recording:
@@ -182,3 +208,54 @@ def write_csv(path: str | Path, t: Array, columns: dict[str, Array]) -> None:
         header += [f"{prefix}{j + 1}" for j in range(values.shape[1])]
         blocks.append(values)
     np.savetxt(path, np.hstack(blocks), delimiter=",", header=",".join(header), comments="", fmt="%.10g")
+
+
+def read_mcap_arrays(path: str | Path) -> tuple[dict[str, Array], dict[str, str], list[str]]:
+    """Arrays of the ``/joint_state`` messages, the run metadata, and notes on what was lost."""
+    from mcap.exceptions import McapError
+    from mcap.records import Channel, Message, Metadata
+    from mcap.stream_reader import StreamReader
+
+    path = Path(path)
+    rows: list[dict[str, Any]] = []
+    metadata: dict[str, str] = {}
+    notes: list[str] = []
+    channels: dict[int, str] = {}
+    complete = False
+    with open(path, "rb") as f:
+        reader = StreamReader(f)
+        try:
+            for rec in reader.records:
+                if isinstance(rec, Channel):
+                    channels[rec.id] = rec.topic
+                elif isinstance(rec, Message) and channels.get(rec.channel_id) == MCAP_TOPIC:
+                    rows.append(json.loads(rec.data))
+                elif isinstance(rec, Metadata) and rec.name == "armid.run":
+                    metadata = dict(rec.metadata)
+            complete = True
+        except (McapError, EOFError, struct.error, ValueError, KeyError, IndexError, OSError) as err:
+            # a truncated or corrupted tail: keep what came before
+            size = path.stat().st_size
+            notes.append(f"the file breaks after {len(rows)} records ({type(err).__name__}: {err}; {size} bytes): "
+                         f"read what came before, the rest of the run is lost")
+    if not complete and not rows:
+        notes.append("no record could be read")
+    if not rows:
+        return {}, metadata, notes
+    seq = np.array([r["sequence"] for r in rows])
+    gaps = np.flatnonzero(np.diff(seq) != 1)
+    if gaps.size:
+        missing = int(np.sum(np.diff(seq)[gaps] - 1))
+        notes.append(f"{missing} records missing in {gaps.size} gap(s) of the sequence numbers (first after sequence {seq[gaps[0]]})")
+    arrays = {
+        "sequence": seq,
+        "cycle": np.array([r["cycle"] for r in rows]),
+        "t": np.array([r["header"]["stamp"]["sec"] + 1e-9 * r["header"]["stamp"]["nsec"] for r in rows]),
+        "valid": np.array([r["valid"] for r in rows], bool),
+        "position": np.array([r["position"] for r in rows], float),
+        "velocity": np.array([r["velocity"] for r in rows], float),
+        "velocity_fresh": np.array([r.get("velocity_fresh", [True] * len(r["position"])) for r in rows], bool),
+        "commanded_current": np.array([r["commanded_current"] for r in rows], float),
+        "measured_current": np.array([r["measured_current"] for r in rows], float),
+    }
+    return arrays, metadata, notes

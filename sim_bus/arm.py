@@ -25,6 +25,8 @@ from drivers.rig import Rig
 from .drive import SimulatedDrive
 from .physics import ArmPhysics, Measurement, simulation_config
 
+STALL_S = 0.02  # a watchdog wake this late means the process (not the bus) was stalled
+
 
 class StateLog:
     """The physics' state per SYNC in a ring of arrays (no Python object per entry, so the
@@ -104,9 +106,14 @@ class SimulatedArm:
             d.on_master_heartbeat(can_id - 0x700, timestamp)
 
     def _watch(self) -> None:
+        previous = time.monotonic()
         while not self._stop.wait(0.002):
             now = time.monotonic()
+            stall = now - previous - 0.002
+            previous = now
             for d in self.drives:
+                if stall > STALL_S:
+                    d.excuse_stall(stall)
                 d.watchdog(now)
 
     def drive(self, joint: int) -> SimulatedDrive:

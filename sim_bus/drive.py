@@ -262,6 +262,14 @@ class SimulatedDrive:
         self._previous_controlword, self.controlword = self.controlword, controlword
         self.state = next_state(self.state, controlword, self._previous_controlword)
 
+    def excuse_stall(self, stall_s: float) -> None:
+        """The simulating process did not run for ``stall_s``: frames sent meanwhile wait
+        unread in its socket, so the silence is ours, not the master's. Firmware does not
+        stall; shift the supervision clocks so that only a real silence faults the drive."""
+        if self.master_heartbeat is not None:
+            self.master_heartbeat += stall_s
+        self.last_sync += stall_s
+
     def watchdog(self, now: float) -> None:
         """Heartbeat consumer and SYNC supervision; called every few ms by the arm."""
         if self.silent or not self.operational:

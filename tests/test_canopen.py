@@ -164,6 +164,20 @@ def test_emcy_reaches_the_caller_as_a_typed_fault(bench: _Bench) -> None:
     assert bench.arm.drive(1).state == State.FAULT
 
 
+def test_lost_sync_faults_the_drives_with_emcy(bench: _Bench) -> None:
+    bench.hold(20)
+    bench.driver.enable()
+    bench.hold(20)
+    bench.driver._stop.set()  # the SYNC producer dies; the master's heartbeat goes on
+    assert bench.driver._thread is not None
+    bench.driver._thread.join(1.0)
+    time.sleep(bench.arm.drives[0].sync_timeout_s + 0.1)
+    assert all(d.state == State.FAULT for d in bench.arm.drives)
+    with pytest.raises(DriveFault) as caught:
+        bench.driver.read(0.5)
+    assert caught.value.code == 0x8100 and "SYNC" in caught.value.meaning
+
+
 def test_master_heartbeat_loss_faults_the_drives(bench: _Bench) -> None:
     bench.hold(20)
     bench.driver.enable()

@@ -1,0 +1,134 @@
+"""Acquisition, MCAP recordings and the Zenoh stream, on real buses, files and sessions."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from armid.cli import main
+from daq.record_format import ENCODING, JointStateRecord, check_encoding
+from daq.recorder import read_mcap
+from drivers.interface import Sample
+from identify.preprocess import prepare
+from identify.recordings import read_recording
+from identify.robot_file import load_robot
+
+ROOT = Path(__file__).resolve().parent.parent
+HELPERS = Path(__file__).resolve().parent / "helpers"
+ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_record_layout_round_trip_and_refuses_bad_input() -> None:
+    s = Sample(7, 1.25, np.array([True, False, True]), np.arange(3.0), -np.arange(3.0), np.array([True, True, False]),
+               np.ones(3), 2 * np.ones(3), np.array([0x27, 0x8, 0x27]))
+    data = JointStateRecord(42, s).pack()
+    back = JointStateRecord.unpack(data)
+    assert back.sequence == 42 and back.sample.cycle == 7 and back.sample.time_s == 1.25
+    for name in ("valid", "position", "velocity", "velocity_fresh", "commanded_current", "measured_current", "status"):
+        assert np.array_equal(getattr(back.sample, name), getattr(s, name)), name
+    with pytest.raises(ValueError, match="bytes for 3 joints"):
+        JointStateRecord.unpack(data[:-1])
+    with pytest.raises(ValueError, match="is not"):
+        check_encoding("application/octet-stream;armid.JointState/2")
+    check_encoding(ENCODING)
+
+
+def test_recorder_killed_with_sigkill_leaves_all_but_the_last_second(tmp_path: Path) -> None:
+    path = tmp_path / "run.mcap"
+    proc = subprocess.Popen([sys.executable, str(HELPERS / "mcap_writer_forever.py"), str(path)], env=ENV, stdout=subprocess.PIPE, text=True)
+    last = 0
+    assert proc.stdout is not None
+    for line in proc.stdout:
+        last = int(line)
+        if last >= 2000:
+            break
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    arrays, _, notes = read_mcap(path)
+    assert len(arrays["sequence"]) >= last - 500, (len(arrays["sequence"]), last)  # 500 records = 1 s at 2 ms
+    assert np.array_equal(arrays["sequence"], np.arange(len(arrays["sequence"])))
+    assert notes and "the rest of the run is lost" in notes[0]
+    # a corrupted copy: flip bytes in the middle; what comes before still reads
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2 : len(data) // 2 + 64] = b"\xff" * 64
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    arrays_bad, _, notes_bad = read_mcap(bad)
+    assert 0 < len(arrays_bad.get("sequence", [])) < len(arrays["sequence"]) and notes_bad
+
+
+def _subscriber(robot: str, endpoint: str, out: Path, seconds: float, slow: float = 0.0) -> subprocess.Popen:  # type: ignore[type-arg]
+    proc = subprocess.Popen([sys.executable, str(HELPERS / "zenoh_subscriber.py"), robot, endpoint, str(out), str(seconds), str(slow)],
+                            env=ENV, stdout=subprocess.PIPE, text=True)
+    assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
+    return proc
+
+
+def test_record_30_s_every_cycle_reaches_a_subscriber_in_another_process(tmp_path: Path) -> None:
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    got = tmp_path / "seqs.txt"
+    sub = _subscriber("puma560", endpoint, got, 60.0)
+    try:
+        code = main(["record", "--rig", str(ROOT / "config/rigs/sim.yaml"), "--channel", f"armid-rec-{uuid.uuid4().hex[:6]}",
+                     "--out", str(tmp_path / "run"), "--duration", "30", "--zenoh-connect", endpoint])
+        assert code == 0
+        time.sleep(1.0)
+    finally:
+        sub.send_signal(signal.SIGTERM)
+        sub.wait(20)
+    seqs = np.array([int(x) for x in got.read_text().split()])
+    arrays, metadata, notes = read_mcap(tmp_path / "run" / "run.mcap")
+    n = len(arrays["sequence"])
+    assert n >= 0.95 * 30 / 0.002 and not notes
+    assert np.array_equal(seqs, np.arange(n)), f"subscriber got {len(seqs)} of {n}, first gap at {np.flatnonzero(np.diff(seqs) != 1)[:3]}"
+    assert np.all(np.diff(arrays["cycle"]) == 1)
+    assert "drives" in metadata and "versions" in metadata
+    assert (tmp_path / "run" / "can.log").stat().st_size > 0
+    # identification reads the recording directly
+    robot = load_robot(ROOT / "config/robots/puma560.yaml")
+    rec = read_recording(tmp_path / "run" / "run.mcap", robot)
+    assert rec.n_samples == n and rec.torque_held
+    prepare(rec, robot)
+
+
+def test_killed_or_slow_subscriber_costs_the_recording_nothing(tmp_path: Path) -> None:
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    slow = _subscriber("puma560", endpoint, tmp_path / "slow.txt", 60.0, slow=0.01)  # 10 ms per 2 ms sample
+    try:
+        code = main(["record", "--rig", str(ROOT / "config/rigs/sim.yaml"), "--channel", f"armid-rec-{uuid.uuid4().hex[:6]}",
+                     "--out", str(tmp_path / "run"), "--duration", "6", "--zenoh-connect", endpoint])
+        assert code == 0
+    finally:
+        slow.kill()
+        slow.wait(10)
+    arrays, _, notes = read_mcap(tmp_path / "run" / "run.mcap")
+    assert not notes and np.array_equal(arrays["sequence"], np.arange(len(arrays["sequence"])))
+    assert len(arrays["sequence"]) >= 0.95 * 6 / 0.002
+
+
+def test_identify_reads_a_truncated_recording_and_says_what_was_lost(tmp_path: Path) -> None:
+    code = main(["record", "--rig", str(ROOT / "config/rigs/sim.yaml"), "--channel", f"armid-rec-{uuid.uuid4().hex[:6]}",
+                 "--out", str(tmp_path / "run"), "--duration", "3", "--no-zenoh"])
+    assert code == 0
+    path = tmp_path / "run" / "run.mcap"
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[: int(path.stat().st_size * 0.6)])
+    robot = load_robot(ROOT / "config/robots/puma560.yaml")
+    rec = read_recording(cut, robot)
+    assert 0 < rec.n_samples < read_recording(path, robot).n_samples
+    assert any("the rest of the run is lost" in n for n in rec.notes)
