@@ -168,6 +168,7 @@ def _record(args: argparse.Namespace) -> int:
                 break
         acq.stop()
         recorder.close()
+        driver.network.notifier.remove_listener(can_log)  # no frame may reach a closed log
         can_log.stop()
         if stream:
             stream.event("stop", records=acq.sequence)
@@ -182,6 +183,75 @@ def _record(args: argparse.Namespace) -> int:
             session.close()
         if arm is not None:
             arm.close()
+
+
+def _excite(args: argparse.Namespace) -> int:
+    import time
+
+    from rich.console import Console
+
+    from daq.excite import ExcitationSession
+    from drivers.rig import load_rig
+    from identify import excitation as ex
+
+    from .experiments import Experiment, design_experiments, run_experiments, write_json
+
+    rig = load_rig(args.rig)
+    changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
+    if changes:
+        rig = rig.with_bus(**changes)
+    robot = rig.robot
+    n = robot.n_joints
+    console = Console(stderr=True)
+    simulate = args.simulate if args.simulate is not None else rig.bus.interface == "virtual"
+    links: list[int] = []
+    for spec in args.link or []:
+        if spec == "all":
+            links += list(range(n - 1, -1, -1))  # Khosla's sequence: last link first
+        else:
+            try:
+                j = int(spec)
+            except ValueError:
+                raise ValueError(f"--link: {spec!r} is not a joint number or 'all'") from None
+            if not 1 <= j <= n:
+                raise ValueError(f"--link: joint {j} does not exist; {robot.name} has joints 1..{n}")
+            links.append(j - 1)
+    out = Path(args.out or f"runs/{time.strftime('%Y%m%d-%H%M%S')}")
+    # the pose the arm will be at: the rig's (simulated) start, or the drives' own report
+    start = np.asarray(rig.simulation.get("initial_position", np.zeros(n)), float) if simulate else None
+    with ExcitationSession(rig, simulate=simulate, tracking_limit_rad=args.tracking_limit) as session:
+        if start is None or np.abs(start - session.position).max() > 0.02:
+            start = session.position
+        if args.trajectory:
+            doc = json.loads(Path(args.trajectory).read_text())
+            traj = ex.trajectory_from_json(doc)
+            limits = ex.Limits.of(robot)
+            p = ex.plan(traj, start, limits, periods=args.periods)
+            ex.check_plan(robot, p, rig.period_s, limits)
+            design = ex.Design(traj, tuple(int(j) - 1 for j in doc.get("moving_joints", range(1, n + 1))), tuple(range(n)), [], [], 0,
+                               float("nan"), float("nan"), {})
+            experiments = [Experiment(Path(args.trajectory).stem, design, p)]
+        else:
+            whole = [("whole", args.periods)] if not links or args.whole else []
+            experiments = design_experiments(robot, start, links, whole, rig.period_s, link_frequency_hz=args.frequency or 0.5,
+                                              link_periods=args.periods, whole_frequency_hz=args.frequency or 0.2, seed=args.seed,
+                                              log=lambda m: console.print(f"  {m}"))
+        write_json(out / "designs.json", {e.name: e.design.to_json() for e in experiments})
+        console.print(f"armid excite: {len(experiments)} trajectories checked against every limit; recording to {out}")
+        if args.dry_run:
+            return 0
+        reports = run_experiments(session, experiments, out, console)
+    write_json(out / "runs.json", [r.to_json() for r in reports])
+    for r in reports:
+        status = "completed" if r.completed else f"STOPPED: {r.stop_reason}"
+        console.print(f"{r.name}: {status}; {r.records} records in {r.recording}; max tracking error {1000 * max(r.max_tracking_error):.1f} mrad")
+    return 0 if all(r.completed for r in reports) else 1
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from .demo import run_demo
+
+    return run_demo(Path(args.out), Path(args.rig) if args.rig else None, seed=args.seed)
 
 
 def _sim(args: argparse.Namespace) -> int:
@@ -263,6 +333,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--zenoh-connect", nargs="*", metavar="ENDPOINT", help="Zenoh endpoints to connect to")
     p.add_argument("--zenoh-config", metavar="JSON5", help="a Zenoh configuration file (config/zenoh/lab.json5)")
     p.set_defaults(run=_record)
+
+    p = sub.add_parser("excite", help="the operator's excitation: designed and checked trajectories, run on the drives, recorded")
+    p.add_argument("--rig", required=True, help="rig file")
+    p.add_argument("--link", action="append", metavar="J", help="single-link experiment of joint J (repeat; 'all' = Khosla's sequence N..1)")
+    p.add_argument("--whole", action="store_true", help="also a whole-arm run (the default without --link)")
+    p.add_argument("--trajectory", metavar="JSON", help="run this designed trajectory (designs.json entry or {fourier: ...}) instead of designing")
+    p.add_argument("--periods", type=int, default=2, help="periods of each trajectory (default 2)")
+    p.add_argument("--frequency", type=float, metavar="HZ", help="base frequency (default 0.5 Hz single-link, 0.2 Hz whole arm)")
+    p.add_argument("--tracking-limit", type=float, default=0.2, metavar="RAD", help="quick stop beyond this tracking error (default 0.2 rad)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the trajectory optimiser's starts")
+    p.add_argument("--out", help="output folder (default runs/<date-time>)")
+    p.add_argument("--dry-run", action="store_true", help="design and check only; enable nothing")
+    p.add_argument("--interface", help="override the rig's python-can interface")
+    p.add_argument("--channel", help="override the rig's channel")
+    p.add_argument("--simulate", action=argparse.BooleanOptionalAction, default=None,
+                   help="run the rig's simulated arm in this process (default: when the bus is virtual)")
+    p.set_defaults(run=_excite)
+
+    p = sub.add_parser("demo", help="the whole job on the simulated arm: excitation, recording, identification, diagnosis, payload, report")
+    p.add_argument("--out", default="report", help="report folder (default: report)")
+    p.add_argument("--rig", help="rig file (default: the embedded config/rigs/sim.yaml)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the trajectory optimiser's starts")
+    p.set_defaults(run=_demo)
 
     p = sub.add_parser("sim", help="simulated arm on a CAN bus (virtual, udp_multicast, socketcan)")
     p.add_argument("--rig", required=True, help="rig file (config/rigs/sim.yaml)")

@@ -68,11 +68,13 @@ class Sink:
 
 
 class Acquisition:
-    """Read ``driver`` on a thread; ``on_fault`` hears of drive faults (acquisition goes on)."""
+    """Read ``driver`` on a thread; ``on_fault`` hears of drive faults (acquisition goes on);
+    ``on_sample`` runs inline on every record (a control law: it must be fast)."""
 
     def __init__(self, driver: Driver, sinks: list[Sink], on_fault: Callable[[DriveFault], None] | None = None,
-                 stale_cycles: int = 50) -> None:
+                 stale_cycles: int = 50, on_sample: Callable[[JointStateRecord], None] | None = None) -> None:
         self.driver = driver
+        self.on_sample = on_sample  # inline, before the sinks: the control law of excitation
         self.sinks = sinks
         self.on_fault = on_fault
         self.stale_cycles = stale_cycles
@@ -111,6 +113,13 @@ class Acquisition:
             record = JointStateRecord(self.sequence, sample)
             self.sequence += 1
             self.last = record
+            if self.on_sample is not None:
+                try:
+                    self.on_sample(record)
+                except Exception as err:  # the control law failed: stop the arm, keep recording
+                    self.error = f"control law: {type(err).__name__}: {err}"
+                    self.driver.quick_stop()
+            self.driver.acknowledge(sample.cycle)
             for s in self.sinks:
                 s.offer(record)
 

@@ -17,8 +17,15 @@ from identify.spatial import Array
 
 
 class ComputedTorque:
+    """PD plus feed-forward; with ``decoupled`` the PD acts through the mass matrix at the
+    measured pose, ``tau = RNEA(ref) + M(q) (w^2 e + 2 w e')``, so that every mode of the
+    coupled arm has the same bandwidth ``w`` at every pose (diagonal gains leave the
+    lightest mode of strongly coupled joints, PUMA joints 1-3, much faster than designed,
+    and without margin for delay)."""
+
     def __init__(self, robot: Robot, phi: Array | None = None, kp: Array | None = None, kd: Array | None = None,
-                 bandwidth_hz: float = 5.0, q_nominal: Array | None = None, armature: Array | None = None) -> None:
+                 bandwidth_hz: float = 5.0, q_nominal: Array | None = None, armature: Array | None = None,
+                 decoupled: bool = False) -> None:
         import pinocchio as pin
 
         self._pin = pin
@@ -33,9 +40,16 @@ class ComputedTorque:
         w = 2.0 * np.pi * bandwidth_hz
         self.kp = w**2 * diag if kp is None else np.asarray(kp, float)
         self.kd = 2.0 * w * diag if kd is None else np.asarray(kd, float)
+        self.decoupled = decoupled
+        self.w = w
 
     def feed_forward(self, q_ref: Array, qd_ref: Array, qdd_ref: Array) -> Array:
         return np.asarray(self._pin.rnea(self.model, self.data, q_ref, qd_ref, qdd_ref)).copy()
 
     def __call__(self, q: Array, qd: Array, q_ref: Array, qd_ref: Array, qdd_ref: Array) -> Array:
+        if self.decoupled:
+            mass = self._pin.crba(self.model, self.data, q)
+            mass = np.triu(mass) + np.triu(mass, 1).T
+            correction = self.w**2 * (q_ref - q) + 2.0 * self.w * (qd_ref - qd)
+            return self.feed_forward(q_ref, qd_ref, qdd_ref) + mass @ correction
         return self.feed_forward(q_ref, qd_ref, qdd_ref) + self.kp * (q_ref - q) + self.kd * (qd_ref - qd)

@@ -38,6 +38,8 @@ from .rig import Rig
 EDS = str(__import__("pathlib").Path(__file__).resolve().parent.parent / "config" / "drives" / "armid_cia402.eds")
 
 SYNC_COUNTER_OVERFLOW = 240
+CONTROLWORD_REFRESH = 25
+PACE_WAIT_S = 0.05
 STALL_S = 0.05  # a watchdog call this late means this process (not the bus) was stalled
 TARGET_POSITION = (0x607A, 0, 32)
 
@@ -96,6 +98,10 @@ class _Cycle:
     time_s: float
     sample: Sample
     expected: set[tuple[int, int]] = field(default_factory=set)
+    written: set[tuple[int, int]] = field(default_factory=set)  # (joint, object index) this cycle's frames carried
+
+
+_FIELDS = (("position", 0x6064), ("velocity", 0x606C), ("measured_current", 0x6078), ("status", 0x6041))
 
 
 class CanopenDriver(Driver):
@@ -122,6 +128,12 @@ class CanopenDriver(Driver):
         self._thread: threading.Thread | None = None
         self._cycle = 0
         self._last = Sample.empty(0, 0.0, self.n_joints)
+        self._emitted = Sample.empty(0, 0.0, self.n_joints)
+        self.paced_by_consumer = False  # see _sync_loop; for an arm simulated in this process
+        self._t0: float | None = None
+        self._ack = threading.Condition()
+        self._acknowledged = 0
+        self.consumer_late = 0
         self._target = np.zeros(self.n_joints, np.int64)  # per mille of rated torque
         self._target_position = np.zeros(self.n_joints, np.int64)
         self._position_mode = False
@@ -140,6 +152,14 @@ class CanopenDriver(Driver):
         self.sync_late = 0
         self.drive_configuration: list[dict[str, int]] = []
         self._node_ids = {d.node_id: d.joint for d in rig.drives}
+
+    @property
+    def pending(self) -> int:
+        return self._out.qsize()
+
+    @property
+    def latest_cycle(self) -> int | None:
+        return self._cycle
 
     @property
     def torque_constants(self) -> Array:
@@ -293,6 +313,15 @@ class CanopenDriver(Driver):
             elif delay < -period:
                 self.sync_late += 1
                 next_t = time.perf_counter()
+            if self.paced_by_consumer and self._cycle:
+                # the arm is simulated in this process: its next step waits for the control
+                # law to have acted on the last one (never longer than PACE_WAIT_S, well
+                # inside the drives' SYNC timeout), so a busy process slows the simulation
+                # down instead of stretching the control loop's delay
+                with self._ack:
+                    if not self._ack.wait_for(lambda: self._acknowledged >= self._cycle or self._stop.is_set(), PACE_WAIT_S):
+                        self.consumer_late += 1
+                next_t = max(next_t, time.perf_counter())
             counter = counter % SYNC_COUNTER_OVERFLOW + 1
             self._cycle += 1
             now = time.time()
@@ -324,7 +353,12 @@ class CanopenDriver(Driver):
         fallback = max(self.deadline_periods * self.period_s, 0.5)
         while self._open and now - self._open[0].time_s >= fallback:
             self._emit(self._open.pop(0))
-        s = Sample.empty(cycle, now, self.n_joints)
+        if self._t0 is None:
+            self._t0 = now - cycle * self.period_s
+        # a paced simulation steps its arm one period per SYNC, whenever the SYNC goes out:
+        # its samples carry the arm's time; on a real bus the SYNC's own time is the arm's
+        stamp = self._t0 + cycle * self.period_s if self.paced_by_consumer else now
+        s = Sample.empty(cycle, stamp, self.n_joints)
         s.position[:], s.velocity[:] = self._last.position, self._last.velocity
         s.measured_current[:], s.status[:] = self._last.measured_current, self._last.status
         s.commanded_current[:] = self._in_force
@@ -339,6 +373,15 @@ class CanopenDriver(Driver):
         for joint, _ in c.expected:
             s.valid[joint] = False
             self.lost_cycles[joint] += 1
+        # what this cycle's frames did not carry is the last value reported: taken now, from
+        # the sample emitted before, not when the cycle opened (its frames were not in yet)
+        prev = self._emitted
+        for field_name, index in _FIELDS:
+            mine, before = getattr(s, field_name), getattr(prev, field_name)
+            for j in range(self.n_joints):
+                if (j, index) not in c.written:
+                    mine[j] = before[j]
+        self._emitted = s
         try:
             self._out.put_nowait(s)
         except queue.Full:
@@ -368,6 +411,7 @@ class CanopenDriver(Driver):
             u = self.units[t.joint]
             s = target.sample
             for (index, _), v in zip(t.fields, values):
+                target.written.add((t.joint, index))
                 if index == 0x6064:
                     s.position[t.joint] = v / u.counts_per_rad
                 elif index == 0x606C:
@@ -392,7 +436,9 @@ class CanopenDriver(Driver):
                 self.network.send_message(0x400 + d.node_id, struct.pack("<i", int(self._target_position[j])))
             else:
                 self.network.send_message(0x200 + d.node_id, struct.pack("<h", int(self._target[j])))
-            if self._controlword[j] != self._sent_controlword[j]:
+            # sent on change, and refreshed every CONTROLWORD_REFRESH cycles: a controlword that
+            # reached a drive before it was operational is not lost (transitions act on edges)
+            if self._controlword[j] != self._sent_controlword[j] or self._cycle % CONTROLWORD_REFRESH == 0:
                 self.network.send_message(0x300 + d.node_id, struct.pack("<H", int(self._controlword[j])))
                 self._sent_controlword[j] = self._controlword[j]
 
@@ -430,6 +476,11 @@ class CanopenDriver(Driver):
         self._event("emcy", str(fault), joint)
 
     # --- the interface ---
+    def acknowledge(self, cycle: int) -> None:
+        with self._ack:
+            self._acknowledged = max(self._acknowledged, cycle)
+            self._ack.notify_all()
+
     def read(self, timeout: float | None = None) -> Sample:
         try:
             raise self._faults.get_nowait()

@@ -126,6 +126,19 @@ class Driver(abc.ABC):
     @abc.abstractmethod
     def torque_constants(self) -> Array: ...
 
+    def acknowledge(self, cycle: int) -> None:  # noqa: B027 - an optional hook: most drivers pace nothing
+        """The consumer has acted on ``cycle`` (a driver pacing a simulated arm waits for it)."""
+
+    @property
+    def pending(self) -> int:
+        """Samples read from the bus but not yet returned by :meth:`read` (a backlog)."""
+        return 0
+
+    @property
+    def latest_cycle(self) -> int | None:
+        """The newest cycle started on the bus: a command sent now applies from the next."""
+        return None
+
     def events(self) -> list[Event]:
         """Events since the last call."""
         out = list(self._events)

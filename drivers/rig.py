@@ -39,6 +39,12 @@ class DriveUnits:
     gear_ratio: float = 100.0
     rated_current_a: float = 5.0
     torque_constant: float = 10.0  # N*m per A at the joint
+    rotor_inertia_kgm2: float = 0.0  # the motor's, motor side (datasheet); 0 when unknown
+
+    @property
+    def reflected_inertia(self) -> float:
+        """The rotor's inertia seen at the joint: ``J_m n^2`` (kg m^2)."""
+        return self.rotor_inertia_kgm2 * self.gear_ratio**2
 
     @property
     def counts_per_rad(self) -> float:
@@ -151,6 +157,7 @@ def rig_from_dict(doc: Any, src: str = "<rig>", base_dir: Path | None = None) ->
             gear_ratio=_float(d.get("gear_ratio", 1.0), src, f"{where}.gear_ratio", positive=True),
             rated_current_a=_float(d.get("rated_current_a"), src, f"{where}.rated_current_a", positive=True),
             torque_constant=robot.joints[j].torque_constant,
+            rotor_inertia_kgm2=_float(d.get("rotor_inertia_kgm2", 0.0), src, f"{where}.rotor_inertia_kgm2"),
         )
         drives.append(DriveConfig(node, j, units))
     rig = Rig(

@@ -148,3 +148,41 @@ def solve_factors(factors: JointFactors, weighting: str = "wls") -> LeastSquares
         sigma = np.sqrt(sq / dof)
     cov = s2 * unscaled
     return LeastSquares(beta, cov, np.sqrt(np.maximum(np.diag(cov), 0.0)), sigma, weighting)
+
+
+def correlation_length(residual: Array, threshold: float = 0.05) -> int:
+    """Samples until the residual's autocorrelation (averaged over columns) first falls
+    below ``threshold``: how far apart two samples must be to count as independent."""
+    r = np.asarray(residual, float)
+    r = r[:, None] if r.ndim == 1 else r
+    n = r.shape[0]
+    if n < 4:
+        return 1
+    r = r - r.mean(axis=0)
+    spec = np.fft.rfft(r, 2 * n, axis=0)
+    acf = np.fft.irfft(np.abs(spec) ** 2, axis=0)[:n].sum(axis=1)
+    if acf[0] <= 0:
+        return 1
+    below = np.flatnonzero(acf / acf[0] < threshold)
+    return int(below[0]) if below.size else n
+
+
+def batch_means_covariance(bread: Array, scores: Array, block: int) -> Array:
+    """Sandwich covariance ``B (sum_b U_b U_b^T) B`` with ``U_b`` the sum of the per-sample
+    scores ``a_t r_t`` (n, p) over consecutive blocks of ``block`` samples.
+
+    The white-noise formula ``s^2 (W^T W)^{-1}`` assumes independent equations; filtered
+    and differentiated signals at 2 ms are correlated over tens of samples, which makes
+    that formula several times too optimistic. Summing scores over blocks longer than the
+    correlation length gives a covariance that holds for correlated (and heteroscedastic)
+    residuals, and includes what model error the residual carries (batch means; Newey and
+    West 1987 with a flat kernel).
+    """
+    n, p = scores.shape
+    block = max(1, min(int(block), n))
+    m = n // block
+    head = scores[: m * block].reshape(m, block, p).sum(axis=1)
+    tail = scores[m * block :].sum(axis=0, keepdims=True)
+    sums = np.vstack([head, tail]) if n % block else head
+    meat = sums.T @ sums
+    return bread @ meat @ bread.T

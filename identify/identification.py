@@ -9,7 +9,7 @@ metrics).
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -17,7 +17,7 @@ import numpy as np
 from .dynamics import regressor
 from .effects import LinearEffect, effect_columns, linear_effect
 from .errors import IdentificationError, PoorExcitationWarning
-from .estimation import JointFactors, LeastSquares, factor_columns, solve_factors
+from .estimation import JointFactors, LeastSquares, batch_means_covariance, correlation_length, factor_columns, solve_factors
 from .identifiability import UNIQUE, BaseParameters, Excitation, base_parameters, excitation, preferred_order
 from .metrics import summary
 from .preprocess import Prepared, Segment
@@ -30,6 +30,12 @@ class IdentifyOptions:
     weighting: str = "wls"
     max_condition: float = 1e3
     seed: int = 0
+    # "batch_means": robust to correlated residuals (filtered 2 ms data); "white": s^2 (W^T W)^-1
+    covariance: str = "batch_means"
+    # leave out a joint's equation while it is slower than 0.02 rad/s or within 25 ms of a
+    # velocity reversal (|qd| < |qdd| 0.025 s): sign(qd) is wrong there (pre-sliding, and a
+    # filtered torque smooths the Coulomb step), as in identify.single_link and diagnosis
+    exclude_reversals: bool = False
 
 
 def declared_effects(robot: Robot) -> list[LinearEffect]:
@@ -194,6 +200,21 @@ def _factors(system: Array, columns: Array) -> JointFactors:
     return factor_columns([system[j][keep] for j in range(system.shape[0])])
 
 
+def _robust(system: Array, columns: Array, residual: Array, est: LeastSquares, factors: JointFactors, weighting: str) -> tuple[LeastSquares, int]:
+    """``est`` with the batch-means sandwich covariance (:func:`batch_means_covariance`);
+    the information matrix comes from the QR triangles, the scores from one pass."""
+    weights = 1.0 / np.maximum(est.joint_sigma, 1e-300) if weighting == "wls" else np.ones(system.shape[0])
+    scores = np.zeros((residual.shape[0], columns.size))
+    for j in range(system.shape[0]):
+        scores += system[j][columns].T * (weights[j] ** 2 * residual[:, j])[:, None]
+    r = factors.combined(weights)[:-1, :-1]
+    rinv = np.linalg.pinv(r)
+    bread = rinv @ rinv.T
+    block = 2 * correlation_length(residual * weights)
+    cov = batch_means_covariance(bread, scores, block)
+    return replace(est, covariance=cov, std=np.sqrt(np.maximum(np.diag(cov), 0.0))), block
+
+
 def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepared] | None = None, options: IdentifyOptions | None = None) -> IdentificationResult:
     """Estimate the base parameters from ``experiments``; measure the error on ``validation``."""
     options = options or IdentifyOptions()
@@ -203,6 +224,12 @@ def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     if not segments:
         raise IdentificationError("no usable samples in the identification data")
     system = _system(robot, effects, segments)
+    if options.exclude_reversals:
+        qd = np.concatenate([seg.qd for seg in segments])
+        qdd = np.concatenate([seg.qdd for seg in segments])
+        reversing = np.abs(qd) < np.maximum(0.02, np.abs(qdd) * 0.025)
+        for j in range(robot.n_joints):
+            system[j][:, reversing[:, j]] = 0.0  # a zero equation weighs nothing
     base = structural_base(robot, effects, options.seed)
     notes = [f"{s}" for p in experiments for s in p.notes]
     factors = _factors(system, base.independent)
@@ -224,7 +251,11 @@ def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     coef[base.independent] = est.beta
     tau = system[:, -1].T
     n = tau.shape[0]
-    fit = summary(tau, np.stack([system[j, :-1].T @ coef for j in range(robot.n_joints)], axis=1))
+    tau_hat = np.stack([system[j, :-1].T @ coef for j in range(robot.n_joints)], axis=1)
+    fit = summary(tau, tau_hat)
+    if options.covariance == "batch_means":
+        est, block = _robust(system, base.independent, tau - tau_hat, est, factors, options.weighting)
+        notes.append(f"standard deviations: batch-means sandwich over blocks of {block} samples (twice the residual's correlation length)")
     result = IdentificationResult(robot, names, effects, base, est, exc, n, fit, notes=notes)
     if validation:
         segs = [s for p in validation for s in p.segments]

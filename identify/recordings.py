@@ -257,5 +257,6 @@ def read_mcap_arrays(path: str | Path) -> tuple[dict[str, Array], dict[str, str]
         "velocity_fresh": np.array([r.get("velocity_fresh", [True] * len(r["position"])) for r in rows], bool),
         "commanded_current": np.array([r["commanded_current"] for r in rows], float),
         "measured_current": np.array([r["measured_current"] for r in rows], float),
+        "status": np.array([r.get("status", [0] * len(r["position"])) for r in rows], np.int64),
     }
     return arrays, metadata, notes

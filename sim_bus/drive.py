@@ -118,6 +118,7 @@ class SimulatedDrive:
         self.sync_count = 0
         self.last_sync = 0.0
         self.master_heartbeat: float | None = None
+        self.not_following = False
         self.silent = False
         # SYNC is lost after 3 communication cycles (0x1006) or this, whichever is longer:
         # a simulated drive shares a Python process, and a stall there is not a lost SYNC
@@ -309,6 +310,8 @@ class SimulatedDrive:
             # the drive's own position loop: rated current at 10 mrad of error or 0.1 rad/s
             target = self.values.get((0x607A, 0), 0) / u.counts_per_rad
             demand = u.rated_current_a * ((target - position) / 0.01 - velocity / 0.1)
+        elif self.not_following:
+            demand = 0.0  # a broken motor phase: enabled, reporting, producing nothing
         else:  # MODE_CST (and any other mode falls back to torque)
             permille = self.values.get((0x6071, 0), 0)
             demand = permille / 1000.0 * u.rated_motor_torque_nm * u.gear_ratio / u.torque_constant
@@ -368,6 +371,10 @@ class SimulatedDrive:
             return self.statusword
         value = self.values.get(key)
         return self.raw(*key) if value is None else value
+
+    def stop_following(self) -> None:
+        """Fault injection: stay enabled and keep reporting, but produce no torque."""
+        self.not_following = True
 
     def go_silent(self) -> None:
         """Stop answering anything, heartbeat included (a drive that lost power)."""

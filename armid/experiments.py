@@ -1,0 +1,113 @@
+"""The operator's experiments: designs chained pose to pose, run on the drives, analysed.
+
+``armid excite`` and ``armid demo`` share this: every trajectory is designed and checked
+against every limit before any drive is enabled (a plan that fails is refused with its
+first violation), then run back to back, each starting where the previous one ended.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from daq.excite import ExcitationSession, RunReport
+from identify import excitation as ex
+from identify.preprocess import Prepared, PrepareOptions, prepare
+from identify.recordings import Recording, read_mcap_arrays, read_recording
+from identify.robot import Robot
+
+PREPARE = PrepareOptions(lowpass_hz=20.0, torque_hold=True)
+"""How drive recordings are prepared: 20 Hz zero-phase low-pass before the 5-point filter
+(the PUMA's rigid-body content is well below it), currents re-timed as held over a period."""
+
+
+@dataclass(frozen=True)
+class Experiment:
+    name: str
+    design: ex.Design
+    plan: ex.Plan
+
+    @property
+    def link(self) -> int | None:
+        """0-based link of a single-link experiment, None for a whole-arm run."""
+        return self.design.moving[0] if len(self.design.moving) == 1 else None
+
+
+def design_experiments(robot: Robot, start: np.ndarray, links: list[int], whole: list[tuple[str, int]], period_s: float,
+                       link_frequency_hz: float = 0.5, link_periods: int = 2, whole_frequency_hz: float = 0.2,
+                       seed: int = 0, log: Any = None, whole_margin: float = 0.6) -> list[Experiment]:
+    """Single-link experiments for ``links`` (0-based, in the order given), then the whole-arm
+    runs ``whole`` (name, periods); each plan starts where the previous one ends. Every
+    plan is checked at the control period; the first violation raises
+    :class:`~identify.excitation.TrajectoryLimitError` before anything moves. Whole-arm
+    runs use ``whole_margin`` of each limit: coupled joints at speed track less well, and
+    the supervision stops the arm at the limit itself."""
+    limits = ex.Limits.of(robot)
+    out = []
+    pose = np.asarray(start, float)
+    for k in links:
+        hold = ex.choose_hold(robot, k, pose, seed=seed + k)
+        d = ex.design(robot, moving=(k,), q_hold=hold, base_frequency_hz=link_frequency_hz, seed=seed + k)
+        p = ex.plan(d, pose, limits, periods=link_periods)
+        ex.check_plan(robot, p, period_s, limits)
+        out.append(Experiment(f"link{k + 1}", d, p))
+        pose = d.trajectory.evaluate(np.zeros(1))[0][0]
+        if log:
+            log(f"designed link {k + 1}: identifies {', '.join(d.base)}; condition number {d.condition_number:.3g}")
+    for i, (name, periods) in enumerate(whole):
+        d = ex.design(robot, base_frequency_hz=whole_frequency_hz, seed=seed + 100 + i, margin=whole_margin)
+        p = ex.plan(d, pose, limits, periods=periods)
+        ex.check_plan(robot, p, period_s, limits)
+        out.append(Experiment(name, d, p))
+        pose = d.trajectory.evaluate(np.zeros(1))[0][0]
+        if log:
+            log(f"designed {name}: rank {d.rank}, condition number {d.condition_number:.3g}, {len(d.unidentifiable)} parameters unidentifiable")
+    return out
+
+
+def run_experiments(session: ExcitationSession, experiments: list[Experiment], out: Path, console: Any = None) -> list[RunReport]:
+    """Run each experiment on the drives with a progress bar; stop at the first that fails."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    reports = []
+    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[summary]}"), TimeRemainingColumn(),
+                  console=console, transient=False) as progress:
+        for e in experiments:
+            task = progress.add_task(f"{e.name:>8}", total=e.plan.duration_s, summary="")
+
+            def update(t: float, control: Any, task: Any = task, e: Experiment = e) -> None:
+                err = np.max(control.max_error) * 1000.0
+                tq = np.max(control.peak_torque) * 100.0
+                progress.update(task, completed=min(t, e.plan.duration_s),
+                                summary=f"tracking error {err:5.1f} mrad, peak torque {tq:4.0f} % of limit")
+
+            report = session.run(e.plan, out / e.name, e.name, {"design": e.design.to_json()}, progress=update)
+            reports.append(report)
+            if not report.completed:
+                break
+    return reports
+
+
+def excitation_recording(report: RunReport, robot: Robot, period_s: float) -> Recording:
+    """The run's recording, cut to its excitation window (whole periods of the design)."""
+    rec = read_recording(report.recording, robot)
+    arrays, _, _ = read_mcap_arrays(report.recording)
+    cycles = arrays["cycle"][arrays["valid"].all(axis=1)]
+    t_plan = (cycles - report.first_cycle) * period_s
+    w0, w1 = report.window_s
+    keep = (t_plan >= w0) & (t_plan <= w1)
+    return replace(rec, t=rec.t[keep], q=rec.q[keep], tau=rec.tau[keep], qd=None if rec.qd is None else rec.qd[keep],
+                   notes=rec.notes + [f"cut to the excitation window {w0:.2f}-{w1:.2f} s of the plan"])
+
+
+def prepared_runs(reports: list[RunReport], robot: Robot, period_s: float) -> dict[str, Prepared]:
+    return {r.name: prepare(excitation_recording(r, robot, period_s), robot, PREPARE) for r in reports}
+
+
+def write_json(path: Path, doc: Any) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(doc, indent=1, default=float) + "\n")

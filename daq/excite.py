@@ -1,0 +1,348 @@
+"""Running an excitation on the drives: control law, supervision every cycle, recording.
+
+:class:`ExcitationControl` runs inline in the acquisition thread (one call per 2 ms
+record): the reference from the active :class:`~identify.excitation.Plan` (or the pose it
+holds between plans), PD plus feed-forward from the modeled parameters
+(:class:`~daq.control.ComputedTorque`), the command clipped to each joint's torque limit,
+so that excitation never commands beyond one. Every cycle it also checks the arm against
+its limits; a crossing (tracking error, position, velocity, frames lost, a drive fault)
+quick-stops every drive on the next SYNC and ends the run, and recording goes on.
+
+:class:`ExcitationSession` owns the bus side (simulated arm when asked, driver, one
+acquisition thread for the whole session) and runs plans one after another, each
+recorded to its own folder (``run.mcap`` and the raw frames in ``can.log``).
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivers.interface import DriveFault, Driver
+from identify.excitation import Limits, Plan
+from identify.robot import Robot
+from identify.spatial import Array
+
+from .acquisition import Acquisition, Sink
+from .control import ComputedTorque
+from .record_format import JointStateRecord
+from .recorder import McapRecorder
+
+LOOP_BANDWIDTH_HZ = 2.0
+"""PD bandwidth of the excitation loop. The feed-forward does the tracking; the PD only
+corrects model error. A Python process on a loaded 2-core machine stalls for tens of ms
+(up to 64 ms measured); at 2 Hz the loop crosses over near 26 rad/s with 76 degrees of PD
+phase, so a 20 ms delay still leaves about 47 degrees of margin (at 3 Hz: 32, and coupled joints 1-3 were seen to oscillate; at 5 Hz: about 2)."""
+
+LOST_CYCLES_STOP = 3
+"""Consecutive cycles without a joint's frames after which the arm is stopped."""
+
+
+@dataclass
+class RunReport:
+    """What one plan did on the arm."""
+
+    name: str
+    completed: bool
+    stop_reason: str | None
+    stop_cycle: int | None
+    cycles: int
+    records: int
+    first_cycle: int
+    max_tracking_error: list[float]
+    peak_torque_fraction: list[float]
+    saturated_cycles: list[int]
+    recording: str
+    window_s: tuple[float, float]
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass
+class _Active:
+    plan: Plan
+    first_cycle: int | None = None
+    done: threading.Event = field(default_factory=threading.Event)
+    cycles: int = 0
+
+
+class ExcitationControl:
+    """The 2 ms control law and its supervision (see the module docstring)."""
+
+    def __init__(self, driver: Driver, robot: Robot, controller: ComputedTorque, limits: Limits, tracking_limit: Array,
+                 period_s: float) -> None:
+        self.driver = driver
+        self.robot = robot
+        self.controller = controller
+        self.limits = limits
+        self.tracking_limit = np.asarray(tracking_limit, float)
+        self.period_s = period_s
+        n = robot.n_joints
+        self.hold: Array | None = None
+        self.active: _Active | None = None
+        self.stop_reason: str | None = None
+        self.stop_cycle: int | None = None
+        self.max_error = np.zeros(n)
+        self.peak_torque = np.zeros(n)
+        self.saturated = np.zeros(n, np.int64)
+        self._invalid_run = np.zeros(n, np.int64)
+        self.skipped = 0  # samples supervised but not commanded from (a newer one was waiting)
+        self.last_record: JointStateRecord | None = None
+        self._lock = threading.Lock()
+
+    def start(self, plan: Plan) -> _Active:
+        with self._lock:
+            if self.stop_reason:
+                raise RuntimeError(f"the arm was stopped ({self.stop_reason}); restart the session")
+            self.max_error[:] = 0.0
+            self.peak_torque[:] = 0.0
+            self.saturated[:] = 0
+            self.active = _Active(plan)
+            return self.active
+
+    def fault(self, fault: DriveFault) -> None:
+        self._stop(f"drive fault: {fault}", None)
+
+    def _stop(self, reason: str, cycle: int | None) -> None:
+        if self.stop_reason is None:
+            self.stop_reason, self.stop_cycle = reason, cycle
+            self.driver.quick_stop()
+        if self.active is not None:
+            self.active.done.set()
+
+    def __call__(self, record: JointStateRecord) -> None:
+        s = record.sample
+        self.last_record = record
+        if self.stop_reason:
+            return
+        self._invalid_run = np.where(s.valid, 0, self._invalid_run + 1)
+        if (self._invalid_run >= LOST_CYCLES_STOP).any():
+            j = int(np.argmax(self._invalid_run))
+            return self._stop(f"joint {j + 1}: no frames for {LOST_CYCLES_STOP} cycles", s.cycle)
+        with self._lock:
+            active = self.active
+        if active is not None and active.first_cycle is None:
+            active.first_cycle = s.cycle
+        # the command sent now applies from the next SYNC: look that far ahead (a Python
+        # process can fall a few cycles behind the bus; the drives must not see the lag)
+        latest = self.driver.latest_cycle
+        lead = max(1, (latest if latest is not None else s.cycle) + 1 - s.cycle)
+        newest = self.driver.pending == 0
+        if active is not None:
+            t = (s.cycle - active.first_cycle) * self.period_s
+            q_ref, qd_ref, qdd_ref = (x[0] for x in active.plan.evaluate(np.array([t])))
+            active.cycles += 1
+            if t >= active.plan.duration_s:
+                self.hold = q_ref.copy()
+                self.active = None
+                active.done.set()
+        elif self.hold is not None:
+            q_ref, qd_ref, qdd_ref = self.hold, np.zeros_like(self.hold), np.zeros_like(self.hold)
+        else:
+            self.hold = s.position.copy()
+            return
+        q, qd = s.position, s.velocity
+        error = np.abs(q_ref - q)
+        self.max_error = np.maximum(self.max_error, np.where(s.valid, error, 0.0))
+        lim = self.limits
+        checks = [
+            (s.valid & (error > self.tracking_limit), "tracking error {v:.4f} rad beyond {lim:.4f}", error, self.tracking_limit),
+            (s.valid & ((q < lim.position_low) | (q > lim.position_high)), "position {v:.4f} outside its range ending at {lim:.4f}", q,
+             np.where(q < lim.position_low, lim.position_low, lim.position_high)),
+            (s.valid & (np.abs(qd) > lim.velocity), "velocity {v:.4f} beyond {lim:.4f}", np.abs(qd), lim.velocity),
+        ]
+        for bad, text, value, limit in checks:
+            if bad.any():
+                j = int(np.flatnonzero(bad)[0])
+                return self._stop(f"joint {j + 1}: " + text.format(v=value[j], lim=limit[j]) + f" at cycle {s.cycle}", s.cycle)
+        if not newest:
+            self.skipped += 1  # a newer sample is waiting: command from that one
+            return
+        if active is not None:
+            # a command sent now goes out after SYNC latest+1 and is latched at SYNC latest+2
+            t_cmd = (s.cycle + lead - active.first_cycle) * self.period_s  # type: ignore[operator]
+            q_ref, qd_ref, qdd_ref = (x[0] for x in active.plan.evaluate(np.array([min(t_cmd, active.plan.duration_s)])))
+        q = q + qd * lead * self.period_s
+        tau = self.controller(q, qd, q_ref, qd_ref, qdd_ref)
+        over = np.abs(tau) > lim.torque
+        self.saturated += over
+        tau = np.clip(tau, -lim.torque, lim.torque)  # never command beyond a torque limit
+        with np.errstate(divide="ignore", invalid="ignore"):
+            self.peak_torque = np.maximum(self.peak_torque, np.nan_to_num(np.abs(tau) / lim.torque))
+        self.driver.command_torque(tau)
+
+
+class _Switch:
+    """The recording sink: writes to whichever recorder the current run opened."""
+
+    def __init__(self) -> None:
+        self.recorder: McapRecorder | None = None
+        self.count = 0
+
+    def __call__(self, record: JointStateRecord) -> None:
+        recorder = self.recorder
+        if recorder is not None:
+            recorder.write(record)
+            self.count += 1
+
+
+class ExcitationSession:
+    """Bus, drives and acquisition for a sequence of plans; ``with`` closes everything."""
+
+    def __init__(self, rig: Any, simulate: bool = True, tracking_limit_rad: float = 0.2, stream: Any = None,
+                 bus: Any = None, bandwidth_hz: float = LOOP_BANDWIDTH_HZ) -> None:
+        import can
+
+        from drivers.canopen_driver import CanopenDriver
+
+        self.rig = rig
+        self.robot: Robot = rig.robot
+        self.arm = None
+        self._buses: list[Any] = []
+        if simulate:
+            from sim_bus.arm import SimulatedArm
+
+            arm_bus = can.Bus(**rig.bus.kwargs())
+            self._buses.append(arm_bus)
+            self.arm = SimulatedArm(rig, bus=arm_bus)
+        self.driver = CanopenDriver(rig, bus=bus)
+        self.driver.paced_by_consumer = simulate  # the simulated arm never runs ahead of its control loop
+        self.stream = stream
+        self.limits = Limits.of(self.robot)
+        armature = [u.reflected_inertia for u in (d.units for d in rig.drives)]
+        q_nominal = rig.simulation.get("initial_position") if rig.simulation else None
+        self.controller = ComputedTorque(self.robot, q_nominal=q_nominal, armature=armature, bandwidth_hz=bandwidth_hz,
+                                         decoupled=True)
+        self.control = ExcitationControl(self.driver, self.robot, self.controller, self.limits,
+                                         np.full(self.robot.n_joints, tracking_limit_rad), rig.period_s)
+        self._switch = _Switch()
+        self._sink = Sink("recorder", self._switch, bounded=False)
+        sinks = [self._sink]
+        if stream is not None:
+            sinks.append(Sink("zenoh", stream.publish, bounded=True, capacity=5000))
+        self.acquisition: Acquisition | None = None
+        self._sinks = sinks
+        self.enabled = False
+
+    def start(self) -> None:
+        self.driver.start()
+        self.acquisition = Acquisition(self.driver, self._sinks, on_fault=self._on_fault, on_sample=self.control)
+        self.acquisition.start()
+        deadline = time.monotonic() + 2.0
+        while self.control.hold is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        if self.control.hold is None:
+            raise RuntimeError("no sample from the drives within 2 s")
+
+    def _on_fault(self, fault: DriveFault) -> None:
+        self.control.fault(fault)
+        if self.stream is not None:
+            self.stream.event("fault", joint=fault.joint + 1, code=fault.code, meaning=fault.meaning)
+
+    @property
+    def position(self) -> Array:
+        """The pose the arm holds now."""
+        assert self.control.hold is not None
+        return self.control.hold.copy()
+
+    def run(self, plan: Plan, out_dir: str | Path, name: str, metadata: dict[str, Any] | None = None,
+            progress: Callable[[float, ExcitationControl], None] | None = None) -> RunReport:
+        """Enable (first time), run ``plan`` from where the arm is, record it, hold the end pose."""
+        import can
+
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        assert self.acquisition is not None and self.driver.network is not None and self.driver.network.notifier is not None
+        if np.abs(plan.start - self.position).max() > 0.02:
+            raise ValueError(f"{name}: the plan starts {np.abs(plan.start - self.position).max():.3f} rad from where the arm is")
+        meta = {
+            "robot": self.robot.name, "rig": self.rig.name, "rig_file": self.rig.source, "period_s": self.rig.period_s,
+            "pdo_plan": self.rig.pdo_plan, "drives": self.driver.drive_configuration,
+            "excitation": {"name": name, "lead_in_s": plan.lead_in_s, "periods": plan.periods, "settle_s": plan.settle_s,
+                           "window_s": list(plan.excitation_window), **(metadata or {})},
+            "versions": _versions(),
+        }
+        recorder = McapRecorder(out / "run.mcap", [j.name for j in self.robot.joints], self.driver.torque_constants, meta)
+        can_log = can.Logger(str(out / "can.log"))
+        self.driver.network.notifier.add_listener(can_log)
+        self._switch.recorder = recorder
+        written_before = self._switch.count
+        try:
+            if not self.enabled:
+                # enable first, holding the pose: the plan's clock starts once the drives follow
+                self.driver.enable()
+                self.enabled = True
+            active = self.control.start(plan)
+            if self.stream is not None:
+                self.stream.event("start", run=name, duration_s=plan.duration_s)
+            while not active.done.wait(0.2):
+                if progress is not None:
+                    progress(active.cycles * self.rig.period_s, self.control)
+                if self.acquisition.error:
+                    self.control._stop(f"acquisition: {self.acquisition.error}", None)
+            if progress is not None:
+                progress(active.cycles * self.rig.period_s, self.control)
+            if self.control.stop_reason is not None:
+                time.sleep(0.1)  # keep recording while the drives carry out the quick stop
+            # let the recorder catch up with every record of this run, then switch it off
+            target = self.acquisition.sequence
+            deadline = time.monotonic() + 10.0
+            while self._sink.handled < target and time.monotonic() < deadline:
+                time.sleep(0.01)
+        finally:
+            self._switch.recorder = None
+            time.sleep(0.005)
+            recorder.close()
+            self.driver.network.notifier.remove_listener(can_log)
+            can_log.stop()
+        if self.stream is not None:
+            self.stream.event("stop", run=name, completed=self.control.stop_reason is None, reason=self.control.stop_reason)
+        c = self.control
+        return RunReport(name, c.stop_reason is None, c.stop_reason, c.stop_cycle, active.cycles, self._switch.count - written_before,
+                         active.first_cycle or 0, c.max_error.tolist(), c.peak_torque.tolist(), c.saturated.tolist(), str(out / "run.mcap"),
+                         plan.excitation_window)
+
+    def close(self) -> None:
+        try:
+            if self.enabled and self.control.stop_reason is None:
+                self.driver.disable()
+                time.sleep(0.02)
+        finally:
+            if self.acquisition is not None:
+                self.acquisition.stop()
+            self.driver.close()
+            if self.arm is not None:
+                self.arm.close()
+            for b in self._buses:
+                b.shutdown()
+
+    def __enter__(self) -> ExcitationSession:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _versions() -> dict[str, str]:
+    import can
+    import canopen
+
+    import armid
+
+    return {"armid": getattr(armid, "__version__", "0.1.0"), "python": platform.python_version(), "python-can": can.__version__,
+            "canopen": getattr(canopen, "__version__", "?"), "numpy": np.__version__}
+
+
+def write_json(path: Path, doc: Any) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(doc, indent=1) + "\n")

@@ -1,0 +1,183 @@
+"""Khosla's off-line strategy: single-link experiments from the last link to the first.
+
+Property 4 (eq. 17): the torque of joint k depends only on the parameters of links k..N.
+When joint k alone moves, row k of eq. (18) is
+
+.. math:: \\tau_k = M_{k,k}\\,\\phi_k + M_{k,>k}\\,\\phi_{>k}
+
+and links k+1..N were identified by the experiments before (in some linear combinations
+``F phi = beta_prev``). Row k splits into what those combinations already give and what
+is new:
+
+.. math:: M_{k,>k}\\phi_{>k} = G\\,\\beta_{prev} + M_{k,>k}(I - F^+F)\\phi_{>k},
+          \\qquad G = M_{k,>k} F^+
+
+so the experiment identifies the base parameters of ``[M_kk | M_k,>k (I - F^+F)]``
+(Khosla's combined entries such as ``m5 + m4``, Table 2) from ``tau_k - G beta_prev``. The
+uncertainty of ``beta_prev`` is carried forward: the covariance of all estimates so far is
+kept and updated, so a standard deviation at link 1 includes what links 2..N left open.
+
+The structure (which combinations) is taken from the experiment's ideal motion: the joints
+that moved, the others at their median position, so that a held joint's small tracking
+error does not create combinations of noise; the estimate uses the measured motion.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .estimation import batch_means_covariance, correlation_length
+from .excitation import experiment_columns, experiment_regressor
+from .identifiability import base_parameters, preferred_order
+from .identification import IdentificationResult
+from .preprocess import Prepared
+from .robot import Robot
+from .spatial import Array
+
+MOVING_RAD = 0.05
+"""A joint whose range of motion in an experiment exceeds this moved (rad or m)."""
+MIN_SPEED = 0.02
+REVERSAL_MARGIN_S = 0.025
+"""Samples of the moving joint slower than this (rad/s), or within this time of a velocity
+reversal (``|qd| < |qdd| t``), are left out: friction there is anything up to breakaway,
+and a filtered torque smooths the Coulomb step that ``sign(qd)`` does not (as in
+:mod:`identify.diagnosis`)."""
+
+
+@dataclass(frozen=True)
+class Functional:
+    """A linear combination ``row @ phi`` that an experiment identified (columns as
+    :func:`~identify.excitation.experiment_columns` names them)."""
+
+    link: int  # 0-based link of the experiment that identified it
+    expression: str
+    row: Array
+    modeled: float
+
+
+@dataclass
+class SequenceResult:
+    robot: Robot
+    names: list[str]
+    functionals: list[Functional]
+    beta: Array
+    covariance: Array
+    steps: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def std(self) -> Array:
+        return np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
+
+    def value_of(self, row: Array, rtol: float = 1e-6) -> tuple[float, float] | None:
+        """Estimate and std of ``row @ phi`` when the experiments identify it, else None."""
+        f = np.array([fn.row for fn in self.functionals])
+        c, *_ = np.linalg.lstsq(f.T, row, rcond=None)
+        if np.linalg.norm(f.T @ c - row) > rtol * max(float(np.linalg.norm(row)), 1e-300):
+            return None
+        return float(c @ self.beta), float(np.sqrt(max(c @ self.covariance @ c, 0.0)))
+
+    def table(self) -> list[dict[str, Any]]:
+        """Khosla's Tables 2-4: link, parameter (or combined entry), initial value, estimate, std."""
+        std = self.std
+        return [{"link": fn.link + 1, "parameter": fn.expression, "modeled": fn.modeled, "estimate": float(self.beta[k]),
+                 "std": float(std[k])} for k, fn in enumerate(self.functionals)]
+
+    def compare(self, whole: IdentificationResult) -> list[dict[str, Any]]:
+        """Each base parameter of a whole-arm identification beside the single-link sequence's value of it."""
+        out = []
+        exprs = whole.base.expressions()
+        n_cols = len(self.names)
+        for k, col in enumerate(whole.base.independent):
+            row = np.zeros(n_cols)
+            if whole.names[col] not in self.names:
+                continue
+            row[self.names.index(whole.names[col])] = 1.0
+            for d, dcol in enumerate(whole.base.dependent):
+                if whole.names[dcol] in self.names:
+                    row[self.names.index(whole.names[dcol])] += whole.base.regrouping[k, d]
+            got = self.value_of(row)
+            out.append({"expression": exprs[k], "whole_arm": float(whole.estimate.beta[k]), "whole_arm_std": float(whole.estimate.std[k]),
+                        "single_link": None if got is None else got[0], "single_link_std": None if got is None else got[1]})
+        return out
+
+    def to_json(self) -> dict[str, Any]:
+        return {"robot": self.robot.name, "order": [s["link"] for s in self.steps], "steps": self.steps, "table": self.table()}
+
+
+def _ideal(q: Array, moving: Array) -> Array:
+    """Positions with the held joints at their median: the experiment as designed."""
+    out = q.copy()
+    out[:, ~moving] = np.median(q[:, ~moving], axis=0)
+    return out
+
+
+def single_link_sequence(robot: Robot, experiments: dict[int, list[Prepared]], modeled: Array | None = None) -> SequenceResult:
+    """Identify link by link, last to first; ``experiments[k]`` moved joint k (0-based) alone.
+
+    ``modeled`` are the initial values of every column (default: the robot file's
+    inertial values, zero for effects) shown beside the estimates.
+    """
+    n = robot.n_joints
+    _, names = experiment_columns(robot, (0,))
+    p = len(names)
+    phi0 = np.zeros(p)
+    phi0[: robot.n_parameters] = robot.modeled_parameters()
+    if modeled is not None:
+        phi0 = np.asarray(modeled, float)
+    functionals: list[Functional] = []
+    beta = np.zeros(0)
+    cov = np.zeros((0, 0))
+    steps = []
+    order_all = preferred_order(n, p - robot.n_parameters)
+    for k in sorted(experiments, reverse=True):
+        segs = [s for prep in experiments[k] for s in prep.segments]
+        if not segs:
+            continue
+        q = np.concatenate([s.q for s in segs])
+        qd = np.concatenate([s.qd for s in segs])
+        qdd = np.concatenate([s.qdd for s in segs])
+        y = np.concatenate([s.tau[:, k] for s in segs])
+        sliding = np.abs(qd[:, k]) >= np.maximum(MIN_SPEED, np.abs(qdd[:, k]) * REVERSAL_MARGIN_S)
+        q, qd, qdd, y = q[sliding], qd[sliding], qdd[sliding], y[sliding]
+        cols = list(range(p))  # the projection may mix in any column that a previous step named
+        moving = np.ptp(q, axis=0) > MOVING_RAD
+        moving[k] = True
+        w = experiment_regressor(robot, (k,), q, qd, qdd)
+        qi = _ideal(q, moving)
+        w_ideal = experiment_regressor(robot, (k,), qi, np.where(moving, qd, 0.0), np.where(moving, qdd, 0.0))
+        if functionals:
+            f = np.array([fn.row for fn in functionals])
+            f_pinv = np.linalg.pinv(f)
+            null = np.eye(p) - f_pinv @ f
+            g = w @ f_pinv
+        else:
+            null, g = np.eye(p), np.zeros((w.shape[0], 0))
+        w_new, w_new_ideal = w @ null, w_ideal @ null
+        position = {c: j for j, c in enumerate(cols)}
+        base = base_parameters(w_new_ideal[:, cols], [names[c] for c in cols], [position[c] for c in order_all if c in position], rtol=1e-7)
+        indep = [cols[j] for j in base.independent]
+        a = w_new[:, indep]  # the measured dependent columns follow the ideal regrouping to the held joints' tracking error
+        y_new = y - g @ beta
+        b_new, *_ = np.linalg.lstsq(a, y_new, rcond=None)
+        resid = y_new - a @ b_new
+        ata_inv = np.linalg.pinv(a.T @ a)
+        block = 2 * correlation_length(resid)
+        own = batch_means_covariance(ata_inv, a * resid[:, None], block)
+        h = ata_inv @ a.T @ g  # d b_new / d beta_prev (with a minus sign)
+        c_new = own + h @ cov @ h.T
+        cross = -h @ cov
+        cov = np.block([[cov, cross.T], [cross, c_new]])
+        beta = np.concatenate([beta, b_new])
+        exprs = base.expressions()
+        for j, col in enumerate(base.independent):
+            row = np.zeros(p)
+            row[cols[col]] = 1.0
+            for d, dcol in enumerate(base.dependent):
+                row[cols[dcol]] += base.regrouping[j, d]
+            functionals.append(Functional(k, exprs[j], row, float(row @ phi0)))
+        steps.append({"link": k + 1, "samples": int(a.shape[0]), "covariance_block_samples": block, "identified": len(indep), "moving_joints": [int(j) + 1 for j in np.flatnonzero(moving)],
+                      "residual_rms": float(np.sqrt(np.mean(resid**2))), "relative_error": float(np.linalg.norm(resid) / max(float(np.linalg.norm(y)), 1e-300))})
+    return SequenceResult(robot, names, functionals, beta, cov, steps)
