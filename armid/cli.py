@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from identify.errors import ArmidError, IdentificationError, PoorExcitationWarning, RecordingError, RobotFileError
+from identify.errors import ArmidError, IdentificationError, PoorExcitationWarning, RecordingError, RobotFileError, UsageError
 
 
 class _Parser(argparse.ArgumentParser):
@@ -212,9 +212,9 @@ def _excite(args: argparse.Namespace) -> int:
             try:
                 j = int(spec)
             except ValueError:
-                raise ValueError(f"--link: {spec!r} is not a joint number or 'all'") from None
+                raise UsageError(f"--link: {spec!r} is not a joint number or 'all'") from None
             if not 1 <= j <= n:
-                raise ValueError(f"--link: joint {j} does not exist; {robot.name} has joints 1..{n}")
+                raise UsageError(f"--link: joint {j} does not exist; {robot.name} has joints 1..{n}")
             links.append(j - 1)
     out = Path(args.out or f"runs/{time.strftime('%Y%m%d-%H%M%S')}")
     # the pose the arm will be at: the rig's (simulated) start, or the drives' own report
@@ -246,6 +246,73 @@ def _excite(args: argparse.Namespace) -> int:
         status = "completed" if r.completed else f"STOPPED: {r.stop_reason}"
         console.print(f"{r.name}: {status}; {r.records} records in {r.recording}; max tracking error {1000 * max(r.max_tracking_error):.1f} mrad")
     return 0 if all(r.completed for r in reports) else 1
+
+
+def _estimate(args: argparse.Namespace) -> int:
+    import time
+
+    from daq.payload_service import EstimateStream
+    from identify.payload import PayloadRLS, arm_model_from_identification
+    from identify.recordings import read_mcap_arrays, read_recording
+    from identify.robot_file import load_robot
+
+    if not args.replay and args.mode != "live":
+        raise UsageError("say what to run on: 'live' (the Zenoh stream) or --replay DATA")
+    robot = load_robot(args.robot)
+    try:
+        doc = json.loads(Path(args.params).read_text())
+    except json.JSONDecodeError as err:
+        raise RecordingError(args.params, f"not JSON: line {err.lineno}: {err.msg}") from None
+    arm = arm_model_from_identification(robot, doc)
+    kt = np.array([j.torque_constant for j in robot.joints])
+    period = args.period
+    stream = EstimateStream(PayloadRLS(arm, period, forgetting=args.forgetting), kt, publish_every=args.publish_every)
+    out = open(args.out, "w") if args.out else sys.stdout  # noqa: SIM115 - closed below
+    try:
+        if args.replay:
+            path = Path(args.replay)
+            if path.suffix.lower() == ".mcap":
+                a, _, notes = read_mcap_arrays(path)
+                if not a:
+                    raise RecordingError(str(path), "no joint_state record could be read" + (f": {notes[0]}" if notes else ""))
+                records = zip(a["sequence"].tolist(), a["t"].tolist(), a["valid"], a["position"], a["measured_current"])
+            else:
+                rec = read_recording(path, robot)
+                notes = rec.notes
+                ones = np.ones(robot.n_joints, bool)
+                records = ((k, float(rec.t[k]), ones, rec.q[k], rec.tau[k] / kt) for k in range(rec.n_samples))
+            for note in notes:
+                print(f"{path}: {note}", file=sys.stderr)
+            start = time.perf_counter()
+            docs = stream.feed(records)
+            for d in docs:
+                out.write(json.dumps(d) + "\n")
+            seconds = time.perf_counter() - start
+            n = stream.estimator.n_updates_ if hasattr(stream.estimator, "n_updates_") else 0
+            print(f"armid estimate: {n} updates, {len(docs)} estimates in {seconds:.2f} s"
+                  + (f"; last: mass {docs[-1]['mass']:.3f} kg" if docs else ""), file=sys.stderr)
+            return 0
+        import zenoh
+
+        from daq.payload_service import PayloadService
+        from daq.stream import session_config
+
+        session = zenoh.open(session_config(args.zenoh_listen, args.zenoh_connect, args.zenoh_config))
+        service = PayloadService(session, robot.name, stream, on_estimate=lambda d: out.write(json.dumps(d) + "\n"))
+        print(f"armid estimate: listening on armid/{robot.name}/joint_state (Ctrl-C stops)", file=sys.stderr, flush=True)
+        try:
+            deadline = time.monotonic() + args.duration if args.duration else None
+            while deadline is None or time.monotonic() < deadline:
+                time.sleep(0.1)
+        except KeyboardInterrupt:
+            pass
+        finally:
+            service.close()
+            session.close()
+        return 0
+    finally:
+        if out is not sys.stdout:
+            out.close()
 
 
 def _demo(args: argparse.Namespace) -> int:
@@ -350,6 +417,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--simulate", action=argparse.BooleanOptionalAction, default=None,
                    help="run the rig's simulated arm in this process (default: when the bus is virtual)")
     p.set_defaults(run=_excite)
+
+    p = sub.add_parser("estimate", help="on-line payload recursive least squares (live over Zenoh, or --replay a recording)")
+    p.add_argument("mode", nargs="?", choices=["live"], help="live: subscribe to armid/<robot>/joint_state")
+    p.add_argument("--robot", required=True, help="robot description")
+    p.add_argument("--params", required=True, metavar="IDENT.json", help="the arm's identification (armid identify --json)")
+    p.add_argument("--replay", metavar="DATA", help="run on a recording (MCAP or CSV) and write what would have been published")
+    p.add_argument("--out", metavar="JSONL", help="write the estimates as JSON lines (default: standard output)")
+    p.add_argument("--period", type=float, default=0.002, help="sample period in s (default 0.002)")
+    p.add_argument("--forgetting", type=float, default=0.998, help="forgetting factor while the arm moves (default 0.998: about 1 s)")
+    p.add_argument("--publish-every", type=int, default=10, help="publish on every Nth record (default 10: 50 Hz at 2 ms)")
+    p.add_argument("--duration", type=float, help="live: stop after this many seconds")
+    p.add_argument("--zenoh-listen", nargs="*", metavar="ENDPOINT")
+    p.add_argument("--zenoh-connect", nargs="*", metavar="ENDPOINT")
+    p.add_argument("--zenoh-config", metavar="JSON5")
+    p.set_defaults(run=_estimate)
 
     p = sub.add_parser("demo", help="the whole job on the simulated arm: excitation, recording, identification, diagnosis, payload, report")
     p.add_argument("--out", default="report", help="report folder (default: report)")

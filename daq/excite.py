@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from drivers.interface import DriveFault, Driver
+from identify.errors import UsageError
 from identify.excitation import Limits, Plan
 from identify.robot import Robot
 from identify.spatial import Array
@@ -263,7 +264,7 @@ class ExcitationSession:
         out.mkdir(parents=True, exist_ok=True)
         assert self.acquisition is not None and self.driver.network is not None and self.driver.network.notifier is not None
         if np.abs(plan.start - self.position).max() > 0.02:
-            raise ValueError(f"{name}: the plan starts {np.abs(plan.start - self.position).max():.3f} rad from where the arm is")
+            raise UsageError(f"{name}: the plan starts {np.abs(plan.start - self.position).max():.3f} rad from where the arm is")
         meta = {
             "robot": self.robot.name, "rig": self.rig.name, "rig_file": self.rig.source, "period_s": self.rig.period_s,
             "pdo_plan": self.rig.pdo_plan, "drives": self.driver.drive_configuration,

@@ -6,6 +6,8 @@ One tree, so that a caller can catch everything armid raises, or one branch::
      +-- RobotFileError(ArmidError, ValueError)     malformed robot description
      +-- RecordingError(ArmidError, ValueError)     unusable recording (file, column, row)
      +-- IdentificationError(ArmidError)            the data cannot give an estimate
+     +-- UsageError(ArmidError, ValueError)         arguments that do not fit together
+     +-- TrajectoryLimitError(ArmidError, ValueError)   (identify.excitation) a plan beyond a limit
     PoorExcitationWarning(UserWarning)              trajectory not persistently exciting (5.2)
 
 Every message names what is wrong and where (file, field or row), so that the command
@@ -45,3 +47,7 @@ class IdentificationError(ArmidError):
 
 class PoorExcitationWarning(UserWarning):
     """The trajectory does not excite what it should (Khosla 5.2: not persistently exciting)."""
+
+
+class UsageError(ArmidError, ValueError):
+    """A command was called with arguments that do not fit together."""

@@ -19,7 +19,7 @@ from identify.recordings import Recording
 from identify.robot import Robot
 from identify.spatial import Array
 
-from .physics import ArmPhysics, SimulationConfig
+from .physics import ArmPhysics, Payload, SimulationConfig
 
 
 @dataclass
@@ -46,8 +46,10 @@ def default_units(robot: Robot) -> list[DriveUnits]:
 
 
 def simulate(robot: Robot, config: SimulationConfig, reference, duration_s: float, period_s: float = 0.002,  # type: ignore[no-untyped-def]
-             seed: int = 0, units: list[DriveUnits] | None = None, controller: ComputedTorque | None = None) -> OfflineRun:
-    """Track ``reference(t) -> (q, qd, qdd)`` for ``duration_s``; return what the drives report."""
+             seed: int = 0, units: list[DriveUnits] | None = None, controller: ComputedTorque | None = None,
+             payloads: list[tuple[float, Payload | None]] | None = None) -> OfflineRun:
+    """Track ``reference(t) -> (q, qd, qdd)`` for ``duration_s``; return what the drives report.
+    ``payloads`` attaches (or, with None, removes) a payload at the given times."""
     units = units or default_units(robot)
     q0 = np.asarray(reference(np.array([0.0]))[0][0], float)
     from dataclasses import replace
@@ -64,7 +66,10 @@ def simulate(robot: Robot, config: SimulationConfig, reference, duration_s: floa
     q_ref, qd_ref, qdd_ref = reference(t + period_s)  # the command for the period that ends at t + T
     out_q, out_qd, out_i, true_q = (np.zeros((n, robot.n_joints)) for _ in range(4))
     q_meas, qd_meas = q0.copy(), np.zeros(robot.n_joints)
+    schedule = sorted(payloads or [], key=lambda x: x[0])
     for k in range(n):
+        while schedule and schedule[0][0] <= t[k]:
+            physics.attach_payload(schedule.pop(0)[1])
         tau = control(q_meas, qd_meas, q_ref[k], qd_ref[k], qdd_ref[k])
         permille = np.clip(np.round(tau / kt / rated * 1000.0), -32768, 32767)
         m = physics.step(permille / 1000.0 * rated)

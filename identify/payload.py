@@ -1,0 +1,252 @@
+"""On-line payload estimation: recursive least squares on what the arm model leaves over.
+
+Khosla's on-line strategy: with the arm's own parameters known, a payload rigidly held by
+the last link only adds to that link's ten parameters, so (eq. 18)
+
+.. math:: \\tau - M(q, \\dot q, \\ddot q)\\,\\phi_{arm} = M_{:,N}(q, \\dot q, \\ddot q)\\,\\phi_p
+
+with ``M_{:,N}`` the regressor columns of link N (every joint's row) and ``phi_p`` the
+payload's ``m, m s, I`` about the last link's frame. Each 2 ms sample gives N equations;
+RLS folds them in one sample at a time (:func:`rls_update`, a vector measurement with the
+per-joint noise of the identification as its covariance).
+
+- Velocity and acceleration come from positions by the causal 5-point filter applied twice
+  (Khosla 5.1), so every equation refers to the sample four periods back: the estimator
+  runs live.
+- Exponential forgetting (``forgetting``) follows a payload that changes, but only while
+  the arm moves: at rest the equations carry no new information about most directions
+  and forgetting would inflate the covariance without bound (wind-up). The covariance is
+  also never let grow past its prior.
+- A change of payload shows as innovations far beyond their predicted spread: when the
+  normalized innovation squared, averaged over ``change_window`` samples, exceeds
+  ``change_threshold`` times its expected value, the covariance is reset to the prior so
+  that the estimate moves to the new payload at once.
+- Directions the motion does not excite keep their prior (a zero payload) and their prior
+  standard deviation; :attr:`PayloadRLS.excited_` says which.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .dynamics import regressor
+from .effects import LinearEffect, effect_columns
+from .robot import Robot
+from .spatial import Array
+
+MIN_SPEED = 0.02
+REVERSAL_MARGIN_S = 0.025
+PRIOR_STD = np.array([5.0, 0.5, 0.5, 0.5, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05])
+"""Prior standard deviations of ``m, msx, msy, msz, Ixx..Izz`` (kg, kg m, kg m^2): a
+payload of up to a few kg within half a metre of the flange."""
+
+
+def rls_update(theta: Array, p: Array, h: Array, y: Array, r: Array, forgetting: float = 1.0) -> tuple[Array, Array, Array, Array]:
+    """One RLS step with a vector measurement ``y = h theta + v``, ``cov(v) = diag(r)``.
+
+    Returns the new ``theta``, ``P``, the innovation ``y - h theta`` and its predicted
+    covariance ``S = h P h^T + R`` (before the update).
+    """
+    innovation = y - h @ theta
+    ph = p @ h.T
+    s = h @ ph + np.diag(r)
+    gain = np.linalg.solve(s, ph.T).T
+    theta = theta + gain @ innovation
+    p = p - gain @ ph.T
+    p = 0.5 * (p + p.T) / forgetting
+    return theta, p, innovation, s
+
+
+@dataclass(frozen=True)
+class ArmModel:
+    """The identified arm: ``tau = W(q, qd, qdd)[:, columns] @ beta`` (base parameters of an
+    identification, with its effect columns); ``joint_sigma`` is each joint's noise."""
+
+    robot: Robot
+    effects: tuple[LinearEffect, ...]
+    columns: Array
+    beta: Array
+    joint_sigma: Array
+
+    def torque(self, q: Array, qd: Array, qdd: Array) -> Array:
+        n, nj = q.shape
+        w = np.zeros((n, nj, self.robot.n_parameters + sum(len(e.parameter_names) for e in self.effects)))
+        regressor(self.robot, q, qd, qdd, out=w[:, :, : self.robot.n_parameters])
+        if self.effects:
+            w[:, :, self.robot.n_parameters :] = effect_columns(list(self.effects), q, qd, qdd)
+        return w[:, :, self.columns] @ self.beta
+
+
+@dataclass
+class _Filter:
+    """Causal 5-point derivatives of a stream: positions in, (q, qd, qdd) four samples back out."""
+
+    period_s: float
+    q: deque = field(default_factory=lambda: deque(maxlen=9))  # type: ignore[type-arg]
+    qd: deque = field(default_factory=lambda: deque(maxlen=5))  # type: ignore[type-arg]
+    tau: deque = field(default_factory=lambda: deque(maxlen=5))  # type: ignore[type-arg]
+
+    def reset(self) -> None:
+        self.q.clear()
+        self.qd.clear()
+        self.tau.clear()
+
+    @staticmethod
+    def _d(x: deque, period_s: float) -> Array:  # type: ignore[type-arg]
+        return (-2.0 * x[-5] - x[-4] + x[-2] + 2.0 * x[-1]) / (10.0 * period_s)
+
+    def push(self, q: Array, tau: Array) -> tuple[Array, Array, Array, Array] | None:
+        self.q.append(q)
+        self.tau.append(tau)
+        if len(self.q) < 5:
+            return None
+        self.qd.append(self._d(self.q, self.period_s))  # at the sample 2 back
+        if len(self.qd) < 5:
+            return None
+        qdd = self._d(self.qd, self.period_s)  # at the sample 4 back
+        return self.q[-5], self.qd[-3], qdd, self.tau[-5]
+
+
+class PayloadRLS:
+    """Recursive least squares on the payload's parameters (scikit-learn style).
+
+    Hyperparameters only here; ``fit`` starts over, ``partial_fit`` goes on; learned state
+    ends in ``_``. See the module docstring for the method.
+    """
+
+    def __init__(self, arm: ArmModel, period_s: float, forgetting: float = 0.998, moving_rad_s: float = 0.05,
+                 change_window: int = 25, change_threshold: float = 8.0, prior_std: Array | None = None) -> None:
+        self.arm = arm
+        self.period_s = period_s
+        self.forgetting = forgetting
+        self.moving_rad_s = moving_rad_s
+        self.change_window = change_window
+        self.change_threshold = change_threshold
+        self.prior_std = PRIOR_STD if prior_std is None else np.asarray(prior_std, float)
+
+    def _start(self) -> None:
+        self.theta_ = np.zeros(10)
+        self.P_ = np.diag(self.prior_std**2)
+        self.filter_ = _Filter(self.period_s)
+        self.nis_: deque[float] = deque(maxlen=self.change_window)
+        self.n_updates_ = 0
+        self.resets_ = 0
+        self.time_s_ = float("nan")
+        self.last_innovation_: Array | None = None
+        self.last_gain_norm_ = 0.0
+
+    def fit(self, t: Array, q: Array, tau: Array) -> PayloadRLS:
+        self._start()
+        return self.partial_fit(t, q, tau)
+
+    def restart_filter(self) -> None:
+        """Samples were skipped: the derivatives start again (the estimate is kept)."""
+        self.filter_.reset()
+
+    def partial_fit(self, t: Array, q: Array, tau: Array) -> PayloadRLS:
+        """Fold in consecutive samples: times (n,), positions and torques (n, N)."""
+        if not hasattr(self, "theta_"):
+            self._start()
+        t, q, tau = np.atleast_1d(t), np.atleast_2d(q), np.atleast_2d(tau)
+        rows = []
+        for k in range(t.shape[0]):
+            out = self.filter_.push(q[k], tau[k])
+            if out is not None:
+                rows.append((t[k] - 4 * self.period_s, *out))
+        if not rows:
+            return self
+        ts = np.array([r[0] for r in rows])
+        qs, qds, qdds, taus = (np.array([r[i] for r in rows]) for i in range(1, 5))
+        n = self.arm.robot.n_joints
+        residual = taus - self.arm.torque(qs, qds, qdds)
+        h_all = regressor(self.arm.robot, qs, qds, qdds)[:, :, 10 * (n - 1) : 10 * n]
+        r = np.maximum(self.arm.joint_sigma, 1e-6) ** 2
+        p_max = np.diag(self.prior_std**2)
+        # a joint's equation is left out while it is near rest or reversing: sign(qd) is wrong
+        # there (as in identification), and one wrong Coulomb step looks like a new payload
+        sliding = np.abs(qds) >= np.maximum(MIN_SPEED, np.abs(qdds) * REVERSAL_MARGIN_S)
+        for k in range(ts.shape[0]):
+            use = sliding[k]
+            if not use.any():
+                continue
+            moving = bool(np.abs(qds[k]).max() > self.moving_rad_s)
+            lam = self.forgetting if moving else 1.0
+            self.theta_, self.P_, innov, s = rls_update(self.theta_, self.P_, h_all[k][use], residual[k][use], r[use], lam)
+            expected = float(use.sum())
+            over = np.diag(self.P_) > np.diag(p_max)
+            if over.any():  # never less certain than before any data
+                scale = np.sqrt(np.where(over, np.diag(p_max) / np.diag(self.P_), 1.0))
+                self.P_ = self.P_ * np.outer(scale, scale)
+            self.nis_.append(float(innov @ np.linalg.solve(s, innov)) / expected)
+            if len(self.nis_) == self.change_window and np.mean(self.nis_) > self.change_threshold:
+                self.P_ = p_max.copy()  # a new payload: forget the old one at once
+                self.nis_.clear()
+                self.resets_ += 1
+            self.last_innovation_ = innov
+            self.n_updates_ += 1
+        self.time_s_ = float(ts[-1])
+        return self
+
+    # --- what the estimate means ---
+    @property
+    def std_(self) -> Array:
+        return np.sqrt(np.maximum(np.diag(self.P_), 0.0))
+
+    @property
+    def excited_(self) -> Array:
+        """Per parameter: the data have told more than the prior (std below half of it)."""
+        return self.std_ < 0.5 * self.prior_std
+
+    def estimate(self) -> dict[str, Any]:
+        """Mass (kg), centre of mass (m) and inertia about it (kg m^2, xx xy xz yy yz zz) in
+        the last link's frame, with standard deviations (delta method for the COM)."""
+        th, p = self.theta_, self.P_
+        m = float(th[0])
+        std = self.std_
+        if abs(m) > 1e-3:
+            c = th[1:4] / m
+            jac = np.zeros((3, 10))
+            jac[:, 0] = -th[1:4] / m**2
+            jac[:, 1:4] = np.eye(3) / m
+            com_std = np.sqrt(np.maximum(np.diag(jac @ p @ jac.T), 0.0))
+            i_com = _inertia_about_com(th)
+        else:
+            c, com_std, i_com = np.full(3, np.nan), np.full(3, np.nan), np.full(6, np.nan)
+        converged = bool(std[0] < max(0.05 * abs(m), 0.05) and (abs(m) < 0.2 or np.all(com_std < 0.01)))
+        return {"time": self.time_s_, "mass": m, "mass_std": float(std[0]), "com": c.tolist(), "com_std": com_std.tolist(),
+                "inertia": i_com.tolist(), "inertia_std": std[4:].tolist(), "parameters": th.tolist(), "parameters_std": std.tolist(),
+                "excited": self.excited_.tolist(), "converged": converged, "updates": self.n_updates_, "resets": self.resets_}
+
+
+def _inertia_about_com(phi: Array) -> Array:
+    """Steiner's law (eq. 10) read backwards: the link-frame inertia minus ``m (s.s I - s s^T)``."""
+    m = float(phi[0])
+    s = np.asarray(phi[1:4]) / m
+    xx, xy, xz, yy, yz, zz = phi[4:10]
+    i = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]]) - m * (s @ s * np.eye(3) - np.outer(s, s))
+    return np.array([i[0, 0], i[0, 1], i[0, 2], i[1, 1], i[1, 2], i[2, 2]])
+
+
+def arm_model_from_identification(robot: Robot, doc: dict[str, Any], seed: int = 0) -> ArmModel:
+    """The arm model of an ``armid identify --json`` document, checked against the robot:
+    the base parameters are rebuilt from the kinematics and must read as the document's."""
+    from .errors import IdentificationError
+    from .identification import declared_effects, structural_base
+
+    effects = declared_effects(robot)
+    base = structural_base(robot, effects, seed)
+    exprs = base.expressions()
+    got = [b["expression"] for b in doc.get("base_parameters", [])]
+    if got != exprs:
+        first = next((k for k, (a, b) in enumerate(zip(exprs, got)) if a != b), min(len(exprs), len(got)))
+        raise IdentificationError(
+            f"the identification's base parameters do not match {robot.name}'s model (declared effects included): "
+            f"{len(got)} against {len(exprs)}; first difference at #{first + 1}: "
+            f"{got[first] if first < len(got) else '(none)'!r} vs {exprs[first] if first < len(exprs) else '(none)'!r}")
+    beta = np.array([b["value"] for b in doc["base_parameters"]], float)
+    sigma = np.asarray(doc.get("joint_noise_sigma") or [1.0] * robot.n_joints, float)
+    return ArmModel(robot, tuple(effects), base.independent, beta, sigma)
