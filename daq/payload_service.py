@@ -50,18 +50,26 @@ class EstimateStream:
         self.estimator.restart_filter()
 
     def feed(self, records: Iterable[tuple[int, float, Array, Array, Array]]) -> list[dict[str, Any]]:
-        """(sequence, time, valid, position, measured current) per record; returns what to publish."""
-        out = []
-        t_buf: list[float] = []
-        q_buf: list[Array] = []
-        tau_buf: list[Array] = []
+        """(sequence, time, valid, position, measured current) per record; returns what to publish.
+
+        Runs of consecutive valid records go to the estimator in one batch each; a gap in
+        the sequence numbers or an invalid record restarts the derivative filter."""
+        out: list[dict[str, Any]] = []
+        run: list[tuple[int, float, Array, Array]] = []
 
         def flush() -> None:
-            if t_buf:
-                self.estimator.partial_fit(np.array(t_buf), np.array(q_buf), np.array(tau_buf))
-                t_buf.clear()
-                q_buf.clear()
-                tau_buf.clear()
+            if not run:
+                return
+            seqs = [x[0] for x in run]
+
+            def publish(k: int) -> None:
+                doc = self.estimator.estimate()
+                doc.update({"sequence": int(seqs[k]), "record_time": float(run[k][1]), "skipped": self.skipped, "lost": self.lost})
+                out.append(doc)
+
+            self.estimator.partial_fit(np.array([x[1] for x in run]), np.array([x[2] for x in run]), np.array([x[3] for x in run]),
+                                       [k for k, sq in enumerate(seqs) if sq % self.publish_every == 0], publish)
+            run.clear()
 
         for seq, t, valid, q, current in records:
             if self.last_sequence is not None and seq != self.last_sequence + 1:
@@ -74,14 +82,7 @@ class EstimateStream:
                 self.invalid += 1
                 self.estimator.restart_filter()
                 continue
-            t_buf.append(t)
-            q_buf.append(q)
-            tau_buf.append(current * self.kt)
-            if seq % self.publish_every == 0:
-                flush()
-                doc = self.estimator.estimate()
-                doc.update({"sequence": int(seq), "record_time": float(t), "skipped": self.skipped, "lost": self.lost})
-                out.append(doc)
+            run.append((seq, t, q, current * self.kt))
         flush()
         return out
 

@@ -28,9 +28,11 @@ per-joint noise of the identification as its covariance).
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
+import numba
 import numpy as np
 
 from .dynamics import regressor
@@ -45,20 +47,68 @@ PRIOR_STD = np.array([5.0, 0.5, 0.5, 0.5, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05])
 payload of up to a few kg within half a metre of the flange."""
 
 
-def rls_update(theta: Array, p: Array, h: Array, y: Array, r: Array, forgetting: float = 1.0) -> tuple[Array, Array, Array, Array]:
+def rls_update(theta: Array, p: Array, h: Array, y: Array, r: Array, forgetting: float = 1.0) -> tuple[Array, Array, Array, float]:
     """One RLS step with a vector measurement ``y = h theta + v``, ``cov(v) = diag(r)``.
 
-    Returns the new ``theta``, ``P``, the innovation ``y - h theta`` and its predicted
-    covariance ``S = h P h^T + R`` (before the update).
+    Returns the new ``theta`` and ``P``, the innovation ``nu = y - h theta`` and its
+    normalized square ``nu^T S^-1 nu`` with ``S = h P h^T + R`` (before the update).
     """
     innovation = y - h @ theta
     ph = p @ h.T
-    s = h @ ph + np.diag(r)
-    gain = np.linalg.solve(s, ph.T).T
+    s = h @ ph
+    s[np.diag_indices_from(s)] += r
+    s_inv = np.linalg.inv(s)
+    gain = ph @ s_inv
     theta = theta + gain @ innovation
-    p = p - gain @ ph.T
+    a = np.eye(p.shape[0]) - gain @ h
+    p = a @ p @ a.T + (gain * r) @ gain.T  # Joseph form: stays symmetric positive definite
     p = 0.5 * (p + p.T) / forgetting
-    return theta, p, innovation, s
+    return theta, p, innovation, float(innovation @ s_inv @ innovation)
+
+
+@numba.njit(cache=True)
+def _fold_kernel(h_all, residual, sliding, moving, r, theta, p, prior_var, forgetting, nis, nis_state,
+                 change_threshold, start, stop):  # type: ignore[no-untyped-def]
+    """Rows ``start..stop`` folded in as :meth:`PayloadRLS._fold` does, compiled: the same
+    arithmetic as :func:`rls_update`. ``nis`` is the window's ring buffer and ``nis_state``
+    holds [count, next slot, resets, updates]."""
+    n_par = theta.shape[0]
+    for i in range(start, stop):
+        use = np.flatnonzero(sliding[i])
+        if use.size == 0:
+            continue
+        h = h_all[i][use]
+        y = residual[i][use]
+        lam = forgetting if moving[i] else 1.0
+        innovation = y - h @ theta
+        ph = p @ h.T
+        s = h @ ph
+        for j in range(use.size):
+            s[j, j] += r[use[j]]
+        s_inv = np.linalg.inv(s)
+        gain = ph @ s_inv
+        theta = theta + gain @ innovation
+        a = np.eye(n_par) - gain @ h
+        p = a @ p @ a.T + (gain * r[use]) @ gain.T
+        p = 0.5 * (p + p.T) / lam
+        if lam != 1.0:
+            for a in range(n_par):
+                if p[a, a] > prior_var[a]:
+                    sc = np.sqrt(prior_var[a] / p[a, a])
+                    p[a, :] *= sc
+                    p[:, a] *= sc
+        value = (innovation @ s_inv @ innovation) / use.size
+        window = nis.shape[0]
+        nis[nis_state[1]] = value
+        nis_state[1] = (nis_state[1] + 1) % window
+        nis_state[0] = min(nis_state[0] + 1, window)
+        if nis_state[0] == window and nis.mean() > change_threshold:
+            p = np.diag(prior_var)
+            nis_state[0] = 0
+            nis_state[1] = 0
+            nis_state[2] += 1
+        nis_state[3] += 1
+    return theta, p
 
 
 @dataclass(frozen=True)
@@ -132,12 +182,12 @@ class PayloadRLS:
         self.theta_ = np.zeros(10)
         self.P_ = np.diag(self.prior_std**2)
         self.filter_ = _Filter(self.period_s)
-        self.nis_: deque[float] = deque(maxlen=self.change_window)
+        self._nis = np.zeros(self.change_window)
+        self._nis_count = 0
+        self._nis_next = 0
         self.n_updates_ = 0
         self.resets_ = 0
         self.time_s_ = float("nan")
-        self.last_innovation_: Array | None = None
-        self.last_gain_norm_ = 0.0
 
     def fit(self, t: Array, q: Array, tau: Array) -> PayloadRLS:
         self._start()
@@ -147,49 +197,55 @@ class PayloadRLS:
         """Samples were skipped: the derivatives start again (the estimate is kept)."""
         self.filter_.reset()
 
-    def partial_fit(self, t: Array, q: Array, tau: Array) -> PayloadRLS:
-        """Fold in consecutive samples: times (n,), positions and torques (n, N)."""
+    def partial_fit(self, t: Array, q: Array, tau: Array, checkpoints: Iterable[int] = (),
+                    on_checkpoint: Callable[[int], None] | None = None) -> PayloadRLS:
+        """Fold in consecutive samples: times (n,), positions and torques (n, N).
+
+        ``on_checkpoint(k)`` is called once sample ``k`` of this batch has been folded in,
+        for each ``k`` in ``checkpoints``: a stream publishes there, and a batch of any size
+        gives the same estimates as one sample at a time.
+        """
         if not hasattr(self, "theta_"):
             self._start()
         t, q, tau = np.atleast_1d(t), np.atleast_2d(q), np.atleast_2d(tau)
-        rows = []
+        rows: list[tuple[Any, ...]] = []
+        produced = np.full(t.shape[0], -1)
         for k in range(t.shape[0]):
             out = self.filter_.push(q[k], tau[k])
             if out is not None:
+                produced[k] = len(rows)
                 rows.append((t[k] - 4 * self.period_s, *out))
-        if not rows:
-            return self
-        ts = np.array([r[0] for r in rows])
-        qs, qds, qdds, taus = (np.array([r[i] for r in rows]) for i in range(1, 5))
-        n = self.arm.robot.n_joints
-        residual = taus - self.arm.torque(qs, qds, qdds)
-        h_all = regressor(self.arm.robot, qs, qds, qdds)[:, :, 10 * (n - 1) : 10 * n]
+        wanted = set(checkpoints)
+        if rows:
+            ts = np.array([r[0] for r in rows])
+            qs, qds, qdds, taus = (np.array([r[i] for r in rows]) for i in range(1, 5))
+            n = self.arm.robot.n_joints
+            residual = taus - self.arm.torque(qs, qds, qdds)
+            h_all = regressor(self.arm.robot, qs, qds, qdds)[:, :, 10 * (n - 1) : 10 * n]
+            # a joint's equation is left out while it is near rest or reversing: sign(qd) is
+            # wrong there (as in identification), and one wrong Coulomb step looks like a new payload
+            sliding = np.abs(qds) >= np.maximum(MIN_SPEED, np.abs(qdds) * REVERSAL_MARGIN_S)
+            moving = np.abs(qds).max(axis=1) > self.moving_rad_s
         r = np.maximum(self.arm.joint_sigma, 1e-6) ** 2
-        p_max = np.diag(self.prior_std**2)
-        # a joint's equation is left out while it is near rest or reversing: sign(qd) is wrong
-        # there (as in identification), and one wrong Coulomb step looks like a new payload
-        sliding = np.abs(qds) >= np.maximum(MIN_SPEED, np.abs(qdds) * REVERSAL_MARGIN_S)
-        for k in range(ts.shape[0]):
-            use = sliding[k]
-            if not use.any():
-                continue
-            moving = bool(np.abs(qds[k]).max() > self.moving_rad_s)
-            lam = self.forgetting if moving else 1.0
-            self.theta_, self.P_, innov, s = rls_update(self.theta_, self.P_, h_all[k][use], residual[k][use], r[use], lam)
-            expected = float(use.sum())
-            over = np.diag(self.P_) > np.diag(p_max)
-            if over.any():  # never less certain than before any data
-                scale = np.sqrt(np.where(over, np.diag(p_max) / np.diag(self.P_), 1.0))
-                self.P_ = self.P_ * np.outer(scale, scale)
-            self.nis_.append(float(innov @ np.linalg.solve(s, innov)) / expected)
-            if len(self.nis_) == self.change_window and np.mean(self.nis_) > self.change_threshold:
-                self.P_ = p_max.copy()  # a new payload: forget the old one at once
-                self.nis_.clear()
-                self.resets_ += 1
-            self.last_innovation_ = innov
-            self.n_updates_ += 1
-        self.time_s_ = float(ts[-1])
+        stops = sorted(k for k in wanted if 0 <= k < t.shape[0]) + [t.shape[0] - 1]
+        done_rows = 0
+        for k in stops:
+            upto = int(produced[: k + 1].max()) + 1 if (produced[: k + 1] >= 0).any() else 0
+            if upto > done_rows:
+                self._fold_rows(h_all, residual, sliding, moving, r, done_rows, upto)
+                self.time_s_ = float(ts[upto - 1])
+                done_rows = upto
+            if k in wanted and on_checkpoint is not None:
+                on_checkpoint(k)
         return self
+
+    def _fold_rows(self, h_all: Array, residual: Array, sliding: Array, moving: Array, r: Array, start: int, stop: int) -> None:
+        state = np.array([self._nis_count, self._nis_next, 0, 0], np.int64)
+        self.theta_, self.P_ = _fold_kernel(h_all, residual, sliding, moving, r, self.theta_, self.P_, self.prior_std**2,
+                                            self.forgetting, self._nis, state, self.change_threshold, start, stop)
+        self._nis_count, self._nis_next = int(state[0]), int(state[1])
+        self.resets_ += int(state[2])
+        self.n_updates_ += int(state[3])
 
     # --- what the estimate means ---
     @property

@@ -80,11 +80,35 @@ def test_rls_update_equals_batch_least_squares() -> None:
     h = rng.normal(size=(40, 3, 4))
     theta_true = rng.normal(size=4)
     y = h @ theta_true + 0.01 * rng.normal(size=(40, 3))
-    theta, p = np.zeros(4), np.eye(4) * 1e8
+    theta, p = np.zeros(4), np.eye(4) * 1e4  # a weak prior: R / P0 = 1e-8
     for k in range(40):
         theta, p, _, _ = rls_update(theta, p, h[k], y[k], np.full(3, 1e-4))
     batch, *_ = np.linalg.lstsq(h.reshape(-1, 4), y.reshape(-1), rcond=None)
     assert np.allclose(theta, batch, atol=1e-6)
+
+
+def test_compiled_fold_equals_rls_update_step_by_step() -> None:
+    from identify.payload import _fold_kernel
+
+    rng = np.random.default_rng(1)
+    n = 60
+    h = rng.normal(size=(n, 6, 10))
+    y = rng.normal(size=(n, 6))
+    use = rng.random((n, 6)) > 0.3
+    moving = rng.random(n) > 0.5
+    r = rng.uniform(0.1, 1.0, 6)
+    prior = np.full(10, 4.0)
+    theta, p = np.zeros(10), np.diag(prior)
+    for k in range(n):
+        if use[k].any():
+            theta, p, _, _ = rls_update(theta, p, h[k][use[k]], y[k][use[k]], r[use[k]], 0.99 if moving[k] else 1.0)
+            if moving[k]:
+                scale = np.sqrt(np.where(p.diagonal() > prior, prior / p.diagonal(), 1.0))
+                p = p * np.outer(scale, scale)
+    state = np.zeros(4, np.int64)
+    theta_k, p_k = _fold_kernel(h, y, use, moving, r, np.zeros(10), np.diag(prior), prior, 0.99, np.zeros(10**6), state, 1e300, 0, n)
+    assert np.allclose(theta_k, theta, rtol=1e-9, atol=1e-12) and np.allclose(p_k, p, rtol=1e-9, atol=1e-12)
+    assert state[3] == int(use.any(axis=1).sum()) and state[2] == 0
 
 
 def test_payload_attached_and_removed_is_tracked_within_2_s_offline() -> None:
