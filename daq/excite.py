@@ -110,6 +110,14 @@ class ExcitationControl:
             self.active = _Active(plan)
             return self.active
 
+    @property
+    def plan_time(self) -> float:
+        """Time into the active plan at the newest record (s); -1 without one."""
+        active, last = self.active, self.last_record
+        if active is None or active.first_cycle is None or last is None:
+            return -1.0
+        return (last.sample.cycle - active.first_cycle) * self.period_s
+
     def fault(self, fault: DriveFault) -> None:
         self._stop(f"drive fault: {fault}", None)
 

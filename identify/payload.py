@@ -21,6 +21,10 @@ per-joint noise of the identification as its covariance).
   normalized innovation squared, averaged over ``change_window`` samples, exceeds
   ``change_threshold`` times its expected value, the covariance is reset to the prior so
   that the estimate moves to the new payload at once.
+- The noise each joint's equation carries is tracked from the innovations (time constant
+  ``noise_time_constant_s``, outliers clipped at 3 sigma), starting from the
+  identification's per-joint sigma: the live derivatives are noisier than the filtered
+  ones identification used, and a wrong noise level makes the innovation test fire on noise.
 - Directions the motion does not excite keep their prior (a zero payload) and their prior
   standard deviation; :attr:`PayloadRLS.excited_` says which.
 """
@@ -68,10 +72,11 @@ def rls_update(theta: Array, p: Array, h: Array, y: Array, r: Array, forgetting:
 
 @numba.njit(cache=True)
 def _fold_kernel(h_all, residual, sliding, moving, r, theta, p, prior_var, forgetting, nis, nis_state,
-                 change_threshold, start, stop):  # type: ignore[no-untyped-def]
-    """Rows ``start..stop`` folded in as :meth:`PayloadRLS._fold` does, compiled: the same
-    arithmetic as :func:`rls_update`. ``nis`` is the window's ring buffer and ``nis_state``
-    holds [count, next slot, resets, updates]."""
+                 change_threshold, start, stop, noise_rate=0.0):  # type: ignore[no-untyped-def]
+    """Rows ``start..stop`` folded in, compiled: the arithmetic of :func:`rls_update`, then
+    the wind-up cap, the noise tracking and the innovation test. ``r`` (per joint) is
+    updated in place when ``noise_rate`` > 0. ``nis`` is the window's ring buffer and
+    ``nis_state`` holds [count, next slot, resets, updates]."""
     n_par = theta.shape[0]
     for i in range(start, stop):
         use = np.flatnonzero(sliding[i])
@@ -98,6 +103,10 @@ def _fold_kernel(h_all, residual, sliding, moving, r, theta, p, prior_var, forge
                     p[a, :] *= sc
                     p[:, a] *= sc
         value = (innovation @ s_inv @ innovation) / use.size
+        if noise_rate > 0.0:
+            for j in range(use.size):  # the noise this estimator sees, outliers clipped at 3 sigma
+                k = use[j]
+                r[k] += noise_rate * (min(innovation[j] ** 2, 9.0 * r[k]) - r[k])
         window = nis.shape[0]
         nis[nis_state[1]] = value
         nis_state[1] = (nis_state[1] + 1) % window
@@ -169,7 +178,8 @@ class PayloadRLS:
     """
 
     def __init__(self, arm: ArmModel, period_s: float, forgetting: float = 0.998, moving_rad_s: float = 0.05,
-                 change_window: int = 25, change_threshold: float = 8.0, prior_std: Array | None = None) -> None:
+                 change_window: int = 25, change_threshold: float = 8.0, prior_std: Array | None = None,
+                 noise_time_constant_s: float = 2.0) -> None:
         self.arm = arm
         self.period_s = period_s
         self.forgetting = forgetting
@@ -177,11 +187,13 @@ class PayloadRLS:
         self.change_window = change_window
         self.change_threshold = change_threshold
         self.prior_std = PRIOR_STD if prior_std is None else np.asarray(prior_std, float)
+        self.noise_time_constant_s = noise_time_constant_s
 
     def _start(self) -> None:
         self.theta_ = np.zeros(10)
         self.P_ = np.diag(self.prior_std**2)
         self.filter_ = _Filter(self.period_s)
+        self.noise_var_ = np.maximum(np.asarray(self.arm.joint_sigma, float), 1e-6) ** 2
         self._nis = np.zeros(self.change_window)
         self._nis_count = 0
         self._nis_next = 0
@@ -226,7 +238,7 @@ class PayloadRLS:
             # wrong there (as in identification), and one wrong Coulomb step looks like a new payload
             sliding = np.abs(qds) >= np.maximum(MIN_SPEED, np.abs(qdds) * REVERSAL_MARGIN_S)
             moving = np.abs(qds).max(axis=1) > self.moving_rad_s
-        r = np.maximum(self.arm.joint_sigma, 1e-6) ** 2
+        r = self.noise_var_  # updated in place by the kernel
         stops = sorted(k for k in wanted if 0 <= k < t.shape[0]) + [t.shape[0] - 1]
         done_rows = 0
         for k in stops:
@@ -241,8 +253,9 @@ class PayloadRLS:
 
     def _fold_rows(self, h_all: Array, residual: Array, sliding: Array, moving: Array, r: Array, start: int, stop: int) -> None:
         state = np.array([self._nis_count, self._nis_next, 0, 0], np.int64)
-        self.theta_, self.P_ = _fold_kernel(h_all, residual, sliding, moving, r, self.theta_, self.P_, self.prior_std**2,
-                                            self.forgetting, self._nis, state, self.change_threshold, start, stop)
+        self.theta_, self.P_ = _fold_kernel(h_all, residual, sliding, moving, self.noise_var_, self.theta_, self.P_, self.prior_std**2,
+                                            self.forgetting, self._nis, state, self.change_threshold, start, stop,
+                                            self.period_s / self.noise_time_constant_s)
         self._nis_count, self._nis_next = int(state[0]), int(state[1])
         self.resets_ += int(state[2])
         self.n_updates_ += int(state[3])

@@ -161,9 +161,9 @@ def test_live_estimates_over_zenoh_reach_another_process_and_agree_with_replay(t
             runner = threading.Thread(target=lambda: report_box.update(r=s.run(plan, tmp_path / "run", "payload")))
             runner.start()
             while ("on" not in cycles or "off" not in cycles) and runner.is_alive():
-                if "on" not in cycles and _plan_time(s) >= on:
+                if "on" not in cycles and s.control.plan_time >= on:
                     attach("on", PAYLOAD)
-                if "on" in cycles and "off" not in cycles and _plan_time(s) >= off:
+                if "on" in cycles and "off" not in cycles and s.control.plan_time >= off:
                     attach("off", None)
                 time.sleep(0.002)
             runner.join(120)
@@ -202,14 +202,6 @@ def test_live_estimates_over_zenoh_reach_another_process_and_agree_with_replay(t
     for d in both:
         r = replay[d["sequence"]]
         assert abs(d["mass"] - r["mass"]) <= 1e-6 * max(1.0, abs(r["mass"])), (d["sequence"], d["mass"], r["mass"])
-
-
-def _plan_time(s: ExcitationSession) -> float:
-    active = s.control.active
-    last = s.control.last_record
-    if active is None or active.first_cycle is None or last is None:
-        return -1.0
-    return (last.sample.cycle - active.first_cycle) * s.rig.period_s
 
 
 def test_estimate_refuses_an_identification_of_another_model(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
