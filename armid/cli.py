@@ -134,8 +134,9 @@ def _record(args: argparse.Namespace) -> int:
     try:
         driver.start()
         assert driver.network is not None and driver.network.notifier is not None
-        can_log = can.Logger(str(out / "can.log"))  # every frame, as python-can's canutils log
-        driver.network.notifier.add_listener(can_log)
+        from daq.canlog import BusLog
+
+        can_log = BusLog(driver, out / "can.log")  # every frame on the bus, the master's included
         import armid as _armid_pkg
 
         metadata = {
@@ -168,7 +169,6 @@ def _record(args: argparse.Namespace) -> int:
                 break
         acq.stop()
         recorder.close()
-        driver.network.notifier.remove_listener(can_log)  # no frame may reach a closed log
         can_log.stop()
         if stream:
             stream.event("stop", records=acq.sequence)
@@ -315,6 +315,19 @@ def _estimate(args: argparse.Namespace) -> int:
             out.close()
 
 
+def _watch(args: argparse.Namespace) -> int:
+    import zenoh
+
+    from daq.stream import session_config
+
+    from .watch import watch
+
+    with zenoh.open(session_config(args.zenoh_listen, args.zenoh_connect, args.zenoh_config)) as session:
+        state = watch(session, args.robot, args.duration)
+    print(f"armid watch: {state.received} records, {state.gaps} gaps ({state.missing} missing), {state.bad} unreadable", file=sys.stderr)
+    return 0
+
+
 def _demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
@@ -417,6 +430,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--simulate", action=argparse.BooleanOptionalAction, default=None,
                    help="run the rig's simulated arm in this process (default: when the bus is virtual)")
     p.set_defaults(run=_excite)
+
+    p = sub.add_parser("watch", help="a live view of the stream in the terminal (joints, rate, gaps, events, payload)")
+    p.add_argument("--robot", required=True, help="robot name, as in armid/<robot>/... (e.g. puma560)")
+    p.add_argument("--duration", type=float, help="stop after this many seconds (default: until Ctrl-C)")
+    p.add_argument("--zenoh-listen", nargs="*", metavar="ENDPOINT")
+    p.add_argument("--zenoh-connect", nargs="*", metavar="ENDPOINT")
+    p.add_argument("--zenoh-config", metavar="JSON5")
+    p.set_defaults(run=_watch)
 
     p = sub.add_parser("estimate", help="on-line payload recursive least squares (live over Zenoh, or --replay a recording)")
     p.add_argument("mode", nargs="?", choices=["live"], help="live: subscribe to armid/<robot>/joint_state")

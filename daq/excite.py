@@ -33,6 +33,7 @@ from identify.robot import Robot
 from identify.spatial import Array
 
 from .acquisition import Acquisition, Sink
+from .canlog import BusLog
 from .control import ComputedTorque
 from .record_format import JointStateRecord
 from .recorder import McapRecorder
@@ -266,7 +267,6 @@ class ExcitationSession:
     def run(self, plan: Plan, out_dir: str | Path, name: str, metadata: dict[str, Any] | None = None,
             progress: Callable[[float, ExcitationControl], None] | None = None) -> RunReport:
         """Enable (first time), run ``plan`` from where the arm is, record it, hold the end pose."""
-        import can
 
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
@@ -281,8 +281,7 @@ class ExcitationSession:
             "versions": _versions(),
         }
         recorder = McapRecorder(out / "run.mcap", [j.name for j in self.robot.joints], self.driver.torque_constants, meta)
-        can_log = can.Logger(str(out / "can.log"))
-        self.driver.network.notifier.add_listener(can_log)
+        can_log = BusLog(self.driver, out / "can.log")  # every frame on the bus, the master's included
         self._switch.recorder = recorder
         written_before = self._switch.count
         try:
@@ -311,7 +310,6 @@ class ExcitationSession:
             self._switch.recorder = None
             time.sleep(0.005)
             recorder.close()
-            self.driver.network.notifier.remove_listener(can_log)
             can_log.stop()
         if self.stream is not None:
             self.stream.event("stop", run=name, completed=self.control.stop_reason is None, reason=self.control.stop_reason)

@@ -130,6 +130,7 @@ class CanopenDriver(Driver):
         self._last = Sample.empty(0, 0.0, self.n_joints)
         self._emitted = Sample.empty(0, 0.0, self.n_joints)
         self.paced_by_consumer = False  # see _sync_loop; for an arm simulated in this process
+        self._listen_only = False
         self._t0: float | None = None
         self._ack = threading.Condition()
         self._acknowledged = 0
@@ -152,6 +153,12 @@ class CanopenDriver(Driver):
         self.sync_late = 0
         self.drive_configuration: list[dict[str, int]] = []
         self._node_ids = {d.node_id: d.joint for d in rig.drives}
+
+    @property
+    def bus(self) -> can.BusABC:
+        """The bus the driver talks on (opened by :meth:`start` unless one was passed in)."""
+        assert self._bus is not None, "the driver is not started"
+        return self._bus
 
     @property
     def pending(self) -> int:
@@ -299,6 +306,35 @@ class CanopenDriver(Driver):
                 self._tpdo[m.cob_id] = _Tpdo(joint, spec.number, spec.every, struct.Struct(fmt), [(v.index, v.subindex) for v in m.map])
                 self.network.subscribe(m.cob_id, self._on_tpdo)
 
+    def listen(self) -> None:
+        """Decode the bus without taking part in it (a replayed log, another master's bus):
+        the rig's PDO plan at the default COB-IDs, signedness from the shipped EDS; cycles
+        open on each SYNC seen. Nothing is sent, no drive is supervised."""
+        import canopen.objectdictionary
+
+        self._listen_only = True
+        if self._bus is None:
+            self._bus = can.Bus(**self.rig.bus.kwargs())
+        self.network = canopen.Network(self._bus)
+        self.network.connect()
+        od = canopen.objectdictionary.import_od(EDS, 1)
+        for d in self.rig.drives:
+            for spec in self.plan:
+                if spec.direction != "tpdo":
+                    continue
+                fmt = "<" + "".join(_FMT[(od[index].data_type in (2, 3, 4), bits)] for index, _, bits in spec.entries)
+                cob = 0x180 + 0x100 * (spec.number - 1) + d.node_id
+                self._tpdo[cob] = _Tpdo(d.joint, spec.number, spec.every, struct.Struct(fmt), [(i, sub) for i, sub, _ in spec.entries])
+                self.network.subscribe(cob, self._on_tpdo)
+        self.network.subscribe(0x80, self._on_sync_echo)
+
+    def flush(self, timeout: float = 5.0) -> None:
+        """Listening: close the cycles still open once the frames have stopped coming."""
+        time.sleep(min(timeout, 0.2))
+        with self._lock:
+            while self._open:
+                self._emit(self._open.pop(0))
+
     # --- cyclic ---
     def _sync_loop(self) -> None:
         assert self._bus is not None
@@ -339,6 +375,8 @@ class CanopenDriver(Driver):
         self._cycle += 1
         with self._lock:
             self._open_cycle(self._cycle, data[0] if data else 0, timestamp)
+        if self._listen_only:
+            return
         try:
             self._send_commands()
         except can.CanError as err:

@@ -1,0 +1,108 @@
+"""The raw CAN frames of a run, and replay of them into a virtual bus.
+
+:class:`BusLog` writes every frame on the bus, the master's own SYNC, commands and
+heartbeats included, in python-can's log format (``can.log``: candump's text, readable by
+``can.LogReader``, ``python -m can.player`` and the can-utils). It listens on a bus
+instance of its own: the driver's instance does not receive what the driver sends.
+
+:func:`replay_log` plays such a log into a virtual bus, in order and with its time stamps,
+to a :class:`~drivers.canopen_driver.CanopenDriver` that only listens, and returns the
+samples it decodes: the same records as the run's, cycle by cycle.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+import can
+
+from drivers.interface import Sample
+
+
+class BusLog:
+    """Log every frame on a driver's bus to ``path`` until :meth:`stop`: what its bus
+    receives (through its notifier) and what it sends (a tap on its ``send``, which its
+    SYNC thread, commands and periodic heartbeat all go through). A second bus instance
+    would see both too, but receives and unpacks every frame again: on this machine that
+    cost more CPU than the rest of the logging."""
+
+    def __init__(self, driver: Any, path: str | Path) -> None:
+        self.logger = can.Logger(str(path))
+        self.driver = driver
+        self.bus = driver.bus
+        self._send = self.bus.send
+        self._lock = threading.Lock()  # the SYNC thread (sends) and the notifier (receptions) both write
+        self._closed = False
+        send = self._send
+
+        def tapped(msg: can.Message, timeout: float | None = None) -> None:
+            send(msg, timeout)
+            self._write(can.Message(timestamp=time.time(), arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
+                                    is_remote_frame=msg.is_remote_frame, dlc=msg.dlc, data=msg.data, is_rx=False, channel=msg.channel))
+
+        self.bus.send = tapped  # instance attribute: every sender of this bus goes through it
+        self._listener = _Received(self._write)
+        driver.network.notifier.add_listener(self._listener)
+
+    def _write(self, msg: can.Message) -> None:
+        with self._lock:
+            if not self._closed:
+                self.logger.on_message_received(msg)
+
+    def stop(self) -> None:
+        self.bus.send = self._send
+        self.driver.network.notifier.remove_listener(self._listener)
+        with self._lock:
+            self._closed = True
+            self.logger.stop()
+
+
+class _Received(can.Listener):
+    def __init__(self, write: Any) -> None:
+        self.write = write
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self.write(msg)
+
+
+def replay_log(path: str | Path, rig: Any, timeout_s: float = 30.0) -> list[Sample]:
+    """Decode ``path`` as the rig's driver would have: one sample per SYNC in the log."""
+    from drivers.canopen_driver import CanopenDriver
+
+    channel = f"armid-replay-{uuid.uuid4().hex[:8]}"
+    listen_bus = can.Bus(interface="virtual", channel=channel)
+    player = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+    driver = CanopenDriver(rig.with_bus(interface="virtual", channel=channel), bus=listen_bus)
+    samples: list[Sample] = []
+    try:
+        driver.listen()
+        reader = threading.Thread(target=lambda: _drain(driver, samples, timeout_s), daemon=True)
+        reader.start()
+        syncs = 0
+        for msg in can.LogReader(str(path)):
+            if msg.is_error_frame:
+                continue
+            player.send(msg)
+            syncs += msg.arbitration_id == 0x80
+        driver.flush(timeout_s)
+        deadline = time.monotonic() + timeout_s
+        while len(samples) < syncs and time.monotonic() < deadline:
+            time.sleep(0.01)
+        driver.close()
+        reader.join(2.0)
+    finally:
+        player.shutdown()
+        listen_bus.shutdown()
+    return samples
+
+
+def _drain(driver: Any, samples: list[Sample], timeout_s: float) -> None:
+    while True:
+        try:
+            samples.append(driver.read(timeout=timeout_s))
+        except Exception:
+            return
