@@ -112,7 +112,7 @@ def _record(args: argparse.Namespace) -> int:
     from daq.acquisition import Acquisition, Sink
     from daq.recorder import McapRecorder
     from drivers.canopen_driver import CanopenDriver
-    from drivers.rig import load_rig
+    from drivers.rig import load_rig, open_bus
 
     rig = load_rig(args.rig)
     changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
@@ -125,7 +125,7 @@ def _record(args: argparse.Namespace) -> int:
     if simulate:
         from sim_bus.arm import SimulatedArm
 
-        arm = SimulatedArm(rig, bus=can.Bus(**rig.bus.kwargs()))
+        arm = SimulatedArm(rig, bus=open_bus(**rig.bus.kwargs()))
     driver = CanopenDriver(rig)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -373,6 +373,13 @@ def _write_sim_log(arm: object, path: Path) -> None:
     np.savez(path, **arm.log.arrays())  # type: ignore[attr-defined]
 
 
+def _zenoh_arguments(p: argparse.ArgumentParser) -> None:
+    """Where the Zenoh session connects (peer mode, multicast scouting off)."""
+    p.add_argument("--zenoh-listen", nargs="*", metavar="ENDPOINT", help="Zenoh endpoints to listen on, e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--zenoh-connect", nargs="*", metavar="ENDPOINT", help="Zenoh endpoints to connect to")
+    p.add_argument("--zenoh-config", metavar="JSON5", help="a Zenoh configuration file (config/zenoh/lab.json5)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="armid", description="Robot dynamics identification (Khosla 1987) from servo data.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -409,9 +416,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--simulate", action=argparse.BooleanOptionalAction, default=None,
                    help="run the rig's simulated arm in this process (default: when the bus is virtual)")
     p.add_argument("--no-zenoh", action="store_true", help="do not stream")
-    p.add_argument("--zenoh-listen", nargs="*", metavar="ENDPOINT", help="Zenoh endpoints to listen on, e.g. tcp/127.0.0.1:7447")
-    p.add_argument("--zenoh-connect", nargs="*", metavar="ENDPOINT", help="Zenoh endpoints to connect to")
-    p.add_argument("--zenoh-config", metavar="JSON5", help="a Zenoh configuration file (config/zenoh/lab.json5)")
+    _zenoh_arguments(p)
     p.set_defaults(run=_record)
 
     p = sub.add_parser("excite", help="the operator's excitation: designed and checked trajectories, run on the drives, recorded")
@@ -434,9 +439,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("watch", help="a live view of the stream in the terminal (joints, rate, gaps, events, payload)")
     p.add_argument("--robot", required=True, help="robot name, as in armid/<robot>/... (e.g. puma560)")
     p.add_argument("--duration", type=float, help="stop after this many seconds (default: until Ctrl-C)")
-    p.add_argument("--zenoh-listen", nargs="*", metavar="ENDPOINT")
-    p.add_argument("--zenoh-connect", nargs="*", metavar="ENDPOINT")
-    p.add_argument("--zenoh-config", metavar="JSON5")
+    _zenoh_arguments(p)
     p.set_defaults(run=_watch)
 
     p = sub.add_parser("estimate", help="on-line payload recursive least squares (live over Zenoh, or --replay a recording)")
@@ -449,9 +452,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--forgetting", type=float, default=0.998, help="forgetting factor while the arm moves (default 0.998: about 1 s)")
     p.add_argument("--publish-every", type=int, default=10, help="publish on every Nth record (default 10: 50 Hz at 2 ms)")
     p.add_argument("--duration", type=float, help="live: stop after this many seconds")
-    p.add_argument("--zenoh-listen", nargs="*", metavar="ENDPOINT")
-    p.add_argument("--zenoh-connect", nargs="*", metavar="ENDPOINT")
-    p.add_argument("--zenoh-config", metavar="JSON5")
+    _zenoh_arguments(p)
     p.set_defaults(run=_estimate)
 
     p = sub.add_parser("demo", help="the whole job on the simulated arm: excitation, recording, identification, diagnosis, payload, report")

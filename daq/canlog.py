@@ -7,7 +7,10 @@ instance of its own: the driver's instance does not receive what the driver send
 
 :func:`replay_log` plays such a log into a virtual bus, in order and with its time stamps,
 to a :class:`~drivers.canopen_driver.CanopenDriver` that only listens, and returns the
-samples it decodes: the same records as the run's, cycle by cycle.
+samples it decodes: the same records as the run's, cycle by cycle. A log starts when the
+driver is up, so the run's first records (queued while it started) can precede it, and its
+first few cycles can be partial: frames that answer a SYNC from before the log are taken
+for the next one until the deadline logic catches up.
 """
 
 from __future__ import annotations
@@ -40,9 +43,10 @@ class BusLog:
         send = self._send
 
         def tapped(msg: can.Message, timeout: float | None = None) -> None:
-            send(msg, timeout)
+            # logged before it goes out: the answers it provokes must follow it in the log
             self._write(can.Message(timestamp=time.time(), arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
                                     is_remote_frame=msg.is_remote_frame, dlc=msg.dlc, data=msg.data, is_rx=False, channel=msg.channel))
+            send(msg, timeout)
 
         self.bus.send = tapped  # instance attribute: every sender of this bus goes through it
         self._listener = _Received(self._write)

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.interface import DriveFault, Driver
+from drivers.interface import DriveFault, Driver, DriverError
 from identify.errors import UsageError
 from identify.excitation import Limits, Plan
 from identify.robot import Robot
@@ -104,7 +104,7 @@ class ExcitationControl:
     def start(self, plan: Plan) -> _Active:
         with self._lock:
             if self.stop_reason:
-                raise RuntimeError(f"the arm was stopped ({self.stop_reason}); restart the session")
+                raise DriverError(f"the arm was stopped ({self.stop_reason}); start a new session")
             self.max_error[:] = 0.0
             self.peak_torque[:] = 0.0
             self.saturated[:] = 0
@@ -210,7 +210,6 @@ class ExcitationSession:
 
     def __init__(self, rig: Any, simulate: bool = True, tracking_limit_rad: float = 0.2, stream: Any = None,
                  bus: Any = None, bandwidth_hz: float = LOOP_BANDWIDTH_HZ) -> None:
-        import can
 
         from drivers.canopen_driver import CanopenDriver
 
@@ -219,9 +218,10 @@ class ExcitationSession:
         self.arm = None
         self._buses: list[Any] = []
         if simulate:
+            from drivers.rig import open_bus
             from sim_bus.arm import SimulatedArm
 
-            arm_bus = can.Bus(**rig.bus.kwargs())
+            arm_bus = open_bus(**rig.bus.kwargs())
             self._buses.append(arm_bus)
             self.arm = SimulatedArm(rig, bus=arm_bus)
         self.driver = CanopenDriver(rig, bus=bus)
@@ -251,7 +251,7 @@ class ExcitationSession:
         while self.control.hold is None and time.monotonic() < deadline:
             time.sleep(0.01)
         if self.control.hold is None:
-            raise RuntimeError("no sample from the drives within 2 s")
+            raise DriverError("no sample from the drives within 2 s of starting")
 
     def _on_fault(self, fault: DriveFault) -> None:
         self.control.fault(fault)

@@ -33,7 +33,7 @@ from identify.spatial import Array
 
 from .interface import DriveConfigError, DriveFault, Driver, DriverError, HeartbeatLost, Sample
 from .pdo_plan import PLANS, PdoSpec, check_bus_budget
-from .rig import Rig
+from .rig import Rig, open_bus
 
 EDS = str(__import__("pathlib").Path(__file__).resolve().parent.parent / "config" / "drives" / "armid_cia402.eds")
 
@@ -183,7 +183,7 @@ class CanopenDriver(Driver):
             kwargs = r.bus.kwargs()
             if r.bus.interface == "socketcan":
                 kwargs["receive_own_messages"] = True
-            self._bus = can.Bus(**kwargs)
+            self._bus = open_bus(**kwargs)
         self.network = canopen.Network(self._bus)
         self.network.connect()
         assert self.network.notifier is not None
@@ -314,7 +314,7 @@ class CanopenDriver(Driver):
 
         self._listen_only = True
         if self._bus is None:
-            self._bus = can.Bus(**self.rig.bus.kwargs())
+            self._bus = open_bus(**self.rig.bus.kwargs())
         self.network = canopen.Network(self._bus)
         self.network.connect()
         od = canopen.objectdictionary.import_od(EDS, 1)

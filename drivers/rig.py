@@ -101,6 +101,32 @@ class Rig:
         return replace(self, bus=replace(self.bus, **changes))
 
 
+UDP_RECEIVE_BUFFER_BYTES = 4 * 1024 * 1024
+"""A process that stalls for tens of ms (GIL, start-up) must not lose frames: at 2 ms and
+about 20 frames a cycle, Linux's default 212 KB receive buffer overflows in about 25 ms
+(the kernel counts ~800 bytes a datagram); 4 MB holds half a second."""
+
+
+def open_bus(**kwargs: Any) -> Any:
+    """``can.Bus(**kwargs)``, with a receive buffer that survives a stall on ``udp_multicast``."""
+    import socket
+
+    import can
+
+    bus = can.Bus(**kwargs)
+    sock = getattr(getattr(bus, "_multicast", None), "_socket", None)
+    if sock is not None:
+        for option in (getattr(socket, "SO_RCVBUFFORCE", None), socket.SO_RCVBUF):
+            if option is None:
+                continue
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, option, UDP_RECEIVE_BUFFER_BYTES)
+                break
+            except OSError:  # SO_RCVBUFFORCE needs CAP_NET_ADMIN; SO_RCVBUF is capped at rmem_max
+                continue
+    return bus
+
+
 def load_rig(path: str | Path) -> Rig:
     """Read and check a rig YAML file; the robot path is relative to the rig file."""
     import yaml

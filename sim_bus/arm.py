@@ -20,7 +20,7 @@ import can
 import canopen
 import numpy as np
 
-from drivers.rig import Rig
+from drivers.rig import Rig, open_bus
 
 from .drive import SimulatedDrive
 from .physics import ArmPhysics, Measurement, simulation_config
@@ -69,7 +69,7 @@ class SimulatedArm:
         self.config = simulation_config(sim, rig.n_joints, f"{rig.source}: simulation")
         self.physics = ArmPhysics(rig.robot, self.config, rig.period_s, self.seed)
         self._own_bus = bus is None
-        self.bus = bus if bus is not None else can.Bus(**rig.bus.kwargs())
+        self.bus = bus if bus is not None else open_bus(**rig.bus.kwargs())
         self.network = canopen.Network(self.bus)
         self.network.connect()
         sync_timeout = float(sim.get("sync_timeout_s", 0.1))

