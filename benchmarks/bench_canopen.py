@@ -3,9 +3,10 @@
     python benchmarks/bench_canopen.py [seconds] [virtual|udp_multicast ...]
 
 ``virtual``: simulated arm and driver in this process. ``udp_multicast``: the arm runs as
-``armid sim`` in another process. The SYNC period is measured on the bus by a listener of
-its own (the frames' timestamps); CPU per cycle is this process's CPU time over the
-cycles (for ``virtual`` it includes the simulated arm).
+``armid sim`` in another process. The SYNC period is measured from the samples (each
+carries the time its SYNC went out; a listening bus instance of its own would receive and
+unpack every frame again and load the process it measures); CPU per cycle is this
+process's CPU time over the cycles (for ``virtual`` it includes the simulated arm).
 """
 
 from __future__ import annotations
@@ -25,20 +26,12 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from daq.control import ComputedTorque  # noqa: E402
+from daq.excite import LOOP_BANDWIDTH_HZ  # noqa: E402
 from drivers.canopen_driver import CanopenDriver  # noqa: E402
 from drivers.rig import load_rig  # noqa: E402
 from sim_bus.arm import SimulatedArm  # noqa: E402
 
 RIG = ROOT / "config" / "rigs" / "sim.yaml"
-
-
-class SyncTimes(can.Listener):
-    def __init__(self) -> None:
-        self.times: list[float] = []
-
-    def on_message_received(self, msg: can.Message) -> None:
-        if msg.arbitration_id == 0x80:
-            self.times.append(msg.timestamp)
 
 
 def run(interface: str, seconds: float) -> str:
@@ -54,14 +47,14 @@ def run(interface: str, seconds: float) -> str:
                                  "--channel", channel, "--ready", str(ready)], cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
         while not ready.exists():
             time.sleep(0.05)
-    listener_bus = can.Bus(**rig.bus.kwargs())
-    sync = SyncTimes()
-    notifier = can.Notifier(listener_bus, [sync])
     driver = CanopenDriver(rig)
+    sync_times: list[float] = []
     try:
         driver.start()
         q_ref = np.asarray(rig.simulation["initial_position"], float)
-        control = ComputedTorque(rig.robot, q_nominal=q_ref)
+        # the excitation session's loop: through the mass matrix, rotor inertias included, 2 Hz
+        control = ComputedTorque(rig.robot, q_nominal=q_ref, armature=[d.units.reflected_inertia for d in rig.drives],
+                                 bandwidth_hz=LOOP_BANDWIDTH_HZ, decoupled=True)
         z = np.zeros(rig.n_joints)
         for _ in range(20):
             driver.read(1.0)
@@ -71,21 +64,20 @@ def run(interface: str, seconds: float) -> str:
         invalid = 0
         for _ in range(n):
             s = driver.read(1.0)
+            sync_times.append(s.time_s)  # when its SYNC went out
             invalid += int(not s.valid.all())
             driver.command_torque(control(s.position, s.velocity, q_ref, z, z))
         cpu = time.process_time() - cpu0
         wall = time.perf_counter() - wall0
     finally:
         driver.close()
-        notifier.stop()
-        listener_bus.shutdown()
         if arm is not None:
             arm.close()
         if proc is not None:
             proc.terminate()
             proc.wait(10)
         tmp.cleanup()
-    periods = np.diff(np.array(sync.times)) * 1e3
+    periods = np.diff(np.array(sync_times)) * 1e3
     p50, p99 = np.percentile(periods, [50, 99])
     return (
         f"{interface}: {n} cycles in {wall:.1f} s, 6 axes at {rig.period_s * 1e3:g} ms: lost cycles {int(driver.lost_cycles.max())} "

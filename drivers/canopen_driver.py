@@ -397,8 +397,9 @@ class CanopenDriver(Driver):
         # its samples carry the arm's time; on a real bus the SYNC's own time is the arm's
         stamp = self._t0 + cycle * self.period_s if self.paced_by_consumer else now
         s = Sample.empty(cycle, stamp, self.n_joints)
-        s.position[:], s.velocity[:] = self._last.position, self._last.velocity
-        s.measured_current[:], s.status[:] = self._last.measured_current, self._last.status
+        # start from the newest complete sample: the previous cycle's frames may not be in yet
+        s.position[:], s.velocity[:] = self._emitted.position, self._emitted.velocity
+        s.measured_current[:], s.status[:] = self._emitted.measured_current, self._emitted.status
         s.commanded_current[:] = self._in_force
         self._in_force = self._commanded.copy()
         expected = {(t.joint, t.number) for t in self._tpdo.values() if counter % t.every == 0 and not self._silent[t.joint]}
@@ -566,7 +567,7 @@ class CanopenDriver(Driver):
                 continue
             deadline = time.monotonic() + timeout
             while True:
-                status = self._last.status.copy()
+                status = self._emitted.status.copy()  # the newest complete sample's
                 if all((s & STATE_MASK) == state for s in status):
                     break
                 if time.monotonic() > deadline:
