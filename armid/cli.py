@@ -127,6 +127,9 @@ def _record(args: argparse.Namespace) -> int:
 
         arm = SimulatedArm(rig, bus=open_bus(**rig.bus.kwargs()))
     driver = CanopenDriver(rig)
+    # an arm simulated in this process never runs ahead of what records it (SYNC waits for
+    # the consumer); --duration is then the arm's time, whatever the wall clock does
+    driver.paced_by_consumer = simulate
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -163,7 +166,8 @@ def _record(args: argparse.Namespace) -> int:
         start = time.monotonic()
         print(f"armid record: {rig.name} -> {out / 'run.mcap'} (Ctrl-C stops)", file=sys.stderr, flush=True)
         while not stop.wait(0.1):
-            if args.duration and time.monotonic() - start >= args.duration:
+            elapsed = acq.sequence * rig.period_s if simulate else time.monotonic() - start
+            if args.duration and elapsed >= args.duration:
                 break
             if acq.error:
                 break
@@ -410,7 +414,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("record", help="record the drives through daq/: MCAP, raw CAN log, live Zenoh stream")
     p.add_argument("--rig", required=True, help="rig file")
     p.add_argument("--out", required=True, help="output folder (run.mcap, can.log)")
-    p.add_argument("--duration", type=float, help="seconds to record (default: until Ctrl-C)")
+    p.add_argument("--duration", type=float, help="seconds to record (the arm's time when it is simulated here; default: until Ctrl-C)")
     p.add_argument("--interface", help="override the rig's python-can interface")
     p.add_argument("--channel", help="override the rig's channel")
     p.add_argument("--simulate", action=argparse.BooleanOptionalAction, default=None,
