@@ -15,7 +15,6 @@ recorded to its own folder (``run.mcap`` and the raw frames in ``can.log``).
 
 from __future__ import annotations
 
-import json
 import platform
 import threading
 import time
@@ -348,8 +347,3 @@ def _versions() -> dict[str, str]:
 
     return {"armid": getattr(armid, "__version__", "0.1.0"), "python": platform.python_version(), "python-can": can.__version__,
             "canopen": getattr(canopen, "__version__", "?"), "numpy": np.__version__}
-
-
-def write_json(path: Path, doc: Any) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(doc, indent=1) + "\n")

@@ -30,10 +30,9 @@ import numpy as np
 from scipy.optimize import minimize
 
 from .dynamics import regressor
-from .effects import effect_columns
 from .errors import ArmidError
 from .identifiability import BaseParameters, base_parameters, preferred_order
-from .identification import declared_effects
+from .identification import declared_effects, stacked_regressor
 from .robot import Robot
 from .spatial import Array
 from .trajectories import FourierTrajectory
@@ -137,12 +136,8 @@ def experiment_columns(robot: Robot, rows: tuple[int, ...]) -> tuple[list[int], 
 def experiment_regressor(robot: Robot, rows: tuple[int, ...], q: Array, qd: Array, qdd: Array) -> Array:
     """(n len(rows), P) rows of eq. (18) with effect columns: every column, so that one
     index space serves every experiment."""
-    effects = declared_effects(robot)
     n, nj = q.shape
-    w = np.zeros((n, nj, robot.n_parameters + sum(len(e.parameter_names) for e in effects)))
-    regressor(robot, q, qd, qdd, out=w[:, :, : robot.n_parameters])
-    if effects:
-        w[:, :, robot.n_parameters :] = effect_columns(effects, q, qd, qdd)
+    w = stacked_regressor(robot, declared_effects(robot), q, qd, qdd).reshape(n, nj, -1)
     return w[:, list(rows), :].reshape(-1, w.shape[2])
 
 
@@ -174,7 +169,8 @@ def _scaled(robot: Robot, limits: Limits, q_hold: Array, moving: tuple[int, ...]
         if ratio <= 1.0:
             break
         shrink = max(0.5, 0.97 / np.sqrt(ratio))
-        mid_q = 0.5 * (traj.evaluate(t)[0].max(axis=0) + traj.evaluate(t)[0].min(axis=0))
+        q_now = traj.evaluate(t)[0]
+        mid_q = 0.5 * (q_now.max(axis=0) + q_now.min(axis=0))
         traj = FourierTrajectory(mid_q - shrink * (mid_q - traj.q0), traj.a * shrink, traj.b * shrink, f_hz)
     return traj
 

@@ -40,8 +40,8 @@ import numba
 import numpy as np
 
 from .dynamics import regressor
-from .effects import LinearEffect, effect_columns
-from .robot import Robot
+from .effects import LinearEffect
+from .robot import Robot, inertial_from_parameters
 from .spatial import Array
 
 MIN_SPEED = 0.02
@@ -132,11 +132,10 @@ class ArmModel:
     joint_sigma: Array
 
     def torque(self, q: Array, qd: Array, qdd: Array) -> Array:
+        from .identification import stacked_regressor
+
         n, nj = q.shape
-        w = np.zeros((n, nj, self.robot.n_parameters + sum(len(e.parameter_names) for e in self.effects)))
-        regressor(self.robot, q, qd, qdd, out=w[:, :, : self.robot.n_parameters])
-        if self.effects:
-            w[:, :, self.robot.n_parameters :] = effect_columns(list(self.effects), q, qd, qdd)
+        w = stacked_regressor(self.robot, list(self.effects), q, qd, qdd).reshape(n, nj, -1)
         return w[:, :, self.columns] @ self.beta
 
 
@@ -282,22 +281,13 @@ class PayloadRLS:
             jac[:, 0] = -th[1:4] / m**2
             jac[:, 1:4] = np.eye(3) / m
             com_std = np.sqrt(np.maximum(np.diag(jac @ p @ jac.T), 0.0))
-            i_com = _inertia_about_com(th)
+            i_com = np.array(inertial_from_parameters(th).inertia_kgm2)
         else:
             c, com_std, i_com = np.full(3, np.nan), np.full(3, np.nan), np.full(6, np.nan)
         converged = bool(std[0] < max(0.05 * abs(m), 0.05) and (abs(m) < 0.2 or np.all(com_std < 0.01)))
         return {"time": self.time_s_, "mass": m, "mass_std": float(std[0]), "com": c.tolist(), "com_std": com_std.tolist(),
                 "inertia": i_com.tolist(), "inertia_std": std[4:].tolist(), "parameters": th.tolist(), "parameters_std": std.tolist(),
                 "excited": self.excited_.tolist(), "converged": converged, "updates": self.n_updates_, "resets": self.resets_}
-
-
-def _inertia_about_com(phi: Array) -> Array:
-    """Steiner's law (eq. 10) read backwards: the link-frame inertia minus ``m (s.s I - s s^T)``."""
-    m = float(phi[0])
-    s = np.asarray(phi[1:4]) / m
-    xx, xy, xz, yy, yz, zz = phi[4:10]
-    i = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]]) - m * (s @ s * np.eye(3) - np.outer(s, s))
-    return np.array([i[0, 0], i[0, 1], i[0, 2], i[1, 1], i[1, 2], i[2, 2]])
 
 
 def arm_model_from_identification(robot: Robot, doc: dict[str, Any], seed: int = 0) -> ArmModel:

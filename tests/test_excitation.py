@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from armid.cli import main
+from armid.demo import true_parameters
 from daq.excite import ExcitationSession
 from drivers.rig import load_rig
 from identify import excitation as ex
@@ -53,14 +54,7 @@ def test_a_plan_beyond_a_limit_is_refused_naming_the_first_violation() -> None:
 
 
 def _truth(names: list[str]) -> np.ndarray:
-    rig = load_rig(RIG)
-    cfg = simulation_config(rig.simulation, 6)
-    phi = np.zeros(len(names))
-    phi[: PUMA.n_parameters] = PUMA.modeled_parameters()
-    field = {"fv": "viscous", "fc": "coulomb", "ia": "rotor_inertia"}
-    for k, name in enumerate(names[PUMA.n_parameters :], PUMA.n_parameters):
-        phi[k] = getattr(cfg.effects(int(name[2:]) - 1), field[name[:2]])
-    return phi
+    return true_parameters(load_rig(RIG), names)
 
 
 @pytest.mark.parametrize("seed", [0])  # seed 7: fv3, fc3 at -3.6 and +4.0 sigma (README: open item)
