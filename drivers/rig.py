@@ -57,9 +57,10 @@ class DriveUnits:
 
 @dataclass(frozen=True)
 class DriveConfig:
-    node_id: int
+    node_id: int  # the CANopen node id, or the Dynamixel servo id
     joint: int  # 0-based
     units: DriveUnits
+    model: str = ""  # a serial servo's model (drivers.dynamixel_protocol.SERVO_MODELS)
 
 
 @dataclass(frozen=True)
@@ -78,6 +79,25 @@ class BusConfig:
 
 
 @dataclass(frozen=True)
+class SerialConfig:
+    """A serial servo chain (``bus: {interface: dynamixel, ...}``): port, line and timing.
+
+    ``port: sim`` runs the simulated servo chain on a pseudo-terminal. ``host_latency_ms`` is
+    what the host adds per request-reply (a USB-serial adapter's latency timer: 1 ms at
+    best on an FTDI/U2D2). ``reply_timeout_ms`` bounds every read (default: the budget's
+    reply time plus twice the host latency plus 2 ms, as ROBOTIS's SDK does).
+    """
+
+    port: str = "sim"
+    baudrate: int = 4_000_000
+    return_delay_us: int = 0
+    host_latency_ms: float = 1.0
+    read_mode: str = "fast_sync_read"
+    reply_timeout_ms: float | None = None
+    silent_cycles: int = 50  # consecutive cycles without a reply before a servo is declared lost
+
+
+@dataclass(frozen=True)
 class Rig:
     name: str
     robot: Robot
@@ -90,6 +110,11 @@ class Rig:
     master_heartbeat_ms: int = 50
     simulation: dict[str, Any] = field(default_factory=dict)
     source: str = "<rig>"
+    serial: SerialConfig | None = None  # set for a Dynamixel chain (bus.interface: dynamixel)
+
+    @property
+    def is_serial(self) -> bool:
+        return self.serial is not None
 
     @property
     def n_joints(self) -> int:
@@ -158,6 +183,8 @@ def rig_from_dict(doc: Any, src: str = "<rig>", base_dir: Path | None = None) ->
     bus_doc = doc.get("bus", {}) or {}
     if not isinstance(bus_doc, dict):
         raise RigFileError(src, "bus", "must be a mapping")
+    if bus_doc.get("interface") == "dynamixel":
+        return _serial_rig(doc, bus_doc, robot, src)
     known_bus = {"interface", "channel", "bitrate"}
     bus = BusConfig(
         interface=str(bus_doc.get("interface", "virtual")),
@@ -206,6 +233,67 @@ def rig_from_dict(doc: Any, src: str = "<rig>", base_dir: Path | None = None) ->
     if rig.pdo_plan not in PLANS:
         raise RigFileError(src, "pdo_plan", f"unknown plan {rig.pdo_plan!r}; known: {', '.join(PLANS)}")
     return rig
+
+
+def _serial_rig(doc: dict[str, Any], bus_doc: dict[str, Any], robot: Robot, src: str) -> Rig:
+    """A Dynamixel chain: ``bus`` gives the port and line, each drive its servo id and model."""
+    from .dynamixel_protocol import BAUD_CODES, MAX_ID, SERVO_MODELS
+
+    known = {"interface", "port", "baudrate", "return_delay_us", "host_latency_ms", "read_mode", "reply_timeout_ms", "silent_cycles"}
+    for key in bus_doc:
+        if key not in known:
+            raise RigFileError(src, f"bus.{key}", f"unknown setting for a dynamixel bus; known: {', '.join(sorted(known))}")
+    baud = _int(bus_doc.get("baudrate", 4_000_000), src, "bus.baudrate", 9_600, 4_500_000)
+    if baud not in BAUD_CODES.values():
+        raise RigFileError(src, "bus.baudrate", f"{baud} is not a Dynamixel baud rate; known: {', '.join(str(b) for b in BAUD_CODES.values())}")
+    read_mode = str(bus_doc.get("read_mode", "fast_sync_read"))
+    if read_mode not in ("fast_sync_read", "sync_read"):
+        raise RigFileError(src, "bus.read_mode", f"must be fast_sync_read or sync_read, got {read_mode!r}")
+    timeout = bus_doc.get("reply_timeout_ms")
+    serial = SerialConfig(
+        port=str(bus_doc.get("port", "sim")),
+        baudrate=baud,
+        return_delay_us=_int(bus_doc.get("return_delay_us", 0), src, "bus.return_delay_us", 0, 508),
+        host_latency_ms=_float(bus_doc.get("host_latency_ms", 1.0), src, "bus.host_latency_ms"),
+        read_mode=read_mode,
+        reply_timeout_ms=None if timeout is None else _float(timeout, src, "bus.reply_timeout_ms", positive=True),
+        silent_cycles=_int(bus_doc.get("silent_cycles", 50), src, "bus.silent_cycles", 1, 100_000),
+    )
+    drives_doc = doc.get("drives")
+    if not isinstance(drives_doc, list) or len(drives_doc) != robot.n_joints:
+        raise RigFileError(src, "drives", f"must list one servo per joint ({robot.n_joints})")
+    drives = []
+    seen: set[int] = set()
+    for j, d in enumerate(drives_doc):
+        where = f"drives[{j}]"
+        if not isinstance(d, dict):
+            raise RigFileError(src, where, "must be a mapping")
+        servo_id = _int(d.get("id"), src, f"{where}.id", 0, MAX_ID)
+        if servo_id in seen:
+            raise RigFileError(src, f"{where}.id", f"servo id {servo_id} is used twice")
+        seen.add(servo_id)
+        name = d.get("model")
+        if name not in SERVO_MODELS:
+            raise RigFileError(src, f"{where}.model", f"unknown servo model {name!r}; known: {', '.join(SERVO_MODELS)}")
+        model = SERVO_MODELS[name]
+        units = DriveUnits(
+            counts_per_rev=model.counts_per_rev,
+            gear_ratio=_float(d.get("gear_ratio", 1.0), src, f"{where}.gear_ratio", positive=True),
+            rated_current_a=model.max_current_a,
+            torque_constant=robot.joints[j].torque_constant,
+            rotor_inertia_kgm2=_float(d.get("rotor_inertia_kgm2", 0.0), src, f"{where}.rotor_inertia_kgm2"),
+        )
+        drives.append(DriveConfig(servo_id, j, units, model.name))
+    return Rig(
+        name=str(doc.get("name", robot.name)),
+        robot=robot,
+        bus=BusConfig(interface="dynamixel", channel=serial.port, bitrate=baud),
+        drives=tuple(drives),
+        period_s=_float(doc.get("period_s", 0.002), src, "period_s", positive=True),
+        simulation=dict(doc.get("simulation") or {}),
+        source=src,
+        serial=serial,
+    )
 
 
 def _int(value: Any, src: str, where: str, lo: int, hi: int) -> int:

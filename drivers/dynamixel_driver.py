@@ -1,0 +1,500 @@
+"""Dynamixel X-series servos over Protocol 2.0 on a serial line (pyserial), behind :class:`Driver`.
+
+Start-up, per servo: Ping (the model number must be the rig's), Hardware Error Status,
+torque off, Return Delay Time and Operating Mode (current control) written and read back,
+Current Limit read. The line's time budget is checked first (:func:`check_budget`): a
+period the baud rate cannot keep is refused with the numbers.
+
+Each cycle, on one thread that alone touches the port: the one-off requests queued since
+the last cycle (torque, reboot, mode), a Sync Write of Goal Current (no reply), and a Fast
+Sync Read (or Sync Read) of Present Current, Velocity and Position. A sample is stamped
+when its reply completes. A servo whose block is missing, cut or corrupted is marked
+invalid for that cycle (its values are the last known ones) and an event names the
+error; after ``silent_cycles`` such cycles in a row it is declared lost (a fault, and the
+others are quick-stopped); it is back as soon as it answers. A status whose alert bit is
+set makes the driver read Hardware Error Status and raise a :class:`DriveFault` once;
+:meth:`DynamixelDriver.enable` reboots such a servo before enabling. Every read has a
+timeout, so no fault on the line can hang the cycle.
+"""
+
+from __future__ import annotations
+
+import os
+import queue
+import select
+import struct
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from identify.spatial import Array
+
+from . import dynamixel_protocol as dxl
+from .dynamixel_protocol import Address, ProtocolError, ReplyTimeout, StatusError
+from .interface import DriveConfigError, DriveFault, Driver, DriverError, HeartbeatLost, Sample
+from .rig import Rig
+
+REBOOT_WAIT_S = 1.0  # a rebooting servo answers a ping again within this
+
+
+class ServoLost(HeartbeatLost):
+    """A servo has not answered for ``silent_cycles`` cycles in a row."""
+
+
+class DynamixelDriver(Driver):
+    """The rig's servo chain on ``port`` (default: the rig's ``bus.port``)."""
+
+    def __init__(self, rig: Rig, port: str | None = None) -> None:
+        super().__init__()
+        if rig.serial is None:
+            raise DriveConfigError(f"{rig.source}: bus.interface is {rig.bus.interface!r}, not dynamixel")
+        cfg = rig.serial
+        self.rig, self.cfg = rig, cfg
+        self.port_name = port or cfg.port
+        if self.port_name == "sim":
+            raise DriveConfigError(f"{rig.source}: bus.port is 'sim': start the simulated chain (sim_bus.servo_chain) and pass its port")
+        self.n_joints = rig.n_joints
+        self.period_s = rig.period_s
+        self.ids = [d.node_id for d in rig.drives]
+        self.units = [d.units for d in rig.drives]
+        self.models = [dxl.SERVO_MODELS[d.model] for d in rig.drives]
+        self.fast = cfg.read_mode == "fast_sync_read"
+        self.budget = dxl.cycle_budget(self.n_joints, cfg.baudrate, rig.period_s, cfg.return_delay_us, cfg.host_latency_ms / 1000.0,
+                                       cfg.read_mode)
+        self.reply_timeout_s = (cfg.reply_timeout_ms / 1000.0 if cfg.reply_timeout_ms is not None
+                                else self.budget.reply_s + 2.0 * self.budget.host_latency_s + 0.002)
+        self._lsb = np.array([m.current_lsb_a for m in self.models])
+        self._counts_per_rad = np.array([u.counts_per_rad for u in self.units])
+        self._velocity_lsb = np.array([m.velocity_lsb_rad_s for m in self.models]) / np.array([u.gear_ratio for u in self.units])
+        self._limit_raw = np.array([m.current_limit for m in self.models], np.int64)
+        self._serial: Any = None
+        self._fd = -1
+        self._rx = bytearray()
+        self._out: queue.Queue[Sample] = queue.Queue(maxsize=100_000)
+        self._faults: queue.Queue[DriveFault] = queue.Queue()
+        self._requests: queue.Queue[tuple[Callable[[], Any], queue.Queue[Any]]] = queue.Queue()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._cycle = 0
+        self._emitted = Sample.empty(0, 0.0, self.n_joints)
+        self._goal = np.zeros(self.n_joints, np.int64)  # current LSBs
+        self._goal_position = np.zeros(self.n_joints, np.int64)
+        self._position_mode = False
+        self._commanded = np.zeros(self.n_joints)
+        self._in_force = np.zeros(self.n_joints)
+        self._stopped: set[int] = set()  # joints quick-stopped since the last enable
+        self.torque_enabled = np.zeros(self.n_joints, bool)
+        self.hardware_error = np.zeros(self.n_joints, np.int64)
+        self._fail_run = np.zeros(self.n_joints, np.int64)
+        self._silent = np.zeros(self.n_joints, bool)
+        self.lost_cycles = np.zeros(self.n_joints, np.int64)
+        self.errors_by_kind: dict[str, int] = {}
+        self.late_cycles = 0
+        self.noise_bytes = 0
+        self.reply_times: deque[float] = deque(maxlen=200_000)  # completion stamps (time.perf_counter)
+        self.round_trips: deque[float] = deque(maxlen=200_000)  # read request sent -> reply complete (s)
+        self.drive_configuration: list[dict[str, int]] = []
+
+    @property
+    def torque_constants(self) -> Array:
+        return np.array([u.torque_constant for u in self.units])
+
+    @property
+    def pending(self) -> int:
+        return self._out.qsize()
+
+    @property
+    def latest_cycle(self) -> int | None:
+        return self._cycle
+
+    # --- the line ---
+    def _open(self) -> None:
+        import serial
+
+        try:
+            self._serial = serial.Serial(self.port_name, self.cfg.baudrate, timeout=0, write_timeout=0.1)
+        except (serial.SerialException, OSError) as err:
+            raise DriverError(f"{self.rig.source}: cannot open serial port {self.port_name}: {err}") from err
+        self._fd = self._serial.fileno()
+
+    def _send(self, packet: bytes) -> None:
+        view = memoryview(packet)
+        while view:
+            try:
+                n = os.write(self._fd, view)
+            except BlockingIOError:
+                select.select([], [self._fd], [], 0.01)
+                continue
+            view = view[n:]
+
+    def _receive(self, deadline: float, size: int | None = None) -> bytes:
+        """The next packet from its header: whole (``size`` bytes, or as its length field
+        says), or what arrived of it by ``deadline`` (empty when nothing did)."""
+        buf = self._rx
+        while True:
+            start = buf.find(dxl.HEADER)
+            if start > 0 or (start < 0 and len(buf) > 3):
+                skip = start if start > 0 else len(buf) - 3
+                self.noise_bytes += skip
+                del buf[:skip]
+                start = buf.find(dxl.HEADER)
+            if start == 0:
+                total = size if size is not None else dxl.packet_length(buf)
+                if total is not None and len(buf) >= total:
+                    out = bytes(buf[:total])
+                    del buf[:total]
+                    return out
+            remaining = deadline - time.perf_counter()
+            if remaining <= 0:
+                out = bytes(buf) if start == 0 else b""
+                buf.clear()
+                return out
+            ready, _, _ = select.select([self._fd], [], [], remaining)
+            if ready:
+                try:
+                    buf += os.read(self._fd, 4096)
+                except BlockingIOError:
+                    pass
+
+    def _flush_input(self) -> None:
+        """Stale bytes (a reply that came after its timeout) must not answer the next request."""
+        self._rx.clear()
+        while select.select([self._fd], [], [], 0)[0]:
+            try:
+                if not os.read(self._fd, 4096):
+                    break
+            except BlockingIOError:
+                break
+
+    def _transact(self, servo_id: int, packet: bytes, timeout: float | None = None) -> dxl.Packet:
+        """Send an instruction to one servo and return its status packet (or raise why not)."""
+        self._flush_input()
+        self._send(packet)
+        raw = self._receive(time.perf_counter() + (timeout or self.reply_timeout_s))
+        if not raw:
+            raise ReplyTimeout(f"servo {servo_id}: no reply within {1e3 * (timeout or self.reply_timeout_s):.1f} ms", servo_id)
+        reply = dxl.decode(raw, servo_id)
+        if reply.id != servo_id or reply.instruction != dxl.Instruction.STATUS:
+            raise dxl.MalformedPacket(f"servo {servo_id}: reply from id {reply.id} with instruction 0x{reply.instruction:02X}", servo_id)
+        if reply.error & 0x7F:
+            raise StatusError(servo_id, reply.error)
+        return reply
+
+    def _read_table(self, servo_id: int, address: int, length: int) -> bytes:
+        data = self._transact(servo_id, dxl.read(servo_id, address, length)).data
+        if len(data) != length:
+            raise dxl.MalformedPacket(f"servo {servo_id}: read of {length} bytes at {address} returned {len(data)}", servo_id)
+        return data
+
+    def _write_table(self, servo_id: int, address: int, data: bytes) -> None:
+        self._transact(servo_id, dxl.write(servo_id, address, data))
+
+    def _sync_write(self, address: int, values: list[bytes], joints: list[int] | None = None) -> None:
+        joints = list(range(self.n_joints)) if joints is None else joints
+        self._send(dxl.sync_write(address, [(self.ids[j], values[j]) for j in joints]))
+
+    # --- start-up ---
+    def start(self) -> None:
+        """Check the budget, open the port, configure every servo, start cycling (torque off)."""
+        sys.setswitchinterval(min(sys.getswitchinterval(), self.period_s / 10))
+        dxl.check_budget(self.budget)
+        self._open()
+        try:
+            for j in range(self.n_joints):
+                self.drive_configuration.append(self._configure(j))
+        except BaseException:
+            self._serial.close()
+            raise
+        self._thread = threading.Thread(target=self._run, name="armid-dynamixel", daemon=True)
+        self._thread.start()
+
+    def _where(self, j: int) -> str:
+        return f"joint {j + 1} (servo {self.ids[j]} on {self.port_name})"
+
+    def _configure(self, j: int) -> dict[str, int]:
+        servo_id, model = self.ids[j], self.models[j]
+        try:
+            number = struct.unpack("<H", self._transact(servo_id, dxl.ping(servo_id), timeout=max(self.reply_timeout_s, 0.05)).data[:2])[0]
+            if number != model.number:
+                found = next((m.name for m in dxl.SERVO_MODELS.values() if m.number == number), "unknown")
+                raise DriveConfigError(f"{self._where(j)}: model number {number} ({found}), the rig {self.rig.source} says {model.name} ({model.number})")
+            hardware = self._read_table(servo_id, Address.HARDWARE_ERROR_STATUS, 1)[0]
+            if hardware:
+                self._hardware_fault(j, hardware)
+            self._write_table(servo_id, Address.TORQUE_ENABLE, b"\x00")
+            self._write_table(servo_id, Address.RETURN_DELAY_TIME, bytes([self.cfg.return_delay_us // 2]))
+            self._write_table(servo_id, Address.OPERATING_MODE, bytes([dxl.CURRENT_MODE]))
+            back = self._read_table(servo_id, Address.RETURN_DELAY_TIME, 3)
+            limit = struct.unpack("<H", self._read_table(servo_id, Address.CURRENT_LIMIT, 2))[0]
+        except ProtocolError as err:
+            raise DriveConfigError(f"{self._where(j)}: {err}") from err
+        if back[0] != self.cfg.return_delay_us // 2 or back[2] != dxl.CURRENT_MODE:
+            raise DriveConfigError(f"{self._where(j)}: Return Delay Time / Operating Mode read back as {back[0]} / {back[2]}, "
+                                   f"written {self.cfg.return_delay_us // 2} / {dxl.CURRENT_MODE}")
+        self._limit_raw[j] = limit
+        return {"model_number": number, "return_delay_time": back[0], "operating_mode": back[2], "current_limit": limit,
+                "hardware_error_status": hardware}
+
+    def _hardware_fault(self, j: int, bits: int) -> None:
+        self.hardware_error[j] = bits
+        self.torque_enabled[j] = False
+        fault = DriveFault(j, self.ids[j], bits, f"{dxl.hardware_error_meaning(bits)}: the servo turned its torque off; enable() reboots it")
+        self._faults.put(fault)
+        self._event("hardware_error", str(fault), j)
+
+    # --- cyclic ---
+    def _run(self) -> None:
+        period = self.period_s
+        next_t = time.perf_counter()
+        while not self._stop.is_set():
+            next_t += period
+            delay = next_t - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+            elif delay < -period:
+                self.late_cycles += 1
+                next_t = time.perf_counter()
+            self._serve_requests()
+            try:
+                self._cycle_once()
+            except OSError as err:  # the port went away (adapter unplugged)
+                self._event("port", f"{self.port_name}: {err}")
+                self._faults.put(DriveFault(0, self.ids[0], 0, f"serial port {self.port_name} failed: {err}"))
+                time.sleep(0.1)
+
+    def _serve_requests(self) -> None:
+        while True:
+            try:
+                fn, reply = self._requests.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                reply.put((True, fn()))
+            except Exception as err:  # handed back to the caller
+                reply.put((False, err))
+
+    def _call(self, fn: Callable[[], Any], timeout: float) -> Any:
+        """Run ``fn`` on the cycle thread between two cycles (only it touches the port)."""
+        if self._thread is None or not self._thread.is_alive():
+            return fn()
+        reply: queue.Queue[Any] = queue.Queue()
+        self._requests.put((fn, reply))
+        try:
+            ok, value = reply.get(timeout=timeout)
+        except queue.Empty:
+            raise DriverError(f"{self.port_name}: the cycle thread did not serve a request within {timeout} s") from None
+        if not ok:
+            raise value
+        return value
+
+    def _cycle_once(self) -> None:
+        if self._position_mode:
+            self._sync_write(Address.GOAL_POSITION, [struct.pack("<i", int(v)) for v in self._goal_position])
+        else:
+            self._sync_write(Address.GOAL_CURRENT, [struct.pack("<h", int(v)) for v in self._goal])
+        self._flush_input()
+        address, length = dxl.PRESENT_BLOCK
+        self._send(dxl.sync_read(self.ids, address, length, fast=self.fast))
+        sent = time.perf_counter()
+        deadline = sent + self.reply_timeout_s
+        if self.fast:
+            raw = self._receive(deadline, dxl.fast_sync_read_size(self.n_joints, length))
+            blocks = dxl.decode_fast_sync_read(raw, self.ids, length)
+        else:
+            blocks = [self._sync_read_block(servo_id, length, deadline) for servo_id in self.ids]
+        done = time.perf_counter()
+        self.reply_times.append(done)
+        self.round_trips.append(done - sent)
+        self._cycle += 1
+        s = Sample.empty(self._cycle, time.time(), self.n_joints)
+        prev = self._emitted
+        s.position[:], s.velocity[:], s.measured_current[:], s.status[:] = prev.position, prev.velocity, prev.measured_current, prev.status
+        s.commanded_current[:] = self._in_force
+        self._in_force = self._commanded.copy()
+        alerts = []
+        for j, b in enumerate(blocks):
+            if b.ok:
+                current, velocity, position = dxl.PRESENT_FORMAT.unpack(b.data)
+                s.position[j] = position / self._counts_per_rad[j]
+                s.velocity[j] = velocity * self._velocity_lsb[j]
+                s.measured_current[j] = current * self._lsb[j]
+                s.velocity_fresh[j] = s.valid[j] = True
+                s.status[j] = int(self.hardware_error[j]) << 8 | b.error
+                if b.error & dxl.ALERT and not self.hardware_error[j]:
+                    alerts.append(j)
+                if b.error & 0x7F:
+                    self._event("status_error", f"{self._where(j)}: {dxl.status_error_meaning(b.error)}", j)
+                if self._fail_run[j]:
+                    self._event("reply_back", f"{self._where(j)}: answers again after {self._fail_run[j]} cycles without a usable reply", j)
+                    self._fail_run[j] = 0
+                if self._silent[j]:
+                    self._silent[j] = False
+            else:
+                assert b.problem is not None
+                kind = type(b.problem).__name__
+                self.errors_by_kind[kind] = self.errors_by_kind.get(kind, 0) + 1
+                self.lost_cycles[j] += 1
+                if not self._fail_run[j]:
+                    self._event("reply", f"{self._where(j)}: {kind}: {b.problem}", j)
+                self._fail_run[j] += 1
+                if self._fail_run[j] == self.cfg.silent_cycles and not self._silent[j]:
+                    self._silent[j] = True
+                    others = [k for k in range(self.n_joints) if k != j]
+                    self.quick_stop(others)
+                    lost = ServoLost(j, self.ids[j], 0x8130, f"no usable reply for {self.cfg.silent_cycles} cycles ({b.problem}); "
+                                                           "the other servos were quick-stopped")
+                    self._faults.put(lost)
+                    self._event("servo_lost", str(lost), j)
+        for j in alerts:  # what the alert is about: one read, on the cycle thread
+            try:
+                self._hardware_fault(j, self._read_table(self.ids[j], Address.HARDWARE_ERROR_STATUS, 1)[0])
+            except ProtocolError as err:
+                self._event("reply", f"{self._where(j)}: alert set, but Hardware Error Status could not be read: {err}", j)
+        self._emitted = s
+        try:
+            self._out.put_nowait(s)
+        except queue.Full:
+            self._out.get_nowait()
+            self._out.put_nowait(s)
+            self._event("overflow", "the reader is too slow: the oldest sample was dropped")
+
+    def _sync_read_block(self, servo_id: int, length: int, deadline: float) -> dxl.Block:
+        raw = self._receive(deadline)
+        if not raw:
+            return dxl.Block(servo_id, problem=ReplyTimeout(f"servo {servo_id}: no status packet within the reply timeout", servo_id))
+        try:
+            p = dxl.decode(raw, servo_id)
+        except ProtocolError as err:
+            return dxl.Block(servo_id, problem=err)
+        if p.id != servo_id or len(p.data) != length:
+            # a servo missing in the middle: the packet is the next one's; keep it for them
+            if p.id in self.ids[self.ids.index(servo_id) + 1:]:
+                self._rx[:0] = raw
+            return dxl.Block(servo_id, problem=dxl.MalformedPacket(f"servo {servo_id}: got a packet from id {p.id} with {len(p.data)} bytes", servo_id))
+        return dxl.Block(servo_id, p.error, p.data)
+
+    # --- the interface ---
+    def read(self, timeout: float | None = None) -> Sample:
+        try:
+            raise self._faults.get_nowait()
+        except queue.Empty:
+            pass
+        wait = timeout if timeout is not None else 10 * self.period_s + 1.0
+        try:
+            return self._out.get(timeout=wait)
+        except queue.Empty:
+            raise DriverError(f"no cycle within {wait} s: is {self.port_name} cycling?") from None
+
+    def command_torque(self, torque: Array) -> None:
+        tau = np.asarray(torque, float)
+        if tau.shape != (self.n_joints,) or not np.isfinite(tau).all():
+            raise ValueError(f"torque command must be {self.n_joints} finite values, got {tau}")
+        raw = np.clip(np.round(tau / self.torque_constants / self._lsb), -self._limit_raw, self._limit_raw).astype(np.int64)
+        if self._stopped:
+            raw[list(self._stopped)] = 0
+        self._goal = raw
+        self._commanded = raw * self._lsb
+        if self._position_mode:
+            self._call(lambda: self._switch_mode(dxl.CURRENT_MODE), 1.0)
+
+    def command_position(self, position: Array) -> None:
+        q = np.asarray(position, float)
+        if q.shape != (self.n_joints,) or not np.isfinite(q).all():
+            raise ValueError(f"position command must be {self.n_joints} finite values, got {q}")
+        self._goal_position = np.round(q * self._counts_per_rad).astype(np.int64)
+        if not self._position_mode:
+            self._call(lambda: self._switch_mode(dxl.POSITION_MODE), 1.0)
+
+    def _switch_mode(self, mode: int) -> None:
+        """Operating Mode is EEPROM: torque off, mode, goal, torque back on where it was."""
+        on = [j for j in range(self.n_joints) if self.torque_enabled[j]]
+        self._sync_write(Address.TORQUE_ENABLE, [b"\x00"] * self.n_joints)
+        self._sync_write(Address.OPERATING_MODE, [bytes([mode])] * self.n_joints)
+        self._position_mode = mode == dxl.POSITION_MODE
+        if self._position_mode:
+            self._sync_write(Address.GOAL_POSITION, [struct.pack("<i", int(v)) for v in self._goal_position])
+        if on:
+            self._sync_write(Address.TORQUE_ENABLE, [b"\x01"] * len(on), on)
+
+    def enable(self, timeout: float = 1.0) -> None:
+        """Reboot servos with a hardware error, zero the goals, torque on, read back."""
+        self._call(lambda: self._enable(timeout), timeout + REBOOT_WAIT_S * self.n_joints + 1.0)
+
+    def _enable(self, timeout: float) -> None:
+        for j in range(self.n_joints):
+            if self.hardware_error[j]:
+                servo_id = self.ids[j]
+                try:
+                    self._transact(servo_id, dxl.reboot(servo_id))
+                    deadline = time.perf_counter() + REBOOT_WAIT_S
+                    while True:
+                        try:
+                            self._transact(servo_id, dxl.ping(servo_id))
+                            break
+                        except ProtocolError:
+                            if time.perf_counter() > deadline:
+                                raise
+                    bits = self._read_table(servo_id, Address.HARDWARE_ERROR_STATUS, 1)[0]
+                except ProtocolError as err:
+                    raise DriverError(f"{self._where(j)}: reboot failed: {err}") from err
+                if bits:
+                    raise DriverError(f"{self._where(j)}: still {dxl.hardware_error_meaning(bits)} after a reboot")
+                self.hardware_error[j] = 0
+                self._event("rebooted", f"{self._where(j)}: rebooted, hardware error cleared", j)
+        self._goal[:] = 0
+        self._commanded[:] = 0
+        self._stopped.clear()
+        self._sync_write(Address.GOAL_CURRENT, [b"\x00\x00"] * self.n_joints)
+        bad = []
+        for j in range(self.n_joints):
+            try:
+                self._write_table(self.ids[j], Address.TORQUE_ENABLE, b"\x01")
+                if self._read_table(self.ids[j], Address.TORQUE_ENABLE, 1)[0] != 1:
+                    bad.append(f"{self._where(j)}: Torque Enable reads back 0")
+            except ProtocolError as err:
+                bad.append(f"{self._where(j)}: {err}")
+        if bad:
+            self._sync_write(Address.TORQUE_ENABLE, [b"\x00"] * self.n_joints)
+            raise DriverError("servos not enabled (all torque off again): " + "; ".join(bad))
+        self.torque_enabled[:] = True
+
+    def disable(self) -> None:
+        self.command_torque(np.zeros(self.n_joints))
+
+        def off() -> None:
+            self._sync_write(Address.TORQUE_ENABLE, [b"\x00"] * self.n_joints)
+            self.torque_enabled[:] = False
+
+        self._call(off, 1.0)
+
+    def quick_stop(self, joints: list[int] | None = None) -> None:
+        """Goal current 0 now, torque off before the next cycle (on the simulated chain, a
+        brake holds; an arm without brakes needs its own holding strategy)."""
+        joints = list(range(self.n_joints)) if joints is None else list(joints)
+        self._stopped.update(joints)
+        goal = self._goal.copy()
+        goal[joints] = 0
+        self._goal = goal
+        self._commanded = goal * self._lsb
+
+        def off() -> None:
+            self._sync_write(Address.TORQUE_ENABLE, [b"\x00"] * len(joints), joints)
+            self.torque_enabled[joints] = False
+
+        if threading.current_thread() is self._thread:
+            off()
+        else:
+            self._requests.put((off, queue.Queue()))
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=1.0)
+        if self._serial is not None:
+            self._serial.close()
+            self._serial = None
