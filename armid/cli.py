@@ -8,6 +8,7 @@ import json
 import sys
 import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -111,39 +112,58 @@ def _record(args: argparse.Namespace) -> int:
 
     from daq.acquisition import Acquisition, Sink
     from daq.recorder import McapRecorder
-    from drivers.canopen_driver import CanopenDriver
     from drivers.rig import load_rig, open_bus
 
     rig = load_rig(args.rig)
     changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
-    if changes:
+    if changes and not rig.is_serial:
         rig = rig.with_bus(**changes)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    simulate = args.simulate if args.simulate is not None else rig.bus.interface == "virtual"
-    arm = None
-    if simulate:
-        from sim_bus.arm import SimulatedArm
+    driver: Any
+    arm = chain = None
+    if rig.serial is not None:  # a Dynamixel chain: 'port: sim' is the simulated chain on a pty
+        from drivers.dynamixel_driver import DynamixelDriver
 
-        arm = SimulatedArm(rig, bus=open_bus(**rig.bus.kwargs()))
-    driver = CanopenDriver(rig)
-    # an arm simulated in this process never runs ahead of what records it (SYNC waits for
-    # the consumer); --duration is then the arm's time, whatever the wall clock does
-    driver.paced_by_consumer = simulate
+        port = args.channel or rig.serial.port
+        simulate = port == "sim" if args.simulate is None else args.simulate
+        if simulate:
+            from sim_bus.servo_chain import ServoChainProcess
+
+            chain = ServoChainProcess(args.rig)
+            port = chain.port
+        driver = DynamixelDriver(rig, port=port)
+    else:
+        from drivers.canopen_driver import CanopenDriver
+
+        simulate = args.simulate if args.simulate is not None else rig.bus.interface == "virtual"
+        if simulate:
+            from sim_bus.arm import SimulatedArm
+
+            arm = SimulatedArm(rig, bus=open_bus(**rig.bus.kwargs()))
+        driver = CanopenDriver(rig)
+        # an arm simulated in this process never runs ahead of what records it (SYNC waits for
+        # the consumer); --duration is then the arm's time, whatever the wall clock does
+        driver.paced_by_consumer = simulate
+    paced = simulate and not rig.is_serial
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     session = stream = None
+    can_log = None
     try:
         driver.start()
-        assert driver.network is not None and driver.network.notifier is not None
-        from daq.canlog import BusLog
+        if not rig.is_serial:
+            assert driver.network is not None and driver.network.notifier is not None
+            from daq.canlog import BusLog
 
-        can_log = BusLog(driver, out / "can.log")  # every frame on the bus, the master's included
+            can_log = BusLog(driver, out / "can.log")  # every frame on the bus, the master's included
         import armid as _armid_pkg
 
         metadata = {
-            "robot": rig.robot.name, "rig": rig.name, "rig_file": rig.source, "period_s": rig.period_s, "pdo_plan": rig.pdo_plan,
+            "robot": rig.robot.name, "rig": rig.name, "rig_file": rig.source, "period_s": rig.period_s,
+            "bus": f"dynamixel {driver.port_name} at {rig.bus.bitrate} baud" if rig.is_serial else f"{rig.bus.interface}:{rig.bus.channel}",
+            "pdo_plan": None if rig.is_serial else rig.pdo_plan,
             "drives": driver.drive_configuration, "excitation": "none (armid record)",
             "versions": {"armid": getattr(_armid_pkg, "__version__", "0.1.0"), "python": platform.python_version(),
                          "python-can": can.__version__},
@@ -166,14 +186,15 @@ def _record(args: argparse.Namespace) -> int:
         start = time.monotonic()
         print(f"armid record: {rig.name} -> {out / 'run.mcap'} (Ctrl-C stops)", file=sys.stderr, flush=True)
         while not stop.wait(0.1):
-            elapsed = acq.sequence * rig.period_s if simulate else time.monotonic() - start
+            elapsed = acq.sequence * rig.period_s if paced else time.monotonic() - start
             if args.duration and elapsed >= args.duration:
                 break
             if acq.error:
                 break
         acq.stop()
         recorder.close()
-        can_log.stop()
+        if can_log is not None:
+            can_log.stop()
         if stream:
             stream.event("stop", records=acq.sequence)
         print(f"armid record: {acq.sequence} records, invalid per joint {acq.invalid.tolist()}, lost cycles per joint "
@@ -187,6 +208,8 @@ def _record(args: argparse.Namespace) -> int:
             session.close()
         if arm is not None:
             arm.close()
+        if chain is not None:
+            chain.close()
 
 
 def _excite(args: argparse.Namespace) -> int:
@@ -348,11 +371,13 @@ def _sim(args: argparse.Namespace) -> int:
 
     rig = load_rig(args.rig)
     changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
-    if changes:
+    if changes and not rig.is_serial:
         rig = rig.with_bus(**changes)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
+    if rig.is_serial:
+        return _sim_chain(rig, args, stop)
     arm = SimulatedArm(rig, seed=args.seed)
     print(f"armid sim: {rig.name}: {rig.n_joints} drives (nodes {', '.join(str(d.node_id) for d in rig.drives)}) "
           f"on {rig.bus.interface}:{rig.bus.channel}, lock-step with SYNC at {rig.period_s * 1000:g} ms", file=sys.stderr, flush=True)
@@ -369,6 +394,30 @@ def _sim(args: argparse.Namespace) -> int:
             _write_sim_log(arm, Path(args.log))
     st = arm.status()
     print(f"armid sim: {st['syncs']} SYNC periods simulated ({st['time_s']:.3f} s of arm time)", file=sys.stderr)
+    return 0
+
+
+def _sim_chain(rig: Any, args: argparse.Namespace, stop: Any) -> int:
+    """A Dynamixel rig: the simulated servo chain on a pty; the driver opens the printed port."""
+    import time
+
+    from sim_bus.servo_chain import SimulatedServoChain
+
+    chain = SimulatedServoChain(rig, seed=args.seed)
+    print(f"armid sim: {rig.name}: {rig.n_joints} Dynamixel servos (ids {', '.join(str(d.node_id) for d in rig.drives)}) "
+          f"at {rig.bus.bitrate:,} baud on {chain.port}", file=sys.stderr, flush=True)
+    print(chain.port, flush=True)
+    if args.ready:
+        Path(args.ready).write_text(chain.port + "\n")
+    start = time.monotonic()
+    try:
+        while not stop.wait(0.05):
+            if args.duration and time.monotonic() - start > args.duration:
+                break
+    finally:
+        chain.close()
+    print(f"armid sim: {chain.periods} periods simulated ({chain.physics.time_s:.3f} s of arm time), "
+          f"{chain.instructions} instructions served", file=sys.stderr)
     return 0
 
 
@@ -465,14 +514,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="seed of the trajectory optimiser's starts")
     p.set_defaults(run=_demo)
 
-    p = sub.add_parser("sim", help="simulated arm on a CAN bus (virtual, udp_multicast, socketcan)")
+    p = sub.add_parser("sim", help="simulated arm on a CAN bus (virtual, udp_multicast, socketcan), or a Dynamixel chain on a pty")
     p.add_argument("--rig", required=True, help="rig file (config/rigs/sim.yaml)")
     p.add_argument("--interface", help="override the rig's python-can interface")
     p.add_argument("--channel", help="override the rig's channel")
     p.add_argument("--seed", type=int, help="override the simulation seed")
     p.add_argument("--duration", type=float, help="stop after this many seconds (default: until SIGINT/SIGTERM)")
     p.add_argument("--log", metavar="NPZ", help="on exit, write the simulated state per SYNC")
-    p.add_argument("--ready", metavar="FILE", help="write this file once the drives are on the bus")
+    p.add_argument("--ready", metavar="FILE", help="write this file once the drives are on the bus (a serial chain: its port)")
     p.set_defaults(run=_sim)
     return parser
 

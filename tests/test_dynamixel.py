@@ -355,3 +355,19 @@ def test_the_same_acquisition_code_runs_on_both_driver_families(family: str, tmp
     rec = read_recording(tmp_path / "run.mcap", rig.robot)
     assert len(rec.t) == int(valid.all(axis=1).sum()) or len(rec.t) == len(records)
     assert np.allclose(rec.q[-1], records[-1].sample.position)
+
+
+def test_armid_record_and_sim_on_the_serial_rig(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    from armid.cli import main
+
+    assert main(["record", "--rig", str(DXL_RIG), "--out", str(tmp_path / "rec"), "--duration", "1", "--no-zenoh"]) == 0
+    rec = read_recording(tmp_path / "rec" / "run.mcap", load_rig(DXL_RIG).robot)
+    assert rec.n_samples > 400 and np.allclose(rec.q[0], [0.0, 1.2, -1.2, 0.0, 0.0, 0.0], atol=2e-3)
+    ready = tmp_path / "port"
+    proc = subprocess.run([sys.executable, "-m", "armid.cli", "sim", "--rig", str(DXL_RIG), "--duration", "0.5", "--ready", str(ready)],
+                          capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr
+    assert ready.read_text().startswith("/dev/pts/") and "Dynamixel servos (ids 1, 2, 3, 4, 5, 6) at 4,000,000 baud" in proc.stderr
