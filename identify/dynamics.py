@@ -259,14 +259,40 @@ def regressor(robot: Robot, q: Array, qd: Array, qdd: Array, out: Array | None =
     elif out.shape != (n, nj, 10 * nj):
         raise ValueError(f"out has shape {out.shape}, expected {(n, nj, 10 * nj)}")
     revolute = np.array([j.revolute for j in robot.joints])
-    axis = np.array([j.axis for j in robot.joints], dtype=float).reshape(nj, 3)
-    pre = np.array([j.pre for j in robot.joints], dtype=float).reshape(nj, 4, 4)
-    post = np.array([j.post for j in robot.joints], dtype=float).reshape(nj, 4, 4)
+    consts = _joint_constants(robot)
     g = -np.asarray(robot.gravity, dtype=float)
-    _regressor_kernel(revolute, axis, np.ascontiguousarray(pre[:, :3, :3]), np.ascontiguousarray(pre[:, :3, 3]),
-                      np.ascontiguousarray(post[:, :3, :3]), np.ascontiguousarray(post[:, :3, 3]), g,
-                      np.ascontiguousarray(q), np.ascontiguousarray(qd), np.ascontiguousarray(qdd), out)
+    _regressor_kernel(revolute, *consts, g, np.ascontiguousarray(q), np.ascontiguousarray(qd), np.ascontiguousarray(qdd), out)
     return out
+
+
+def _joint_constants(robot: Robot) -> tuple[Array, ...]:
+    """What of joint i's transform ``[r0|t0] J(e, q) [r1|t1]`` does not depend on q.
+
+    Rodrigues, ``Rq = c E + s [e x] + (1 - c) e e^T``, makes the rotation and the origin of
+    a revolute joint affine in ``(c, s)``: ``A = A0 + c Ac + s As``, ``p = p0 + c pc + s ps``;
+    a prismatic joint has ``A = A0`` and ``p = p0 + q pc``. ``u`` is the axis in frame i.
+    """
+    nj = robot.n_joints
+    a0, ac, a_s = np.zeros((nj, 3, 3)), np.zeros((nj, 3, 3)), np.zeros((nj, 3, 3))
+    p0, pc, ps, t0, u = (np.zeros((nj, 3)) for _ in range(5))
+    for i, j in enumerate(robot.joints):
+        e = np.asarray(j.axis, float).reshape(3)
+        r0, t0[i] = np.asarray(j.pre, float)[:3, :3], np.asarray(j.pre, float)[:3, 3]
+        r1, t1 = np.asarray(j.post, float)[:3, :3], np.asarray(j.post, float)[:3, 3]
+        u[i] = r1.T @ e
+        if j.revolute:
+            ex = np.array([[0.0, -e[2], e[1]], [e[2], 0.0, -e[0]], [-e[1], e[0], 0.0]])
+            a0[i] = np.outer(r0 @ e, r1.T @ e)
+            ac[i] = r0 @ r1 - a0[i]
+            a_s[i] = r0 @ ex @ r1
+            p0[i] = t0[i] + r0 @ e * (e @ t1)
+            pc[i] = r0 @ (t1 - e * (e @ t1))
+            ps[i] = r0 @ np.cross(e, t1)
+        else:
+            a0[i] = r0 @ r1
+            p0[i] = t0[i] + r0 @ t1
+            pc[i] = r0 @ e
+    return a0, ac, a_s, p0, pc, ps, t0, u
 
 
 @numba.njit(cache=True, inline="always")
@@ -283,11 +309,12 @@ def _rot_t_into(a: Array, x: Array, out: Array) -> None:
         out[c] = a[0, c] * x[0] + a[1, c] * x[1] + a[2, c] * x[2]
 
 
-@numba.njit(cache=True, parallel=True)
-def _regressor_kernel(revolute, axis, r0, t0, r1, t1, g, q, qd, qdd, out):  # type: ignore[no-untyped-def]
+@numba.njit(cache=True, parallel=True, fastmath=True, error_model="numpy")
+def _regressor_kernel(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g, q, qd, qdd, out):  # type: ignore[no-untyped-def]
     """Per sample: the forward recursion (eqs. 1-6) fused with the carried rows of eq. 17.
 
-    Joint i is ``T = [r0|t0] J(axis, q) [r1|t1]``; ``u`` is its axis in link frame i.
+    Joint i is ``T = [r0|t0] J(axis, q) [r1|t1]`` (constants from :func:`_joint_constants`);
+    ``u`` is its axis in link frame i.
     """
     n, nj = q.shape
     block = 256
@@ -297,25 +324,22 @@ def _regressor_kernel(revolute, axis, r0, t0, r1, t1, g, q, qd, qdd, out):  # ty
         dv = np.empty(3)
         rho_prev = np.empty(3)
         a = np.empty((3, 3))
-        rq = np.empty((3, 3))
-        tmp = np.empty((3, 3))
         p = np.empty(3)
         rho = np.empty(3)
         x3 = np.empty(3)
         y3 = np.empty(3)
         z3 = np.empty(3)
-        u = np.empty(3)
         b = np.empty((3, 3))
         rf = np.empty((nj, 3))
         rn = np.empty((nj, 3))
         for k in range(blk * block, min(n, blk * block + block)):
-            _sample_regressor(revolute, axis, r0, t0, r1, t1, g, q[k], qd[k], qdd[k], out[k],
-                              w, dw, dv, rho_prev, a, rq, tmp, p, rho, x3, y3, z3, u, b, rf, rn)
+            _sample_regressor(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g, q[k], qd[k], qdd[k], out[k],
+                              w, dw, dv, rho_prev, a, p, rho, x3, y3, z3, b, rf, rn)
 
 
-@numba.njit(cache=True)
-def _sample_regressor(revolute, axis, r0, t0, r1, t1, g, q, qd, qdd, out,  # type: ignore[no-untyped-def]
-                      w, dw, dv, rho_prev, a, rq, tmp, p, rho, x3, y3, z3, u, b, rf, rn):
+@numba.njit(cache=True, fastmath=True, error_model="numpy")
+def _sample_regressor(revolute, a0, ac, a_s, p0, pc, ps, t0, uu, g, q, qd, qdd, out,  # type: ignore[no-untyped-def]
+                      w, dw, dv, rho_prev, a, p, rho, x3, y3, z3, b, rf, rn):
     """One sample of :func:`_regressor_kernel`, with scratch arrays passed in (no allocation)."""
     nj = q.shape[0]
     w[:] = 0.0
@@ -323,36 +347,21 @@ def _sample_regressor(revolute, axis, r0, t0, r1, t1, g, q, qd, qdd, out,  # typ
     dv[:] = g
     rho_prev[:] = 0.0
     for i in range(nj):
-        e = axis[i]
-        # joint rotation Rq (Rodrigues) and A = r0 Rq r1, p = t0 + r0 (Rq t1) or r0 (t1 + e q)
+        u = uu[i]
+        # A and p, affine in (cos q, sin q) for a revolute joint, in q for a prismatic one
         if revolute[i]:
             c = np.cos(q[i])
             s = np.sin(q[i])
             for r in range(3):
+                p[r] = p0[i, r] + c * pc[i, r] + s * ps[i, r]
                 for col in range(3):
-                    rq[r, col] = (1.0 - c) * e[r] * e[col] + (c if r == col else 0.0)
-            rq[0, 1] -= s * e[2]
-            rq[0, 2] += s * e[1]
-            rq[1, 0] += s * e[2]
-            rq[1, 2] -= s * e[0]
-            rq[2, 0] -= s * e[1]
-            rq[2, 1] += s * e[0]
-            for r in range(3):
-                x3[r] = rq[r, 0] * t1[i, 0] + rq[r, 1] * t1[i, 1] + rq[r, 2] * t1[i, 2]
+                    a[r, col] = a0[i, r, col] + c * ac[i, r, col] + s * a_s[i, r, col]
         else:
             for r in range(3):
+                p[r] = p0[i, r] + q[i] * pc[i, r]
                 for col in range(3):
-                    rq[r, col] = 1.0 if r == col else 0.0
-                x3[r] = t1[i, r] + e[r] * q[i]
+                    a[r, col] = a0[i, r, col]
         for r in range(3):
-            p[r] = t0[i, r] + r0[i, r, 0] * x3[0] + r0[i, r, 1] * x3[1] + r0[i, r, 2] * x3[2]
-            for col in range(3):
-                tmp[r, col] = r0[i, r, 0] * rq[0, col] + r0[i, r, 1] * rq[1, col] + r0[i, r, 2] * rq[2, col]
-        for r in range(3):
-            for col in range(3):
-                a[r, col] = tmp[r, 0] * r1[i, 0, col] + tmp[r, 1] * r1[i, 1, col] + tmp[r, 2] * r1[i, 2, col]
-        for r in range(3):
-            u[r] = r1[i, 0, r] * e[0] + r1[i, 1, r] * e[1] + r1[i, 2, r] * e[2]
             x3[r] = t0[i, r] - p[r]
         _rot_t_into(a, x3, rho)
         # linear acceleration of the joint point, then into frame i (eqs. 3-6)
@@ -415,22 +424,25 @@ def _sample_regressor(revolute, axis, r0, t0, r1, t1, g, q, qd, qdd, out,  # typ
             rho_prev[r] = rho[r]
         col0 = 10 * i
         for j in range(nj):
-            row = out[j, col0 : col0 + 10]
             if j > i:
-                row[:] = 0.0
+                for c in range(col0, col0 + 10):
+                    out[j, c] = 0.0
                 continue
-            fn = rn[j]
-            _cross_into(rho, fn, x3)
-            for r in range(3):
-                x3[r] += rf[j, r]  # the row taken about the origin of frame i
-            row[0] = x3[0] * dv[0] + x3[1] * dv[1] + x3[2] * dv[2]
-            _cross_into(dv, fn, y3)
-            for col in range(3):
-                row[1 + col] = b[0, col] * x3[0] + b[1, col] * x3[1] + b[2, col] * x3[2] + y3[col]
-            _cross_into(fn, w, y3)
-            row[4] = dw[0] * fn[0] + w[0] * y3[0]
-            row[5] = dw[1] * fn[0] + dw[0] * fn[1] + w[1] * y3[0] + w[0] * y3[1]
-            row[6] = dw[2] * fn[0] + dw[0] * fn[2] + w[2] * y3[0] + w[0] * y3[2]
-            row[7] = dw[1] * fn[1] + w[1] * y3[1]
-            row[8] = dw[2] * fn[1] + dw[1] * fn[2] + w[2] * y3[1] + w[1] * y3[2]
-            row[9] = dw[2] * fn[2] + w[2] * y3[2]
+            fn0, fn1, fn2 = rn[j, 0], rn[j, 1], rn[j, 2]
+            # the row taken about the origin of frame i: rf + rho x fn
+            x0 = rf[j, 0] + rho[1] * fn2 - rho[2] * fn1
+            x1 = rf[j, 1] + rho[2] * fn0 - rho[0] * fn2
+            x2 = rf[j, 2] + rho[0] * fn1 - rho[1] * fn0
+            out[j, col0] = x0 * dv[0] + x1 * dv[1] + x2 * dv[2]
+            out[j, col0 + 1] = b[0, 0] * x0 + b[1, 0] * x1 + b[2, 0] * x2 + (dv[1] * fn2 - dv[2] * fn1)
+            out[j, col0 + 2] = b[0, 1] * x0 + b[1, 1] * x1 + b[2, 1] * x2 + (dv[2] * fn0 - dv[0] * fn2)
+            out[j, col0 + 3] = b[0, 2] * x0 + b[1, 2] * x1 + b[2, 2] * x2 + (dv[0] * fn1 - dv[1] * fn0)
+            y0 = fn1 * w[2] - fn2 * w[1]
+            y1 = fn2 * w[0] - fn0 * w[2]
+            y2 = fn0 * w[1] - fn1 * w[0]
+            out[j, col0 + 4] = dw[0] * fn0 + w[0] * y0
+            out[j, col0 + 5] = dw[1] * fn0 + dw[0] * fn1 + w[1] * y0 + w[0] * y1
+            out[j, col0 + 6] = dw[2] * fn0 + dw[0] * fn2 + w[2] * y0 + w[0] * y2
+            out[j, col0 + 7] = dw[1] * fn1 + w[1] * y1
+            out[j, col0 + 8] = dw[2] * fn1 + dw[1] * fn2 + w[2] * y1 + w[1] * y2
+            out[j, col0 + 9] = dw[2] * fn2 + w[2] * y2
