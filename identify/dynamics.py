@@ -259,9 +259,10 @@ def regressor(robot: Robot, q: Array, qd: Array, qdd: Array, out: Array | None =
     elif out.shape != (n, nj, 10 * nj):
         raise ValueError(f"out has shape {out.shape}, expected {(n, nj, 10 * nj)}")
     revolute = np.array([j.revolute for j in robot.joints])
-    consts = _joint_constants(robot)
+    a0, ac, a_s, p0, pc, ps, t0, u = _joint_constants(robot)
     g = -np.asarray(robot.gravity, dtype=float)
-    _regressor_kernel(revolute, *consts, g, np.ascontiguousarray(q), np.ascontiguousarray(qd), np.ascontiguousarray(qdd), out)
+    _regressor_kernel(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g,
+                      np.ascontiguousarray(q), np.ascontiguousarray(qd), np.ascontiguousarray(qdd), out)
     return out
 
 
