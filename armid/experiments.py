@@ -20,9 +20,12 @@ from identify.preprocess import Prepared, PrepareOptions, prepare
 from identify.recordings import Recording, read_mcap_arrays, read_recording
 from identify.robot import Robot
 
-PREPARE = PrepareOptions(lowpass_hz=20.0, torque_hold=True)
-"""How drive recordings are prepared: 20 Hz zero-phase low-pass before the 5-point filter
-(the PUMA's rigid-body content is well below it), currents re-timed as held over a period."""
+PREPARE = PrepareOptions(lowpass_hz=None, torque_hold=True)
+"""How drive recordings are prepared: the drives' velocity through the 5-point filter for
+acceleration, currents re-timed as held over a period, and no low-pass. A zero-phase
+low-pass smears the Coulomb step at every reversal over tens of milliseconds, which
+``sign(qd)`` does not: at 20 Hz viscous friction came out 7-22 % low and Coulomb friction
+2-4 % high, 4-6 sigma, on the simulated PUMA. Noise in the torque does not bias least squares."""
 
 
 @dataclass(frozen=True)
