@@ -14,7 +14,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 from .robot import Robot, inertia_matrix
@@ -249,7 +248,8 @@ def regressor(robot: Robot, q: Array, qd: Array, qdd: Array, out: Array | None =
     Returns (n_samples, N, 10 N) in C order. Block ``(j, i)`` is ``s_j^T R_{j+1} ... R_i K_i``
     (eqs. 16-17): the rows ``s_j^T R^j_i`` of all joints ``j <= i`` are carried together from
     link to link and multiplied into ``K_i`` in closed form, which is :func:`regressor_blocks`
-    without the zeros of ``K_i``. A compiled kernel runs it per sample, in parallel. ``out``
+    without the zeros of ``K_i``. A compiled kernel (:mod:`identify._regressor_lanes`) runs
+    it on blocks of samples in SIMD lanes, the blocks in parallel. ``out``
     (n, N, 10 N), possibly a view into a wider array, receives the result when given.
     """
     q, qd, qdd = check_joint_arrays(robot, q, qd, qdd)
@@ -261,8 +261,10 @@ def regressor(robot: Robot, q: Array, qd: Array, qdd: Array, out: Array | None =
     revolute = np.array([j.revolute for j in robot.joints])
     a0, ac, a_s, p0, pc, ps, t0, u = _joint_constants(robot)
     g = -np.asarray(robot.gravity, dtype=float)
-    _regressor_kernel(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g,
-                      np.ascontiguousarray(q), np.ascontiguousarray(qd), np.ascontiguousarray(qdd), out)
+    from ._regressor_lanes import regressor_kernel
+
+    regressor_kernel(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g,
+                     np.ascontiguousarray(q.T), np.ascontiguousarray(qd.T), np.ascontiguousarray(qdd.T), out)
     return out
 
 
@@ -294,156 +296,3 @@ def _joint_constants(robot: Robot) -> tuple[Array, ...]:
             p0[i] = t0[i] + r0 @ t1
             pc[i] = r0 @ e
     return a0, ac, a_s, p0, pc, ps, t0, u
-
-
-@numba.njit(cache=True, inline="always")
-def _cross_into(a: Array, b: Array, out: Array) -> None:
-    out[0] = a[1] * b[2] - a[2] * b[1]
-    out[1] = a[2] * b[0] - a[0] * b[2]
-    out[2] = a[0] * b[1] - a[1] * b[0]
-
-
-@numba.njit(cache=True, inline="always")
-def _rot_t_into(a: Array, x: Array, out: Array) -> None:
-    """``out = A^T x``."""
-    for c in range(3):
-        out[c] = a[0, c] * x[0] + a[1, c] * x[1] + a[2, c] * x[2]
-
-
-@numba.njit(cache=True, parallel=True, fastmath=True, error_model="numpy")
-def _regressor_kernel(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g, q, qd, qdd, out):  # type: ignore[no-untyped-def]
-    """Per sample: the forward recursion (eqs. 1-6) fused with the carried rows of eq. 17.
-
-    Joint i is ``T = [r0|t0] J(axis, q) [r1|t1]`` (constants from :func:`_joint_constants`);
-    ``u`` is its axis in link frame i.
-    """
-    n, nj = q.shape
-    block = 256
-    for blk in numba.prange((n + block - 1) // block):
-        w = np.empty(3)
-        dw = np.empty(3)
-        dv = np.empty(3)
-        rho_prev = np.empty(3)
-        a = np.empty((3, 3))
-        p = np.empty(3)
-        rho = np.empty(3)
-        x3 = np.empty(3)
-        y3 = np.empty(3)
-        z3 = np.empty(3)
-        b = np.empty((3, 3))
-        rf = np.empty((nj, 3))
-        rn = np.empty((nj, 3))
-        for k in range(blk * block, min(n, blk * block + block)):
-            _sample_regressor(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g, q[k], qd[k], qdd[k], out[k],
-                              w, dw, dv, rho_prev, a, p, rho, x3, y3, z3, b, rf, rn)
-
-
-@numba.njit(cache=True, fastmath=True, error_model="numpy")
-def _sample_regressor(revolute, a0, ac, a_s, p0, pc, ps, t0, uu, g, q, qd, qdd, out,  # type: ignore[no-untyped-def]
-                      w, dw, dv, rho_prev, a, p, rho, x3, y3, z3, b, rf, rn):
-    """One sample of :func:`_regressor_kernel`, with scratch arrays passed in (no allocation)."""
-    nj = q.shape[0]
-    w[:] = 0.0
-    dw[:] = 0.0
-    dv[:] = g
-    rho_prev[:] = 0.0
-    for i in range(nj):
-        u = uu[i]
-        # A and p, affine in (cos q, sin q) for a revolute joint, in q for a prismatic one
-        if revolute[i]:
-            c = np.cos(q[i])
-            s = np.sin(q[i])
-            for r in range(3):
-                p[r] = p0[i, r] + c * pc[i, r] + s * ps[i, r]
-                for col in range(3):
-                    a[r, col] = a0[i, r, col] + c * ac[i, r, col] + s * a_s[i, r, col]
-        else:
-            for r in range(3):
-                p[r] = p0[i, r] + q[i] * pc[i, r]
-                for col in range(3):
-                    a[r, col] = a0[i, r, col]
-        for r in range(3):
-            x3[r] = t0[i, r] - p[r]
-        _rot_t_into(a, x3, rho)
-        # linear acceleration of the joint point, then into frame i (eqs. 3-6)
-        _cross_into(w, t0[i], x3)
-        _cross_into(w, x3, y3)
-        _cross_into(dw, t0[i], x3)
-        for r in range(3):
-            z3[r] = dv[r] + x3[r] + y3[r]
-        _rot_t_into(a, z3, dv)
-        _rot_t_into(a, w, x3)
-        _rot_t_into(a, dw, y3)
-        qdi = qd[i]
-        qddi = qdd[i]
-        if revolute[i]:
-            for r in range(3):
-                w[r] = x3[r] + u[r] * qdi
-                z3[r] = u[r] * qdi
-            _cross_into(x3, z3, dw)
-            for r in range(3):
-                dw[r] += y3[r] + u[r] * qddi
-        else:
-            for r in range(3):
-                w[r] = x3[r]
-                dw[r] = y3[r]
-                z3[r] = u[r] * qdi
-            _cross_into(w, z3, x3)
-            for r in range(3):
-                dv[r] += u[r] * qddi + 2.0 * x3[r]
-        _cross_into(dw, rho, x3)
-        _cross_into(w, rho, y3)
-        _cross_into(w, y3, z3)
-        for r in range(3):
-            dv[r] -= x3[r] + z3[r]
-        # B = [dw x] + w w^T - |w|^2 E
-        w2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
-        for r in range(3):
-            for col in range(3):
-                b[r, col] = w[r] * w[col] - (w2 if r == col else 0.0)
-        b[0, 1] -= dw[2]
-        b[0, 2] += dw[1]
-        b[1, 0] += dw[2]
-        b[1, 2] -= dw[0]
-        b[2, 0] -= dw[1]
-        b[2, 1] += dw[0]
-        # carried rows <- rows R_i: rf' = A^T (rf + rn x d), rn' = A^T rn, d = c_i - rho_{i-1}
-        if i > 0:
-            for r in range(3):
-                z3[r] = a[r, 0] * rho[0] + a[r, 1] * rho[1] + a[r, 2] * rho[2] + p[r] - rho_prev[r]
-            for j in range(i):
-                _cross_into(rn[j], z3, x3)
-                for r in range(3):
-                    x3[r] += rf[j, r]
-                _rot_t_into(a, x3, rf[j])
-                for r in range(3):
-                    y3[r] = rn[j, r]
-                _rot_t_into(a, y3, rn[j])
-        for r in range(3):
-            rf[i, r] = 0.0 if revolute[i] else u[r]
-            rn[i, r] = u[r] if revolute[i] else 0.0
-            rho_prev[r] = rho[r]
-        col0 = 10 * i
-        for j in range(nj):
-            if j > i:
-                for c in range(col0, col0 + 10):
-                    out[j, c] = 0.0
-                continue
-            fn0, fn1, fn2 = rn[j, 0], rn[j, 1], rn[j, 2]
-            # the row taken about the origin of frame i: rf + rho x fn
-            x0 = rf[j, 0] + rho[1] * fn2 - rho[2] * fn1
-            x1 = rf[j, 1] + rho[2] * fn0 - rho[0] * fn2
-            x2 = rf[j, 2] + rho[0] * fn1 - rho[1] * fn0
-            out[j, col0] = x0 * dv[0] + x1 * dv[1] + x2 * dv[2]
-            out[j, col0 + 1] = b[0, 0] * x0 + b[1, 0] * x1 + b[2, 0] * x2 + (dv[1] * fn2 - dv[2] * fn1)
-            out[j, col0 + 2] = b[0, 1] * x0 + b[1, 1] * x1 + b[2, 1] * x2 + (dv[2] * fn0 - dv[0] * fn2)
-            out[j, col0 + 3] = b[0, 2] * x0 + b[1, 2] * x1 + b[2, 2] * x2 + (dv[0] * fn1 - dv[1] * fn0)
-            y0 = fn1 * w[2] - fn2 * w[1]
-            y1 = fn2 * w[0] - fn0 * w[2]
-            y2 = fn0 * w[1] - fn1 * w[0]
-            out[j, col0 + 4] = dw[0] * fn0 + w[0] * y0
-            out[j, col0 + 5] = dw[1] * fn0 + dw[0] * fn1 + w[1] * y0 + w[0] * y1
-            out[j, col0 + 6] = dw[2] * fn0 + dw[0] * fn2 + w[2] * y0 + w[0] * y2
-            out[j, col0 + 7] = dw[1] * fn1 + w[1] * y1
-            out[j, col0 + 8] = dw[2] * fn1 + dw[1] * fn2 + w[2] * y1 + w[1] * y2
-            out[j, col0 + 9] = dw[2] * fn2 + w[2] * y2
