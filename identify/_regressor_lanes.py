@@ -2,9 +2,11 @@
 
 The recursion of one sample is scalar arithmetic on 3-vectors: too little to fill a SIMD
 register. So a block of ``LANES`` samples goes through the recursion together, joint by
-joint, every quantity held as an array over the lanes (``w[r, m]``) and every step a loop
-over the lanes with a scalar body, which the compiler vectorises. The rows of a block are
-collected lane-contiguous and then stored sample by sample into ``out``.
+joint, every quantity held as an array over the lanes (``w[r, m]``) and every step a
+branch-free loop over the lanes with a scalar body, which the compiler vectorises (the
+joint type enters as a 0/1 factor; sine and cosine are polynomials, not libm calls). The
+rows of block (j, i) (eq. 17) go straight into ``out``. Chunks of ``CHUNK`` samples run in
+parallel, each with its scratch allocated once.
 """
 
 from __future__ import annotations
@@ -190,7 +192,8 @@ def _rows(i, nl, rho, w, dw, dv, b, rf, rn, out):  # type: ignore[no-untyped-def
 
 @numba.njit(cache=True, parallel=True, fastmath=True, error_model="numpy", boundscheck=False)
 def regressor_kernel(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g, qt, qdt, qddt, out):  # type: ignore[no-untyped-def]
-    """``out[k]`` = the regressor of sample k; ``qt`` etc. are (N, n), joint-major."""
+    """``out[k]`` = the regressor of sample k (eqs. 16-18); ``qt`` etc. are (N, n), joint-major;
+    the joint constants are :func:`identify.dynamics._joint_constants`'s."""
     nj, n = qt.shape
     nchunks = (n + CHUNK - 1) // CHUNK
     for chunk in numba.prange(nchunks):
