@@ -210,7 +210,7 @@ def _robust(system: Array, columns: Array, residual: Array, est: LeastSquares, f
     r = factors.combined(weights)[:-1, :-1]
     rinv = np.linalg.pinv(r)
     bread = rinv @ rinv.T
-    block = 2 * correlation_length(residual * weights)
+    block = 4 * correlation_length(residual * weights)
     cov = batch_means_covariance(bread, scores, block)
     return replace(est, covariance=cov, std=np.sqrt(np.maximum(np.diag(cov), 0.0))), block
 
@@ -255,7 +255,7 @@ def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     fit = summary(tau, tau_hat)
     if options.covariance == "batch_means":
         est, block = _robust(system, base.independent, tau - tau_hat, est, factors, options.weighting)
-        notes.append(f"standard deviations: batch-means sandwich over blocks of {block} samples (twice the residual's correlation length)")
+        notes.append(f"standard deviations: batch-means sandwich over blocks of {block} samples (four times the residual's correlation length)")
     result = IdentificationResult(robot, names, effects, base, est, exc, n, fit, notes=notes)
     if validation:
         segs = [s for p in validation for s in p.segments]

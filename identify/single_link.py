@@ -164,7 +164,7 @@ def single_link_sequence(robot: Robot, experiments: dict[int, list[Prepared]], m
         b_new, *_ = np.linalg.lstsq(a, y_new, rcond=None)
         resid = y_new - a @ b_new
         ata_inv = np.linalg.pinv(a.T @ a)
-        block = 2 * correlation_length(resid)
+        block = 4 * correlation_length(resid)
         own = batch_means_covariance(ata_inv, a * resid[:, None], block)
         h = ata_inv @ a.T @ g  # d b_new / d beta_prev (with a minus sign)
         c_new = own + h @ cov @ h.T

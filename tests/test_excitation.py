@@ -58,8 +58,14 @@ def _truth(names: list[str]) -> np.ndarray:
 
 
 @pytest.mark.parametrize("seed", [0, 3, 7])
-def test_single_link_sequence_and_whole_arm_recover_every_combination_within_3_sigma(seed: int) -> None:
-    """The rig's simulated arm (friction, rotor inertia, quantisation, current noise), off the bus."""
+def test_single_link_sequence_and_whole_arm_recover_the_combinations_within_their_standard_deviations(seed: int) -> None:
+    """The rig's simulated arm (friction, rotor inertia, quantisation, current noise), off the bus.
+
+    About 80 estimates per seed: even unbiased estimates with exact standard deviations
+    leave 3 sigma with probability 0.27 % each, so that one seed in five has one outside.
+    What must hold is what a bias would break: none beyond 4 sigma, at most two beyond 3
+    (a friction bias of the kind fixed in this session put 4-6 estimates beyond 3 sigma,
+    up to 5.4 sigma)."""
     rig = load_rig(RIG)
     cfg = simulation_config(rig.simulation, 6)
     limits = ex.Limits.of(PUMA)
@@ -78,7 +84,7 @@ def test_single_link_sequence_and_whole_arm_recover_every_combination_within_3_s
     truth = np.array([fn.row @ phi for fn in seq.functionals])
     z = (seq.beta - truth) / seq.std
     assert len(seq.functionals) >= 25  # Izz-like, gravity and friction terms of every link
-    assert np.all(np.abs(z) <= 3.0), [(fn.expression, float(zz)) for fn, zz in zip(seq.functionals, z) if abs(zz) > 3]
+    names = [fn.expression for fn in seq.functionals]
     # whole-arm excitation on the same arm, validated on a second run
     prepared = []
     for i in range(2):
@@ -92,7 +98,9 @@ def test_single_link_sequence_and_whole_arm_recover_every_combination_within_3_s
     whole = identify(PUMA, [prepared[0]], [prepared[1]], IdentifyOptions(exclude_reversals=True))
     z_whole = (whole.estimate.beta - whole.base.base_values(_truth(whole.names))) / whole.estimate.std
     exprs = whole.base.expressions()
-    assert np.all(np.abs(z_whole) <= 3.0), [(exprs[k], float(zz)) for k, zz in enumerate(z_whole) if abs(zz) > 3]
+    z_all = np.concatenate([z, z_whole])
+    outside = [(name, round(float(zz), 2)) for name, zz in zip(names + exprs, z_all) if abs(zz) > 3]
+    assert np.abs(z_all).max() <= 4.0 and len(outside) <= 2, outside
     # every whole-arm base parameter that the single-link experiments also identify agrees
     both = [c for c in seq.compare(whole) if c["single_link"] is not None]
     assert both
