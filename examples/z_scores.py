@@ -1,0 +1,72 @@
+"""How far the identified combinations fall from the truth, in their reported standard
+deviations, on the simulated PUMA 560 off the bus (the designs of tests/test_excitation.py).
+
+    python examples/z_scores.py 1 3 5 7
+
+Per seed: Khosla's single-link sequence (links 6..1) and a whole-arm run validated on a
+second one; prints the z rms, the largest |z| and every |z| beyond 2.5 with its expression.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from armid.demo import true_parameters  # noqa: E402
+from drivers.rig import load_rig  # noqa: E402
+from identify import excitation as ex  # noqa: E402
+from identify.identification import IdentifyOptions, identify  # noqa: E402
+from identify.preprocess import PrepareOptions, prepare  # noqa: E402
+from identify.recordings import Recording  # noqa: E402
+from identify.single_link import single_link_sequence  # noqa: E402
+from sim_bus.offline import simulate  # noqa: E402
+from sim_bus.physics import simulation_config  # noqa: E402
+
+RIG = ROOT / "config" / "rigs" / "sim.yaml"
+HOLD = np.array([0.0, 0.7854, -0.7854, 0.0, 0.0, 0.0])
+
+
+def z_scores(seed: int) -> tuple[list[str], np.ndarray]:
+    rig = load_rig(RIG)
+    robot = rig.robot
+    cfg = simulation_config(rig.simulation, robot.n_joints)
+    limits = ex.Limits.of(robot)
+    options = PrepareOptions(torque_hold=True)
+
+    def run(design: ex.Design, periods: int, sim_seed: int):  # type: ignore[no-untyped-def]
+        plan = ex.plan(design, HOLD, limits, periods=periods)
+        r = simulate(robot, cfg, plan.evaluate, plan.duration_s, seed=sim_seed)
+        t0, t1 = plan.excitation_window
+        keep = (r.t >= t0) & (r.t <= t1)
+        return prepare(Recording("sim", r.t[keep], r.position[keep], r.torque[keep], r.velocity[keep]), robot, options)
+
+    experiments = {}
+    for k in range(robot.n_joints - 1, -1, -1):
+        hold = ex.choose_hold(robot, k, HOLD, seed=seed + k)
+        experiments[k] = [run(ex.design(robot, moving=(k,), q_hold=hold, base_frequency_hz=0.5, seed=seed + k), 3, 100 * seed + k)]
+    seq = single_link_sequence(robot, experiments)
+    truth = np.array([fn.row @ true_parameters(rig, seq.names) for fn in seq.functionals])
+    whole_runs = [run(ex.design(robot, base_frequency_hz=0.2, seed=seed + 50 + i, margin=0.6), 2 - i, 100 * seed + 50 + i) for i in range(2)]
+    whole = identify(robot, [whole_runs[0]], [whole_runs[1]], IdentifyOptions(exclude_reversals=True))
+    z_whole = (whole.estimate.beta - whole.base.base_values(true_parameters(rig, whole.names))) / whole.estimate.std
+    names = [f"single-link {fn.expression}" for fn in seq.functionals] + [f"whole-arm {e}" for e in whole.base.expressions()]
+    return names, np.concatenate([(seq.beta - truth) / seq.std, z_whole])
+
+
+def main() -> None:
+    for seed in [int(s) for s in sys.argv[1:]] or [0]:
+        names, z = z_scores(seed)
+        print(f"seed {seed}: {z.size} estimates, z rms {np.sqrt(np.mean(z**2)):.2f}, max |z| {np.abs(z).max():.2f}, "
+              f"beyond 3 sigma {int((np.abs(z) > 3).sum())}", flush=True)
+        for name, zz in zip(names, z):
+            if abs(zz) > 2.5:
+                print(f"    {zz:+.2f}  {name[:100]}")
+
+
+if __name__ == "__main__":
+    main()
