@@ -40,6 +40,8 @@ from .interface import DriveConfigError, DriveFault, Driver, DriverError, Heartb
 from .rig import Rig
 
 REBOOT_WAIT_S = 1.0  # a rebooting servo answers a ping again within this
+ONE_OFF_TIMEOUT_S = 0.02  # a one-off transaction's reply timeout, at least
+ONE_OFF_ATTEMPTS = 3
 
 
 class ServoLost(HeartbeatLost):
@@ -171,19 +173,31 @@ class DynamixelDriver(Driver):
             except BlockingIOError:
                 break
 
-    def _transact(self, servo_id: int, packet: bytes, timeout: float | None = None) -> dxl.Packet:
-        """Send an instruction to one servo and return its status packet (or raise why not)."""
-        self._flush_input()
-        self._send(packet)
-        raw = self._receive(time.perf_counter() + (timeout or self.reply_timeout_s))
-        if not raw:
-            raise ReplyTimeout(f"servo {servo_id}: no reply within {1e3 * (timeout or self.reply_timeout_s):.1f} ms", servo_id)
-        reply = dxl.decode(raw, servo_id)
-        if reply.id != servo_id or reply.instruction != dxl.Instruction.STATUS:
-            raise dxl.MalformedPacket(f"servo {servo_id}: reply from id {reply.id} with instruction 0x{reply.instruction:02X}", servo_id)
-        if reply.error & 0x7F:
-            raise StatusError(servo_id, reply.error)
-        return reply
+    def _transact(self, servo_id: int, packet: bytes, timeout: float | None = None, attempts: int = ONE_OFF_ATTEMPTS) -> dxl.Packet:
+        """Send an instruction to one servo and return its status packet (or raise why not).
+
+        One-off transactions (configuration, torque, reboot) are not on the cycle's clock:
+        they wait at least ONE_OFF_TIMEOUT_S and are tried ``attempts`` times, since a reply
+        lost on a half-duplex line is nothing to give up on (all of them are idempotent)."""
+        wait = timeout if timeout is not None else max(self.reply_timeout_s, ONE_OFF_TIMEOUT_S)
+        for attempt in range(attempts):
+            self._flush_input()
+            self._send(packet)
+            raw = self._receive(time.perf_counter() + wait)
+            try:
+                if not raw:
+                    raise ReplyTimeout(f"servo {servo_id}: no reply within {1e3 * wait:.1f} ms ({attempts} attempts)", servo_id)
+                reply = dxl.decode(raw, servo_id)
+                if reply.id != servo_id or reply.instruction != dxl.Instruction.STATUS:
+                    raise dxl.MalformedPacket(f"servo {servo_id}: reply from id {reply.id} with instruction 0x{reply.instruction:02X}", servo_id)
+            except ProtocolError:
+                if attempt + 1 == attempts:
+                    raise
+                continue
+            if reply.error & 0x7F:
+                raise StatusError(servo_id, reply.error)
+            return reply
+        raise AssertionError("unreachable")
 
     def _read_table(self, servo_id: int, address: int, length: int) -> bytes:
         data = self._transact(servo_id, dxl.read(servo_id, address, length)).data
@@ -219,7 +233,7 @@ class DynamixelDriver(Driver):
     def _configure(self, j: int) -> dict[str, int]:
         servo_id, model = self.ids[j], self.models[j]
         try:
-            number = struct.unpack("<H", self._transact(servo_id, dxl.ping(servo_id), timeout=max(self.reply_timeout_s, 0.05)).data[:2])[0]
+            number = struct.unpack("<H", self._transact(servo_id, dxl.ping(servo_id)).data[:2])[0]
             if number != model.number:
                 found = next((m.name for m in dxl.SERVO_MODELS.values() if m.number == number), "unknown")
                 raise DriveConfigError(f"{self._where(j)}: model number {number} ({found}), the rig {self.rig.source} says {model.name} ({model.number})")
@@ -352,7 +366,9 @@ class DynamixelDriver(Driver):
                     self._event("servo_lost", str(lost), j)
         for j in alerts:  # what the alert is about: one read, on the cycle thread
             try:
-                self._hardware_fault(j, self._read_table(self.ids[j], Address.HARDWARE_ERROR_STATUS, 1)[0])
+                bits = self._read_table(self.ids[j], Address.HARDWARE_ERROR_STATUS, 1)[0]
+                self._hardware_fault(j, bits)
+                s.status[j] = bits << 8 | (int(s.status[j]) & 0xFF)
             except ProtocolError as err:
                 self._event("reply", f"{self._where(j)}: alert set, but Hardware Error Status could not be read: {err}", j)
         self._emitted = s
@@ -434,7 +450,7 @@ class DynamixelDriver(Driver):
                     deadline = time.perf_counter() + REBOOT_WAIT_S
                     while True:
                         try:
-                            self._transact(servo_id, dxl.ping(servo_id))
+                            self._transact(servo_id, dxl.ping(servo_id), attempts=1)
                             break
                         except ProtocolError:
                             if time.perf_counter() > deadline:
