@@ -364,7 +364,6 @@ def _demo(args: argparse.Namespace) -> int:
 def _sim(args: argparse.Namespace) -> int:
     import signal
     import threading
-    import time
 
     from drivers.rig import load_rig
     from sim_bus.arm import SimulatedArm
@@ -383,11 +382,8 @@ def _sim(args: argparse.Namespace) -> int:
           f"on {rig.bus.interface}:{rig.bus.channel}, lock-step with SYNC at {rig.period_s * 1000:g} ms", file=sys.stderr, flush=True)
     if args.ready:
         Path(args.ready).write_text("ready\n")
-    start = time.monotonic()
     try:
-        while not stop.wait(0.05):
-            if args.duration and time.monotonic() - start > args.duration:
-                break
+        _run_until(stop, args.duration)
     finally:
         arm.close()
         if args.log:
@@ -397,9 +393,18 @@ def _sim(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_until(stop: Any, duration: float | None) -> None:
+    """Until ``stop`` is set (a signal) or ``duration`` seconds have passed."""
+    import time
+
+    start = time.monotonic()
+    while not stop.wait(0.05):
+        if duration and time.monotonic() - start > duration:
+            return
+
+
 def _sim_chain(rig: Any, args: argparse.Namespace, stop: Any) -> int:
     """A Dynamixel rig: the simulated servo chain on a pty; the driver opens the printed port."""
-    import time
 
     from sim_bus.servo_chain import SimulatedServoChain
 
@@ -409,11 +414,8 @@ def _sim_chain(rig: Any, args: argparse.Namespace, stop: Any) -> int:
     print(chain.port, flush=True)
     if args.ready:
         Path(args.ready).write_text(chain.port + "\n")
-    start = time.monotonic()
     try:
-        while not stop.wait(0.05):
-            if args.duration and time.monotonic() - start > args.duration:
-                break
+        _run_until(stop, args.duration)
     finally:
         chain.close()
     print(f"armid sim: {chain.periods} periods simulated ({chain.physics.time_s:.3f} s of arm time), "

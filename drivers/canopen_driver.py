@@ -31,7 +31,7 @@ from canopen.sdo import SdoAbortedError, SdoCommunicationError, SdoVariable
 
 from identify.spatial import Array
 
-from .interface import DriveConfigError, DriveFault, Driver, DriverError, HeartbeatLost, Sample
+from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverError, HeartbeatLost, Sample
 from .pdo_plan import PLANS, PdoSpec, check_bus_budget
 from .rig import Rig, open_bus
 
@@ -150,7 +150,7 @@ class CanopenDriver(Driver):
         self.late_frames = np.zeros(self.n_joints, np.int64)
         self.lost_cycles = np.zeros(self.n_joints, np.int64)
         self.error_frames = 0
-        self.sync_late = 0
+        self._clock = CycleClock(rig.period_s)
         self.drive_configuration: list[dict[str, int]] = []
         self._node_ids = {d.node_id: d.joint for d in rig.drives}
 
@@ -159,6 +159,11 @@ class CanopenDriver(Driver):
         """The bus the driver talks on (opened by :meth:`start` unless one was passed in)."""
         assert self._bus is not None, "the driver is not started"
         return self._bus
+
+    @property
+    def sync_late(self) -> int:
+        """SYNCs sent more than a period late (the schedule restarted)."""
+        return self._clock.late
 
     @property
     def pending(self) -> int:
@@ -338,17 +343,10 @@ class CanopenDriver(Driver):
     # --- cyclic ---
     def _sync_loop(self) -> None:
         assert self._bus is not None
-        period = self.period_s
-        next_t = time.perf_counter()
+        self._clock = clock = CycleClock(self.period_s)  # the schedule starts with the thread
         counter = 0
         while not self._stop.is_set():
-            next_t += period
-            delay = next_t - time.perf_counter()
-            if delay > 0:
-                time.sleep(delay)
-            elif delay < -period:
-                self.sync_late += 1
-                next_t = time.perf_counter()
+            clock.wait()
             if self.paced_by_consumer and self._cycle:
                 # the arm is simulated in this process: its next step waits for the control
                 # law to have acted on the last one (never longer than PACE_WAIT_S, well
@@ -357,7 +355,7 @@ class CanopenDriver(Driver):
                 with self._ack:
                     if not self._ack.wait_for(lambda: self._acknowledged >= self._cycle or self._stop.is_set(), PACE_WAIT_S):
                         self.consumer_late += 1
-                next_t = max(next_t, time.perf_counter())
+                clock.not_before_now()
             counter = counter % SYNC_COUNTER_OVERFLOW + 1
             self._cycle += 1
             now = time.time()

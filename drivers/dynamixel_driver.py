@@ -36,7 +36,7 @@ from identify.spatial import Array
 
 from . import dynamixel_protocol as dxl
 from .dynamixel_protocol import Address, ProtocolError, ReplyTimeout, StatusError
-from .interface import DriveConfigError, DriveFault, Driver, DriverError, HeartbeatLost, Sample
+from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverError, HeartbeatLost, Sample
 from .rig import Rig
 
 REBOOT_WAIT_S = 1.0  # a rebooting servo answers a ping again within this
@@ -96,7 +96,7 @@ class DynamixelDriver(Driver):
         self._silent = np.zeros(self.n_joints, bool)
         self.lost_cycles = np.zeros(self.n_joints, np.int64)
         self.errors_by_kind: dict[str, int] = {}
-        self.late_cycles = 0
+        self._clock = CycleClock(rig.period_s)
         self.noise_bytes = 0
         self.reply_times: deque[float] = deque(maxlen=200_000)  # completion stamps (time.perf_counter)
         self.round_trips: deque[float] = deque(maxlen=200_000)  # read request sent -> reply complete (s)
@@ -105,6 +105,11 @@ class DynamixelDriver(Driver):
     @property
     def torque_constants(self) -> Array:
         return np.array([u.torque_constant for u in self.units])
+
+    @property
+    def late_cycles(self) -> int:
+        """Cycles started more than a period late (the schedule restarted)."""
+        return self._clock.late
 
     @property
     def pending(self) -> int:
@@ -263,16 +268,9 @@ class DynamixelDriver(Driver):
 
     # --- cyclic ---
     def _run(self) -> None:
-        period = self.period_s
-        next_t = time.perf_counter()
+        self._clock = clock = CycleClock(self.period_s)  # the schedule starts with the thread
         while not self._stop.is_set():
-            next_t += period
-            delay = next_t - time.perf_counter()
-            if delay > 0:
-                time.sleep(delay)
-            elif delay < -period:
-                self.late_cycles += 1
-                next_t = time.perf_counter()
+            clock.wait()
             self._serve_requests()
             try:
                 self._cycle_once()

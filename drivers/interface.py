@@ -77,6 +77,30 @@ class Sample:
         return Sample(cycle, time_s, np.zeros(n, bool), z.copy(), z.copy(), np.zeros(n, bool), z.copy(), z.copy(), np.zeros(n, np.int64))
 
 
+class CycleClock:
+    """The absolute schedule of a driver's cycle thread: :meth:`wait` sleeps to the next
+    period boundary; a cycle more than a period late restarts the schedule (and counts in
+    ``late``) instead of bursting to catch up."""
+
+    def __init__(self, period_s: float) -> None:
+        self.period_s = period_s
+        self.late = 0
+        self._next = time.perf_counter()
+
+    def wait(self) -> None:
+        self._next += self.period_s
+        delay = self._next - time.perf_counter()
+        if delay > 0:
+            time.sleep(delay)
+        elif delay < -self.period_s:
+            self.late += 1
+            self._next = time.perf_counter()
+
+    def not_before_now(self) -> None:
+        """The next period starts no earlier than now (after waiting for something else)."""
+        self._next = max(self._next, time.perf_counter())
+
+
 class Driver(abc.ABC):
     """Reads one :class:`Sample` per cycle and sends commands to the amplifiers."""
 

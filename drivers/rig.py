@@ -192,19 +192,8 @@ def rig_from_dict(doc: Any, src: str = "<rig>", base_dir: Path | None = None) ->
         bitrate=_int(bus_doc.get("bitrate", 1_000_000), src, "bus.bitrate", 10_000, 8_000_000),
         options={k: v for k, v in bus_doc.items() if k not in known_bus},
     )
-    drives_doc = need("drives")
-    if not isinstance(drives_doc, list) or len(drives_doc) != robot.n_joints:
-        raise RigFileError(src, "drives", f"must list one drive per joint ({robot.n_joints})")
     drives = []
-    seen: set[int] = set()
-    for j, d in enumerate(drives_doc):
-        where = f"drives[{j}]"
-        if not isinstance(d, dict):
-            raise RigFileError(src, where, "must be a mapping")
-        node = _int(d.get("node_id"), src, f"{where}.node_id", 1, 127)
-        if node in seen:
-            raise RigFileError(src, f"{where}.node_id", f"node id {node} is used twice")
-        seen.add(node)
+    for j, where, d, node in _drive_rows(doc, robot, src, "drive", "node_id", "node id", 1, 127):
         units = DriveUnits(
             counts_per_rev=_int(d.get("counts_per_rev", 4096), src, f"{where}.counts_per_rev", 1, 2**31),
             gear_ratio=_float(d.get("gear_ratio", 1.0), src, f"{where}.gear_ratio", positive=True),
@@ -226,7 +215,7 @@ def rig_from_dict(doc: Any, src: str = "<rig>", base_dir: Path | None = None) ->
         simulation=dict(doc.get("simulation") or {}),
         source=src,
     )
-    if rig.master_node_id in seen:
+    if rig.master_node_id in {d.node_id for d in drives}:
         raise RigFileError(src, "master_node_id", f"{rig.master_node_id} is also a drive's node id")
     from .pdo_plan import PLANS
 
@@ -259,19 +248,8 @@ def _serial_rig(doc: dict[str, Any], bus_doc: dict[str, Any], robot: Robot, src:
         reply_timeout_ms=None if timeout is None else _float(timeout, src, "bus.reply_timeout_ms", positive=True),
         silent_cycles=_int(bus_doc.get("silent_cycles", 50), src, "bus.silent_cycles", 1, 100_000),
     )
-    drives_doc = doc.get("drives")
-    if not isinstance(drives_doc, list) or len(drives_doc) != robot.n_joints:
-        raise RigFileError(src, "drives", f"must list one servo per joint ({robot.n_joints})")
     drives = []
-    seen: set[int] = set()
-    for j, d in enumerate(drives_doc):
-        where = f"drives[{j}]"
-        if not isinstance(d, dict):
-            raise RigFileError(src, where, "must be a mapping")
-        servo_id = _int(d.get("id"), src, f"{where}.id", 0, MAX_ID)
-        if servo_id in seen:
-            raise RigFileError(src, f"{where}.id", f"servo id {servo_id} is used twice")
-        seen.add(servo_id)
+    for j, where, d, servo_id in _drive_rows(doc, robot, src, "servo", "id", "servo id", 0, MAX_ID):
         name = d.get("model")
         if name not in SERVO_MODELS:
             raise RigFileError(src, f"{where}.model", f"unknown servo model {name!r}; known: {', '.join(SERVO_MODELS)}")
@@ -294,6 +272,29 @@ def _serial_rig(doc: dict[str, Any], bus_doc: dict[str, Any], robot: Robot, src:
         source=src,
         serial=serial,
     )
+
+
+def _drive_rows(doc: dict[str, Any], robot: Robot, src: str, noun: str, key: str, label: str,
+                lo: int, hi: int) -> list[tuple[int, str, dict[str, Any], int]]:
+    """``drives``: one mapping per joint, each with a unique id under ``key``; returns
+    (joint, field name, mapping, id) per drive."""
+    drives_doc = doc.get("drives")
+    if drives_doc is None:
+        raise RigFileError(src, "drives", "missing")
+    if not isinstance(drives_doc, list) or len(drives_doc) != robot.n_joints:
+        raise RigFileError(src, "drives", f"must list one {noun} per joint ({robot.n_joints})")
+    rows = []
+    seen: set[int] = set()
+    for j, d in enumerate(drives_doc):
+        where = f"drives[{j}]"
+        if not isinstance(d, dict):
+            raise RigFileError(src, where, "must be a mapping")
+        ident = _int(d.get(key), src, f"{where}.{key}", lo, hi)
+        if ident in seen:
+            raise RigFileError(src, f"{where}.{key}", f"{label} {ident} is used twice")
+        seen.add(ident)
+        rows.append((j, where, d, ident))
+    return rows
 
 
 def _int(value: Any, src: str, where: str, lo: int, hi: int) -> int:
