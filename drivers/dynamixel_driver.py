@@ -436,10 +436,11 @@ class DynamixelDriver(Driver):
             self._sync_write(Address.TORQUE_ENABLE, [b"\x01"] * len(on), on)
 
     def enable(self, timeout: float = 1.0) -> None:
-        """Reboot servos with a hardware error, zero the goals, torque on, read back."""
-        self._call(lambda: self._enable(timeout), timeout + REBOOT_WAIT_S * self.n_joints + 1.0)
+        """Reboot servos with a hardware error, zero the goals, torque on, read back.
+        ``timeout`` is for the transactions; each reboot may add REBOOT_WAIT_S."""
+        self._call(self._enable, timeout + REBOOT_WAIT_S * self.n_joints + 1.0)
 
-    def _enable(self, timeout: float) -> None:
+    def _enable(self) -> None:
         for j in range(self.n_joints):
             if self.hardware_error[j]:
                 servo_id = self.ids[j]
