@@ -2,22 +2,42 @@
 
 The recursion of one sample is scalar arithmetic on 3-vectors: too little to fill a SIMD
 register. So a block of ``LANES`` samples goes through the recursion together, joint by
-joint, every quantity held as an array over the lanes (``w[r, m]``) and every step a
-branch-free loop over the lanes with a scalar body, which the compiler vectorises (the
-joint type enters as a 0/1 factor; sine and cosine are polynomials, not libm calls). The
-rows of block (j, i) (eq. 17) go straight into ``out``. Chunks of ``CHUNK`` samples run in
-parallel, each with its scratch allocated once.
+joint, every quantity a row of lanes and every step a branch-free loop over all the lanes
+with a scalar body, which the compiler vectorises (the joint type enters as a 0/1 factor;
+sine and cosine are polynomials, not libm calls). The lane state lives in one array with
+rows at fixed offsets, so the compiler can prove that the loops' reads and writes do not
+overlap; with separate arrays it could not, and left the longest loops scalar.
+
+The block's rows of eq. 17 collect in a (column, lane) table; 8 x 8 tiles of it are
+transposed in registers into ``out``, whose rows are a sample each, with non-temporal
+stores when the rows are whole cache lines: the output is far larger than the caches, and
+ordinary stores would first read every line they are about to overwrite.
 """
 
 from __future__ import annotations
 
 import numba
 import numpy as np
+from llvmlite import ir
+from numba import types
+from numba.extending import intrinsic
 
 LANES = 128
 CHUNK = 1024
 
+# rows of the lane state ``s[row * L + lane]``; _Q, _QD, _QDD are also the rows of ``motion[i]``
+_Q, _QD, _QDD = 0, 1, 2
+_COS, _SIN = 3, 4  # of q for a revolute joint; (q, 0) for a prismatic one
+_A = 5  # the rotation A[r, k] at _A + 3 r + k
+_P = 14  # the origin p
+_W, _DW, _DV = 17, 20, 23  # w, dw, dv (eqs. 1-6)
+_RHO = 26  # rho of the joint last visited
+_D = 29  # the shift that carries rows from the last joint point to this one
+_B = 32  # B[r, k] = ([dw x] + w w^T - |w|^2 E)[r, k] at _B + 3 r + k
+_NSTATE = 41
+
 _jit = numba.njit(cache=True, fastmath=True, error_model="numpy", boundscheck=False)
+_inline = numba.njit(cache=True, fastmath=True, error_model="numpy", boundscheck=False, inline="always")
 # no reassociation here: the Cody-Waite reduction's order of subtraction is its accuracy
 _exact = numba.njit(cache=True, fastmath={"contract", "nsz", "arcp"}, error_model="numpy", boundscheck=False)
 
@@ -47,47 +67,127 @@ def _sincos(x, c_out, s_out, nl):  # type: ignore[no-untyped-def]
         s_out[m] = -s if n >= 2 else s
 
 
-@_jit
-def _joint_step(i, revolute, a0, ac, a_s, p0, pc, ps, t0, uu, qi, qdi, qddi, a, p, rho, w, dw, dv, rho_prev, b, rf, rn, d):  # type: ignore[no-untyped-def]
+def _vector_pointer(builder, context, aryty, array, index):  # type: ignore[no-untyped-def]
+    data = context.make_array(aryty)(context, builder, array).data
+    return builder.bitcast(builder.gep(data, [index]), ir.VectorType(ir.DoubleType(), 8).as_pointer())
+
+
+def _transpose8(nontemporal: bool):  # type: ignore[no-untyped-def]
+    """An intrinsic: ``dst.flat[di + r * ds + c] = src.flat[si + c * ss + r]`` for r, c < 8,
+    through registers (three rounds of shuffles). With ``nontemporal`` the eight stores bypass
+    the cache and ``dst.flat[di]`` must be 64-byte aligned."""
+    lo, hi = [0, 8, 2, 10, 4, 12, 6, 14], [1, 9, 3, 11, 5, 13, 7, 15]
+    pairs_lo, pairs_hi = [0, 1, 8, 9, 4, 5, 12, 13], [2, 3, 10, 11, 6, 7, 14, 15]
+    halves_lo, halves_hi = [0, 1, 2, 3, 8, 9, 10, 11], [4, 5, 6, 7, 12, 13, 14, 15]
+
+    @intrinsic
+    def transpose(typingctx, dst, di, ds, src, si, ss):  # type: ignore[no-untyped-def]
+        if not all(isinstance(a, types.Array) and a.dtype == types.float64 for a in (dst, src)):
+            return None  # the tiles are of doubles
+        sig = types.void(dst, types.intp, types.intp, src, types.intp, types.intp)
+
+        def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
+            dst_v, di_v, ds_v, src_v, si_v, ss_v = args
+            i64 = ir.IntType(64)
+
+            def mask(m):  # type: ignore[no-untyped-def]
+                return ir.Constant(ir.VectorType(ir.IntType(32), 8), m)
+
+            v = []
+            for c in range(8):
+                index = builder.add(si_v, builder.mul(ss_v, ir.Constant(i64, c)))
+                v.append(builder.load(_vector_pointer(builder, context, signature.args[3], src_v, index), align=8))
+            t = []
+            for k in range(0, 8, 2):
+                t += [builder.shuffle_vector(v[k], v[k + 1], mask(lo)), builder.shuffle_vector(v[k], v[k + 1], mask(hi))]
+            u = [None] * 8
+            for k in (0, 1, 4, 5):
+                u[k] = builder.shuffle_vector(t[k], t[k + 2], mask(pairs_lo))
+                u[k + 2] = builder.shuffle_vector(t[k], t[k + 2], mask(pairs_hi))
+            rows = [None] * 8
+            for k in range(4):
+                rows[k] = builder.shuffle_vector(u[k], u[k + 4], mask(halves_lo))
+                rows[k + 4] = builder.shuffle_vector(u[k], u[k + 4], mask(halves_hi))
+            for r in range(8):
+                index = builder.add(di_v, builder.mul(ds_v, ir.Constant(i64, r)))
+                ptr = _vector_pointer(builder, context, signature.args[0], dst_v, index)
+                if nontemporal:
+                    store = builder.store(rows[r], ptr, align=64)
+                    store.set_metadata("nontemporal", builder.module.add_metadata([ir.Constant(ir.IntType(32), 1)]))
+                else:
+                    builder.store(rows[r], ptr, align=8)
+            return context.get_dummy_value()
+
+        return sig, codegen
+
+    return transpose
+
+
+_transpose8_stream = _transpose8(nontemporal=True)
+_transpose8_store = _transpose8(nontemporal=False)
+
+
+@intrinsic
+def _store_fence(typingctx):  # type: ignore[no-untyped-def]
+    """Orders the non-temporal stores before anything after (they are weakly ordered)."""
+
+    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
+        builder.fence("seq_cst")
+        return context.get_dummy_value()
+
+    return types.void(), codegen
+
+
+L = LANES  # the stride of a row of lanes, a constant so that the compiler sees rows apart
+
+
+@_inline
+def _joint_step(i, revolute, a0, ac, a_s, p0, pc, ps, t0, uu, motion, s, carried):  # type: ignore[no-untyped-def]
     """Joint i for every lane: A, rho, the forward recursion (eqs. 1-6), B, carried rows.
-    Branch-free loops over the lanes (the joint type is a 0/1 factor), so they vectorise."""
-    nl = qi.shape[0]
+    Branch-free loops over the lanes (the joint type is a 0/1 factor), so they vectorise.
+    ``s[row * L + lane]`` is the lane state; ``motion[i]`` joint i's q, qd, qdd rows;
+    ``carried[j]`` the rows rf (0-2) and rn (3-5) of joint j carried to this link."""
     tx, ty, tz = t0[i, 0], t0[i, 1], t0[i, 2]
     ux, uy, uz = uu[i, 0], uu[i, 1], uu[i, 2]
     rv = 1.0 if revolute[i] else 0.0
     pv = 1.0 - rv
+    mi = motion[i]
     # A and p: affine in (cos q, sin q) for a revolute joint, in q for a prismatic one
     if revolute[i]:
-        _sincos(qi, d[0], d[1], nl)
+        _sincos(mi[_Q * L:_Q * L + L], s[_COS * L:_COS * L + L], s[_SIN * L:_SIN * L + L], L)
     else:
-        for m in range(nl):
-            d[0, m] = qi[m]
-            d[1, m] = 0.0
+        for m in range(L):
+            s[_COS * L + m] = mi[_Q * L + m]
+            s[_SIN * L + m] = 0.0
     for r in range(3):
         for k in range(3):
             c0, cc, cs = a0[i, r, k], ac[i, r, k], a_s[i, r, k]
-            for m in range(nl):
-                a[r, k, m] = c0 + rv * (d[0, m] * cc + d[1, m] * cs)
+            for m in range(L):
+                s[(_A + 3 * r + k) * L + m] = c0 + rv * (s[_COS * L + m] * cc + s[_SIN * L + m] * cs)
         c0, cc, cs = p0[i, r], pc[i, r], ps[i, r]
-        for m in range(nl):
-            p[r, m] = c0 + d[0, m] * cc + d[1, m] * cs
-    for m in range(nl):
-        a00, a01, a02 = a[0, 0, m], a[0, 1, m], a[0, 2, m]
-        a10, a11, a12 = a[1, 0, m], a[1, 1, m], a[1, 2, m]
-        a20, a21, a22 = a[2, 0, m], a[2, 1, m], a[2, 2, m]
-        px, py, pz = p[0, m], p[1, m], p[2, m]
+        for m in range(L):
+            s[(_P + r) * L + m] = c0 + s[_COS * L + m] * cc + s[_SIN * L + m] * cs
+    for m in range(L):
+        s[_QD * L + m] = mi[_QD * L + m]
+        s[_QDD * L + m] = mi[_QDD * L + m]
+    for m in range(L):
+        a00, a01, a02 = s[_A * L + m], s[(_A + 1) * L + m], s[(_A + 2) * L + m]
+        a10, a11, a12 = s[(_A + 3) * L + m], s[(_A + 4) * L + m], s[(_A + 5) * L + m]
+        a20, a21, a22 = s[(_A + 6) * L + m], s[(_A + 7) * L + m], s[(_A + 8) * L + m]
+        px, py, pz = s[_P * L + m], s[(_P + 1) * L + m], s[(_P + 2) * L + m]
+        qd, qdd = s[_QD * L + m], s[_QDD * L + m]
         # rho = A^T (t0 - p): the joint point in frame i
         dx, dy, dz = tx - px, ty - py, tz - pz
         rx = a00 * dx + a10 * dy + a20 * dz
         ry = a01 * dx + a11 * dy + a21 * dz
         rz = a02 * dx + a12 * dy + a22 * dz
-        wx, wy, wz = w[0, m], w[1, m], w[2, m]
-        ex, ey, ez = dw[0, m], dw[1, m], dw[2, m]
+        wx, wy, wz = s[_W * L + m], s[(_W + 1) * L + m], s[(_W + 2) * L + m]
+        ex, ey, ez = s[_DW * L + m], s[(_DW + 1) * L + m], s[(_DW + 2) * L + m]
         # acceleration of the joint point: dv + dw x t0 + w x (w x t0), then into frame i
         cx, cy, cz = wy * tz - wz * ty, wz * tx - wx * tz, wx * ty - wy * tx
-        vx = dv[0, m] + (ey * tz - ez * ty) + (wy * cz - wz * cy)
-        vy = dv[1, m] + (ez * tx - ex * tz) + (wz * cx - wx * cz)
-        vz = dv[2, m] + (ex * ty - ey * tx) + (wx * cy - wy * cx)
+        vx = s[_DV * L + m] + (ey * tz - ez * ty) + (wy * cz - wz * cy)
+        vy = s[(_DV + 1) * L + m] + (ez * tx - ex * tz) + (wz * cx - wx * cz)
+        vz = s[(_DV + 2) * L + m] + (ex * ty - ey * tx) + (wx * cy - wy * cx)
         dvx = a00 * vx + a10 * vy + a20 * vz
         dvy = a01 * vx + a11 * vy + a21 * vz
         dvz = a02 * vx + a12 * vy + a22 * vz
@@ -98,126 +198,161 @@ def _joint_step(i, revolute, a0, ac, a_s, p0, pc, ps, t0, uu, qi, qdi, qddi, a, 
         oex = a00 * ex + a10 * ey + a20 * ez
         oey = a01 * ex + a11 * ey + a21 * ez
         oez = a02 * ex + a12 * ey + a22 * ez
-        zx, zy, zz = ux * qdi[m], uy * qdi[m], uz * qdi[m]
+        zx, zy, zz = ux * qd, uy * qd, uz * qd
         wx, wy, wz = owx + rv * zx, owy + rv * zy, owz + rv * zz
-        ex = oex + rv * ((owy * zz - owz * zy) + ux * qddi[m])
-        ey = oey + rv * ((owz * zx - owx * zz) + uy * qddi[m])
-        ez = oez + rv * ((owx * zy - owy * zx) + uz * qddi[m])
-        dvx += pv * (ux * qddi[m] + 2.0 * (wy * zz - wz * zy))
-        dvy += pv * (uy * qddi[m] + 2.0 * (wz * zx - wx * zz))
-        dvz += pv * (uz * qddi[m] + 2.0 * (wx * zy - wy * zx))
+        ex = oex + rv * ((owy * zz - owz * zy) + ux * qdd)
+        ey = oey + rv * ((owz * zx - owx * zz) + uy * qdd)
+        ez = oez + rv * ((owx * zy - owy * zx) + uz * qdd)
+        dvx += pv * (ux * qdd + 2.0 * (wy * zz - wz * zy))
+        dvy += pv * (uy * qdd + 2.0 * (wz * zx - wx * zz))
+        dvz += pv * (uz * qdd + 2.0 * (wx * zy - wy * zx))
         # dv -= dw x rho + w x (w x rho): the origin of frame i
         cx, cy, cz = wy * rz - wz * ry, wz * rx - wx * rz, wx * ry - wy * rx
         dvx -= (ey * rz - ez * ry) + (wy * cz - wz * cy)
         dvy -= (ez * rx - ex * rz) + (wz * cx - wx * cz)
         dvz -= (ex * ry - ey * rx) + (wx * cy - wy * cx)
-        w[0, m], w[1, m], w[2, m] = wx, wy, wz
-        dw[0, m], dw[1, m], dw[2, m] = ex, ey, ez
-        dv[0, m], dv[1, m], dv[2, m] = dvx, dvy, dvz
+        s[_W * L + m], s[(_W + 1) * L + m], s[(_W + 2) * L + m] = wx, wy, wz
+        s[_DW * L + m], s[(_DW + 1) * L + m], s[(_DW + 2) * L + m] = ex, ey, ez
+        s[_DV * L + m], s[(_DV + 1) * L + m], s[(_DV + 2) * L + m] = dvx, dvy, dvz
         # B = [dw x] + w w^T - |w|^2 E
         w2 = wx * wx + wy * wy + wz * wz
-        b[0, 0, m] = wx * wx - w2
-        b[0, 1, m] = wx * wy - ez
-        b[0, 2, m] = wx * wz + ey
-        b[1, 0, m] = wy * wx + ez
-        b[1, 1, m] = wy * wy - w2
-        b[1, 2, m] = wy * wz - ex
-        b[2, 0, m] = wz * wx - ey
-        b[2, 1, m] = wz * wy + ex
-        b[2, 2, m] = wz * wz - w2
+        s[_B * L + m] = wx * wx - w2
+        s[(_B + 1) * L + m] = wx * wy - ez
+        s[(_B + 2) * L + m] = wx * wz + ey
+        s[(_B + 3) * L + m] = wy * wx + ez
+        s[(_B + 4) * L + m] = wy * wy - w2
+        s[(_B + 5) * L + m] = wy * wz - ex
+        s[(_B + 6) * L + m] = wz * wx - ey
+        s[(_B + 7) * L + m] = wz * wy + ex
+        s[(_B + 8) * L + m] = wz * wz - w2
         # the shift that carries rows from the last joint point to this one: A rho + p - rho_prev
-        d[0, m] = a00 * rx + a01 * ry + a02 * rz + px - rho_prev[0, m]
-        d[1, m] = a10 * rx + a11 * ry + a12 * rz + py - rho_prev[1, m]
-        d[2, m] = a20 * rx + a21 * ry + a22 * rz + pz - rho_prev[2, m]
-        rho_prev[0, m], rho_prev[1, m], rho_prev[2, m] = rx, ry, rz
-        rho[0, m], rho[1, m], rho[2, m] = rx, ry, rz
+        s[_D * L + m] = a00 * rx + a01 * ry + a02 * rz + px - s[_RHO * L + m]
+        s[(_D + 1) * L + m] = a10 * rx + a11 * ry + a12 * rz + py - s[(_RHO + 1) * L + m]
+        s[(_D + 2) * L + m] = a20 * rx + a21 * ry + a22 * rz + pz - s[(_RHO + 2) * L + m]
+        s[_RHO * L + m], s[(_RHO + 1) * L + m], s[(_RHO + 2) * L + m] = rx, ry, rz
     # carried rows <- rows R_i: rf' = A^T (rf + rn x d), rn' = A^T rn
     for j in range(i):
-        for m in range(nl):
-            a00, a01, a02 = a[0, 0, m], a[0, 1, m], a[0, 2, m]
-            a10, a11, a12 = a[1, 0, m], a[1, 1, m], a[1, 2, m]
-            a20, a21, a22 = a[2, 0, m], a[2, 1, m], a[2, 2, m]
-            gx, gy, gz = d[0, m], d[1, m], d[2, m]
-            nx, ny, nz = rn[j, 0, m], rn[j, 1, m], rn[j, 2, m]
-            fx = rf[j, 0, m] + ny * gz - nz * gy
-            fy = rf[j, 1, m] + nz * gx - nx * gz
-            fz = rf[j, 2, m] + nx * gy - ny * gx
-            rf[j, 0, m] = a00 * fx + a10 * fy + a20 * fz
-            rf[j, 1, m] = a01 * fx + a11 * fy + a21 * fz
-            rf[j, 2, m] = a02 * fx + a12 * fy + a22 * fz
-            rn[j, 0, m] = a00 * nx + a10 * ny + a20 * nz
-            rn[j, 1, m] = a01 * nx + a11 * ny + a21 * nz
-            rn[j, 2, m] = a02 * nx + a12 * ny + a22 * nz
+        c = carried[j]
+        for m in range(L):
+            a00, a01, a02 = s[_A * L + m], s[(_A + 1) * L + m], s[(_A + 2) * L + m]
+            a10, a11, a12 = s[(_A + 3) * L + m], s[(_A + 4) * L + m], s[(_A + 5) * L + m]
+            a20, a21, a22 = s[(_A + 6) * L + m], s[(_A + 7) * L + m], s[(_A + 8) * L + m]
+            gx, gy, gz = s[_D * L + m], s[(_D + 1) * L + m], s[(_D + 2) * L + m]
+            nx, ny, nz = c[3 * L + m], c[4 * L + m], c[5 * L + m]
+            fx = c[m] + ny * gz - nz * gy
+            fy = c[L + m] + nz * gx - nx * gz
+            fz = c[2 * L + m] + nx * gy - ny * gx
+            c[m] = a00 * fx + a10 * fy + a20 * fz
+            c[L + m] = a01 * fx + a11 * fy + a21 * fz
+            c[2 * L + m] = a02 * fx + a12 * fy + a22 * fz
+            c[3 * L + m] = a00 * nx + a10 * ny + a20 * nz
+            c[4 * L + m] = a01 * nx + a11 * ny + a21 * nz
+            c[5 * L + m] = a02 * nx + a12 * ny + a22 * nz
+    c = carried[i]
     uvec = (ux, uy, uz)
     for r in range(3):
-        for m in range(nl):
-            rf[i, r, m] = pv * uvec[r]
-            rn[i, r, m] = rv * uvec[r]
+        for m in range(L):
+            c[r * L + m] = pv * uvec[r]
+            c[(3 + r) * L + m] = rv * uvec[r]
 
 
-@_jit
-def _rows(i, nl, rho, w, dw, dv, b, rf, rn, out):  # type: ignore[no-untyped-def]
-    """Block (j, i) of eq. 17 for every j <= i and lane, straight into ``out[lane, j, 10 i + col]``;
-    the blocks below the diagonal are zero."""
-    c0 = 10 * i
+@_inline
+def _rows(i, nj, s, carried, table):  # type: ignore[no-untyped-def]
+    """Block (j, i) of eq. 17 for every j <= i and lane, into ``table[(10 nj j + 10 i + col) L + lane]``;
+    the blocks below the diagonal stay zero."""
     for j in range(i + 1):
-        for m in range(nl):
-            fn0, fn1, fn2 = rn[j, 0, m], rn[j, 1, m], rn[j, 2, m]
-            rx, ry, rz = rho[0, m], rho[1, m], rho[2, m]
+        c = carried[j]
+        c0 = 10 * nj * j + 10 * i
+        t = table[c0 * L:(c0 + 10) * L]
+        for m in range(L):
+            fn0, fn1, fn2 = c[3 * L + m], c[4 * L + m], c[5 * L + m]
+            rx, ry, rz = s[_RHO * L + m], s[(_RHO + 1) * L + m], s[(_RHO + 2) * L + m]
             # the row taken about the origin of frame i: rf + rho x fn
-            x0 = rf[j, 0, m] + ry * fn2 - rz * fn1
-            x1 = rf[j, 1, m] + rz * fn0 - rx * fn2
-            x2 = rf[j, 2, m] + rx * fn1 - ry * fn0
-            d0, d1, d2 = dv[0, m], dv[1, m], dv[2, m]
-            wx, wy, wz = w[0, m], w[1, m], w[2, m]
-            ex, ey, ez = dw[0, m], dw[1, m], dw[2, m]
-            out[m, j, c0 + 0] = x0 * d0 + x1 * d1 + x2 * d2
-            out[m, j, c0 + 1] = b[0, 0, m] * x0 + b[1, 0, m] * x1 + b[2, 0, m] * x2 + (d1 * fn2 - d2 * fn1)
-            out[m, j, c0 + 2] = b[0, 1, m] * x0 + b[1, 1, m] * x1 + b[2, 1, m] * x2 + (d2 * fn0 - d0 * fn2)
-            out[m, j, c0 + 3] = b[0, 2, m] * x0 + b[1, 2, m] * x1 + b[2, 2, m] * x2 + (d0 * fn1 - d1 * fn0)
+            x0 = c[m] + ry * fn2 - rz * fn1
+            x1 = c[L + m] + rz * fn0 - rx * fn2
+            x2 = c[2 * L + m] + rx * fn1 - ry * fn0
+            d0, d1, d2 = s[_DV * L + m], s[(_DV + 1) * L + m], s[(_DV + 2) * L + m]
+            wx, wy, wz = s[_W * L + m], s[(_W + 1) * L + m], s[(_W + 2) * L + m]
+            ex, ey, ez = s[_DW * L + m], s[(_DW + 1) * L + m], s[(_DW + 2) * L + m]
+            b00, b01, b02 = s[_B * L + m], s[(_B + 1) * L + m], s[(_B + 2) * L + m]
+            b10, b11, b12 = s[(_B + 3) * L + m], s[(_B + 4) * L + m], s[(_B + 5) * L + m]
+            b20, b21, b22 = s[(_B + 6) * L + m], s[(_B + 7) * L + m], s[(_B + 8) * L + m]
+            t[m] = x0 * d0 + x1 * d1 + x2 * d2
+            t[L + m] = b00 * x0 + b10 * x1 + b20 * x2 + (d1 * fn2 - d2 * fn1)
+            t[2 * L + m] = b01 * x0 + b11 * x1 + b21 * x2 + (d2 * fn0 - d0 * fn2)
+            t[3 * L + m] = b02 * x0 + b12 * x1 + b22 * x2 + (d0 * fn1 - d1 * fn0)
             y0 = fn1 * wz - fn2 * wy
             y1 = fn2 * wx - fn0 * wz
             y2 = fn0 * wy - fn1 * wx
-            out[m, j, c0 + 4] = ex * fn0 + wx * y0
-            out[m, j, c0 + 5] = ey * fn0 + ex * fn1 + wy * y0 + wx * y1
-            out[m, j, c0 + 6] = ez * fn0 + ex * fn2 + wz * y0 + wx * y2
-            out[m, j, c0 + 7] = ey * fn1 + wy * y1
-            out[m, j, c0 + 8] = ez * fn1 + ey * fn2 + wz * y1 + wy * y2
-            out[m, j, c0 + 9] = ez * fn2 + wz * y2
-    for j in range(i + 1, out.shape[1]):
-        for m in range(nl):
-            for c in range(10):
-                out[m, j, c0 + c] = 0.0
+            t[4 * L + m] = ex * fn0 + wx * y0
+            t[5 * L + m] = ey * fn0 + ex * fn1 + wy * y0 + wx * y1
+            t[6 * L + m] = ez * fn0 + ex * fn2 + wz * y0 + wx * y2
+            t[7 * L + m] = ey * fn1 + wy * y1
+            t[8 * L + m] = ez * fn1 + ey * fn2 + wz * y1 + wy * y2
+            t[9 * L + m] = ez * fn2 + wz * y2
+
+
+@_inline
+def _write_out(table, nl, k0, out, row_stride, seg_len, seg_stride, first_aligned):  # type: ignore[no-untyped-def]
+    """The block's lanes into ``out[k0 + lane]``, whose elements lie at ``lane * row_stride +
+    seg * seg_stride + col`` in segments of ``seg_len`` contiguous columns (one segment of
+    10 N^2 when ``out`` is C-contiguous, N of 10 N when it is a view into a wider array).
+    8 x 8 tiles go through registers; ``first_aligned[seg]`` >= 0 is a column whose address
+    is a cache line's in every row, and the tiles from it go out non-temporally."""
+    row_len = out.shape[2]
+    for seg in range(first_aligned.shape[0]):
+        fa = first_aligned[seg]
+        start = max(fa, 0)
+        stop = start + (seg_len - start) // 8 * 8
+        t0 = seg * seg_len  # the table row of the segment's first column
+        m0 = 0
+        while m0 + 8 <= nl:
+            base = (k0 + m0) * row_stride + seg * seg_stride
+            for col in range(start, stop, 8):
+                if fa >= 0:
+                    _transpose8_stream(out, base + col, row_stride, table, (t0 + col) * L + m0, L)
+                else:
+                    _transpose8_store(out, base + col, row_stride, table, (t0 + col) * L + m0, L)
+            for m in range(m0, m0 + 8):
+                for col in range(start):
+                    out[k0 + m, (t0 + col) // row_len, (t0 + col) % row_len] = table[(t0 + col) * L + m]
+                for col in range(stop, seg_len):
+                    out[k0 + m, (t0 + col) // row_len, (t0 + col) % row_len] = table[(t0 + col) * L + m]
+            m0 += 8
+        for m in range(m0, nl):
+            for col in range(seg_len):
+                out[k0 + m, (t0 + col) // row_len, (t0 + col) % row_len] = table[(t0 + col) * L + m]
 
 
 @numba.njit(cache=True, parallel=True, fastmath=True, error_model="numpy", boundscheck=False)
-def regressor_kernel(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g, qt, qdt, qddt, out):  # type: ignore[no-untyped-def]
-    """``out[k]`` = the regressor of sample k (eqs. 16-18); ``qt`` etc. are (N, n), joint-major;
-    the joint constants are :func:`identify.dynamics._joint_constants`'s."""
-    nj, n = qt.shape
+def regressor_kernel(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g, q, qd, qdd, out, row_stride, seg_len, seg_stride, first_aligned):  # type: ignore[no-untyped-def]
+    """``out[k]`` = the regressor of sample k (eqs. 16-18), for (n, N) ``q``, ``qd``, ``qdd``;
+    the joint constants are :func:`identify.dynamics._joint_constants`'s; the layout of
+    ``out`` (rows of 8-byte elements) is :func:`_write_out`'s."""
+    n, nj = q.shape
+    ncol = 10 * nj * nj
     nchunks = (n + CHUNK - 1) // CHUNK
     for chunk in numba.prange(nchunks):
         # scratch for one block of lanes, allocated once per chunk
-        a = np.empty((3, 3, LANES))
-        p = np.empty((3, LANES))
-        d = np.empty((3, LANES))
-        b = np.empty((3, 3, LANES))
-        rho = np.empty((3, LANES))
-        w = np.empty((3, LANES))
-        dw = np.empty((3, LANES))
-        dv = np.empty((3, LANES))
-        rho_prev = np.empty((3, LANES))
-        rf = np.empty((nj, 3, LANES))
-        rn = np.empty((nj, 3, LANES))
-        for k0 in range(chunk * CHUNK, min(n, chunk * CHUNK + CHUNK), LANES):
-            nl = min(LANES, n - k0)
+        s = np.empty(_NSTATE * L)
+        motion = np.zeros((nj, 3 * L))  # lanes past the end of the data keep finite values
+        carried = np.empty((nj, 6 * L))
+        table = np.zeros(ncol * L)  # the blocks below the diagonal stay zero
+        for k0 in range(chunk * CHUNK, min(n, chunk * CHUNK + CHUNK), L):
+            nl = min(L, n - k0)
+            for m in range(nl):
+                for i in range(nj):
+                    motion[i, _Q * L + m] = q[k0 + m, i]
+                    motion[i, _QD * L + m] = qd[k0 + m, i]
+                    motion[i, _QDD * L + m] = qdd[k0 + m, i]
             for r in range(3):
-                for m in range(nl):
-                    w[r, m] = 0.0
-                    dw[r, m] = 0.0
-                    dv[r, m] = g[r]
-                    rho_prev[r, m] = 0.0
+                for m in range(L):
+                    s[(_W + r) * L + m] = 0.0
+                    s[(_DW + r) * L + m] = 0.0
+                    s[(_DV + r) * L + m] = g[r]
+                    s[(_RHO + r) * L + m] = 0.0
             for i in range(nj):
-                _joint_step(i, revolute, a0, ac, a_s, p0, pc, ps, t0, u, qt[i, k0:k0 + nl], qdt[i, k0:k0 + nl], qddt[i, k0:k0 + nl],
-                            a, p, rho, w, dw, dv, rho_prev, b, rf, rn, d)
-                _rows(i, nl, rho, w, dw, dv, b, rf, rn, out[k0:k0 + nl])
+                _joint_step(i, revolute, a0, ac, a_s, p0, pc, ps, t0, u, motion, s, carried)
+                _rows(i, nj, s, carried, table)
+            _write_out(table, nl, k0, out, row_stride, seg_len, seg_stride, first_aligned)
+        _store_fence()

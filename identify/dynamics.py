@@ -258,14 +258,39 @@ def regressor(robot: Robot, q: Array, qd: Array, qdd: Array, out: Array | None =
         out = np.empty((n, nj, 10 * nj))
     elif out.shape != (n, nj, 10 * nj):
         raise ValueError(f"out has shape {out.shape}, expected {(n, nj, 10 * nj)}")
+    layout = _out_layout(out)
+    if layout is None:  # not rows of doubles: compute, then let numpy copy (and cast)
+        out[...] = regressor(robot, q, qd, qdd)
+        return out
     revolute = np.array([j.revolute for j in robot.joints])
     a0, ac, a_s, p0, pc, ps, t0, u = _joint_constants(robot)
     g = -np.asarray(robot.gravity, dtype=float)
     from ._regressor_lanes import regressor_kernel
 
+    row_stride, seg_len, seg_stride, first_aligned = layout
     regressor_kernel(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g,
-                     np.ascontiguousarray(q.T), np.ascontiguousarray(qd.T), np.ascontiguousarray(qdd.T), out)
+                     np.ascontiguousarray(q), np.ascontiguousarray(qd), np.ascontiguousarray(qdd),
+                     out, row_stride, seg_len, seg_stride, first_aligned)
     return out
+
+
+def _out_layout(out: Array) -> tuple[int, int, int, Array] | None:
+    """How the kernel writes ``out``: (row stride, segment length, segment stride, first
+    cache-line-aligned column per segment or -1), in elements; None when ``out`` is not
+    made of contiguous rows of doubles the kernel can address."""
+    _, nj, width = out.shape
+    item, address = out.itemsize, out.ctypes.data
+    if out.dtype != np.float64 or address % item or any(st % item for st in out.strides) or out.strides[2] != item:
+        return None
+    row, seg, _ = (st // item for st in out.strides)
+    if out.flags.c_contiguous:
+        row, seg_len, seg, segments = nj * width, nj * width, 0, 1
+    else:
+        seg_len, segments = width, nj
+    first = np.full(segments, -1, dtype=np.int64)
+    if row % 8 == 0:  # a segment's column starts at the same place in a cache line in every row
+        first[:] = (-(address // item + np.arange(segments) * seg)) % 8
+    return row, seg_len, seg, first
 
 
 def _joint_constants(robot: Robot) -> tuple[Array, ...]:

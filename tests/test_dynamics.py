@@ -48,6 +48,33 @@ def test_fast_regressor_equals_literal_k_and_r_assembly(any_robot):  # type: ign
         assert np.all(fast[:, j, : 10 * j] == 0.0)
 
 
+@pytest.mark.parametrize("n_joints, prismatic_at", [(6, 2), (7, 4)], ids=["6j-cache-line-rows", "7j-unaligned-rows"])
+def test_regressor_into_every_kind_of_output_array(n_joints, prismatic_at):  # type: ignore[no-untyped-def]
+    """The kernel writes 8 x 8 tiles (non-temporally where the rows are whole cache lines):
+    every sample count around a tile, a block of lanes and a parallel chunk, into a fresh
+    array, a view into a wider one (as identification uses it), one that starts mid cache
+    line, and one of float32, against the literal K and R assembly; nothing outside is touched."""
+    robot = random_robot(n_joints, "dh", prismatic_at, seed=21)
+    ncol = 10 * n_joints
+    for n in (1, 7, 8, 9, 127, 129, 1024 + 133):
+        q, qd, qdd = random_motion(n, n_joints, seed=n)
+        literal = dyn.regressor_blocks(robot, q, qd, qdd)
+        tol = 1e-12 * np.abs(literal).max()
+        assert np.abs(dyn.regressor(robot, q, qd, qdd) - literal).max() <= tol
+        wide = np.full((n, n_joints, ncol + 7), np.nan)
+        dyn.regressor(robot, q, qd, qdd, out=wide[:, :, :ncol])
+        assert np.abs(wide[:, :, :ncol] - literal).max() <= tol and np.isnan(wide[:, :, ncol:]).all()
+        for shift in (1, 3):
+            flat = np.full(n * n_joints * ncol + 8, np.nan)
+            shifted = flat[shift : shift + n * n_joints * ncol].reshape(n, n_joints, ncol)
+            dyn.regressor(robot, q, qd, qdd, out=shifted)
+            assert np.abs(shifted - literal).max() <= tol
+            assert np.isnan(flat[:shift]).all() and np.isnan(flat[shift + shifted.size :]).all()
+        single = np.empty((n, n_joints, ncol), np.float32)
+        dyn.regressor(robot, q, qd, qdd, out=single)
+        assert np.abs(single - literal).max() <= 1e-6 * np.abs(literal).max()
+
+
 def test_standard_dh_matrices_are_khoslas_letter_for_letter():  # type: ignore[no-untyped-def]
     robot = random_robot(4, "dh", None, seed=5)
     q, qd, qdd = random_motion(5, 4, seed=6)
