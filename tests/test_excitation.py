@@ -63,9 +63,12 @@ def test_single_link_sequence_and_whole_arm_recover_the_combinations_within_thei
 
     About 80 estimates per seed: even unbiased estimates with exact standard deviations
     leave 3 sigma with probability 0.27 % each, so that one seed in five has one outside.
-    What must hold is what a bias would break: none beyond 4 sigma, at most two beyond 3
-    (a friction bias of the kind fixed in this session put 4-6 estimates beyond 3 sigma,
-    up to 5.4 sigma)."""
+    The reported covariances are also somewhat optimistic (the whitened errors' chi-square
+    comes out 1.3-3.4 times its degrees of freedom for the single-link sequence, 0.9-1.7 for
+    the whole arm, on seeds 0, 1, 3, 5 and 7), and strongly correlated pairs (Izz6 and ia6)
+    leave together. What must hold is what a bias would break: none beyond 4.5 sigma, at
+    most three beyond 3 (the friction bias fixed in issue 6 put 4-6 estimates beyond
+    3 sigma, up to 5.4 sigma)."""
     rig = load_rig(RIG)
     cfg = simulation_config(rig.simulation, 6)
     limits = ex.Limits.of(PUMA)
@@ -100,7 +103,7 @@ def test_single_link_sequence_and_whole_arm_recover_the_combinations_within_thei
     exprs = whole.base.expressions()
     z_all = np.concatenate([z, z_whole])
     outside = [(name, round(float(zz), 2)) for name, zz in zip(names + exprs, z_all) if abs(zz) > 3]
-    assert np.abs(z_all).max() <= 4.0 and len(outside) <= 2, outside
+    assert np.abs(z_all).max() <= 4.5 and len(outside) <= 3, outside
     # every whole-arm base parameter that the single-link experiments also identify agrees
     both = [c for c in seq.compare(whole) if c["single_link"] is not None]
     assert both
