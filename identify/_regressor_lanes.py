@@ -36,7 +36,6 @@ _D = 29  # the shift that carries rows from the last joint point to this one
 _B = 32  # B[r, k] = ([dw x] + w w^T - |w|^2 E)[r, k] at _B + 3 r + k
 _NSTATE = 41
 
-_jit = numba.njit(cache=True, fastmath=True, error_model="numpy", boundscheck=False)
 _inline = numba.njit(cache=True, fastmath=True, error_model="numpy", boundscheck=False, inline="always")
 # no reassociation here: the Cody-Waite reduction's order of subtraction is its accuracy
 _exact = numba.njit(cache=True, fastmath={"contract", "nsz", "arcp"}, error_model="numpy", boundscheck=False)
