@@ -17,7 +17,6 @@ frame is in, or three periods after its SYNC with the missing joints marked inva
 from __future__ import annotations
 
 import gc
-import queue
 import struct
 import sys
 import threading
@@ -122,8 +121,6 @@ class CanopenDriver(Driver):
         self._tpdo: dict[int, _Tpdo] = {}
         self._lock = threading.Lock()
         self._open: list[_Cycle] = []
-        self._out: queue.Queue[Sample] = queue.Queue(maxsize=100_000)
-        self._faults: queue.Queue[DriveFault] = queue.Queue()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._cycle = 0
@@ -164,10 +161,6 @@ class CanopenDriver(Driver):
     def sync_late(self) -> int:
         """SYNCs sent more than a period late (the schedule restarted)."""
         return self._clock.late
-
-    @property
-    def pending(self) -> int:
-        return self._out.qsize()
 
     @property
     def latest_cycle(self) -> int | None:
@@ -419,12 +412,7 @@ class CanopenDriver(Driver):
                 if (j, index) not in c.written:
                     mine[j] = before[j]
         self._emitted = s
-        try:
-            self._out.put_nowait(s)
-        except queue.Full:
-            self._out.get_nowait()
-            self._out.put_nowait(s)
-            self._event("overflow", "the reader is too slow: the oldest sample was dropped")
+        self._publish(s)
 
     def _flush_complete(self) -> None:
         while self._open and not self._open[0].expected:
@@ -519,16 +507,9 @@ class CanopenDriver(Driver):
             self._ack.notify_all()
 
     def read(self, timeout: float | None = None) -> Sample:
-        try:
-            raise self._faults.get_nowait()
-        except queue.Empty:
-            pass
-        if self.network is not None:
+        if self._faults.empty() and self.network is not None:
             self.network.check()
-        try:
-            return self._out.get(timeout=timeout if timeout is not None else 10 * self.period_s + 1.0)
-        except queue.Empty:
-            raise DriverError(f"no cycle within {timeout} s: is SYNC running and the bus up?") from None
+        return self._next_sample(timeout, "is SYNC running and the bus up?")
 
     def command_torque(self, torque: Array) -> None:
         tau = np.asarray(torque, float)

@@ -77,8 +77,6 @@ class DynamixelDriver(Driver):
         self._serial: Any = None
         self._fd = -1
         self._rx = bytearray()
-        self._out: queue.Queue[Sample] = queue.Queue(maxsize=100_000)
-        self._faults: queue.Queue[DriveFault] = queue.Queue()
         self._requests: queue.Queue[tuple[Callable[[], Any], queue.Queue[Any]]] = queue.Queue()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -110,10 +108,6 @@ class DynamixelDriver(Driver):
     def late_cycles(self) -> int:
         """Cycles started more than a period late (the schedule restarted)."""
         return self._clock.late
-
-    @property
-    def pending(self) -> int:
-        return self._out.qsize()
 
     @property
     def latest_cycle(self) -> int | None:
@@ -370,12 +364,7 @@ class DynamixelDriver(Driver):
             except ProtocolError as err:
                 self._event("reply", f"{self._where(j)}: alert set, but Hardware Error Status could not be read: {err}", j)
         self._emitted = s
-        try:
-            self._out.put_nowait(s)
-        except queue.Full:
-            self._out.get_nowait()
-            self._out.put_nowait(s)
-            self._event("overflow", "the reader is too slow: the oldest sample was dropped")
+        self._publish(s)
 
     def _sync_read_block(self, servo_id: int, length: int, deadline: float) -> dxl.Block:
         raw = self._receive(deadline)
@@ -394,15 +383,7 @@ class DynamixelDriver(Driver):
 
     # --- the interface ---
     def read(self, timeout: float | None = None) -> Sample:
-        try:
-            raise self._faults.get_nowait()
-        except queue.Empty:
-            pass
-        wait = timeout if timeout is not None else 10 * self.period_s + 1.0
-        try:
-            return self._out.get(timeout=wait)
-        except queue.Empty:
-            raise DriverError(f"no cycle within {wait} s: is {self.port_name} cycling?") from None
+        return self._next_sample(timeout, f"is {self.port_name} cycling?")
 
     def command_torque(self, torque: Array) -> None:
         tau = np.asarray(torque, float)

@@ -10,6 +10,7 @@ of the wrong length, an unknown node, error frames) is an :class:`Event` in
 from __future__ import annotations
 
 import abc
+import queue
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -109,6 +110,8 @@ class Driver(abc.ABC):
 
     def __init__(self) -> None:
         self._events: deque[Event] = deque(maxlen=10_000)
+        self._samples: queue.Queue[Sample] = queue.Queue(maxsize=100_000)
+        self._faults: queue.Queue[DriveFault] = queue.Queue()
 
     @abc.abstractmethod
     def start(self) -> None:
@@ -156,7 +159,7 @@ class Driver(abc.ABC):
     @property
     def pending(self) -> int:
         """Samples read from the bus but not yet returned by :meth:`read` (a backlog)."""
-        return 0
+        return self._samples.qsize()
 
     @property
     def latest_cycle(self) -> int | None:
@@ -171,6 +174,28 @@ class Driver(abc.ABC):
 
     def _event(self, kind: str, message: str, joint: int | None = None) -> None:
         self._events.append(Event(kind, message, joint))
+
+    def _publish(self, sample: Sample) -> None:
+        """Hand a cycle's sample to :meth:`read`; a full backlog drops its oldest, with an event."""
+        try:
+            self._samples.put_nowait(sample)
+        except queue.Full:
+            self._samples.get_nowait()
+            self._samples.put_nowait(sample)
+            self._event("overflow", "the reader is too slow: the oldest sample was dropped")
+
+    def _next_sample(self, timeout: float | None, stalled: str) -> Sample:
+        """:meth:`read`'s common part: a pending fault first, then the next sample within
+        ``timeout`` (default ten periods and a second); ``stalled`` says what to check."""
+        try:
+            raise self._faults.get_nowait()
+        except queue.Empty:
+            pass
+        wait = timeout if timeout is not None else 10 * self.period_s + 1.0
+        try:
+            return self._samples.get(timeout=wait)
+        except queue.Empty:
+            raise DriverError(f"no cycle within {wait} s: {stalled}") from None
 
     def __enter__(self) -> Driver:
         self.start()
