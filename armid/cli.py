@@ -22,6 +22,19 @@ class _Parser(argparse.ArgumentParser):
         raise SystemExit(2)
 
 
+def _lowpass(text: str) -> float | str:
+    """``--lowpass``: a cut-off in Hz, ``auto`` (chosen from the data) or ``off``."""
+    if text in ("auto", "off"):
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a cut-off in Hz, 'auto' or 'off'") from None
+    if not (value > 0 and np.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"cut-off {text} Hz must be a positive number of Hz")
+    return value
+
+
 def _identify(args: argparse.Namespace) -> int:
     from identify.identification import IdentifyOptions, identify
     from identify.preprocess import PrepareOptions, prepare
@@ -50,8 +63,8 @@ def _identify(args: argparse.Namespace) -> int:
     if args.predictions:
         if not validation:
             raise IdentificationError("--predictions needs --validate data")
-        t = np.concatenate([s.t for s in segments])
-        write_csv(args.predictions, t, {"tau_hat": np.concatenate([result.predict(s) for s in segments])})
+        t, _, tau_hat = result.predict_stamps(segments)
+        write_csv(args.predictions, t, {"tau_hat": tau_hat})
     if args.report:
         from .report import write_report
 
@@ -446,7 +459,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--report", metavar="DIR", help="write a markdown report with PNG plots")
     p.add_argument("--predictions", metavar="CSV", help="write predicted validation torques (t, tau_hat1..n)")
     p.add_argument("--weighting", choices=("wls", "ols"), default="wls", help="per-joint weighted (default) or ordinary LS")
-    p.add_argument("--lowpass", type=float, metavar="HZ", help="zero-phase low-pass before differentiating")
+    p.add_argument("--lowpass", type=_lowpass, default="auto", metavar="HZ|auto|off",
+                   help="zero-phase low-pass of the kinematics, the regressor and the torque alike (default auto: chosen from each recording's spectrum)")
     p.add_argument("--max-gap-factor", type=float, default=20.0, help="split where a step exceeds this many median steps")
     p.set_defaults(run=_identify)
 
@@ -457,7 +471,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", metavar="OUT", help="write the findings and the errors before and after as JSON")
     p.add_argument("--report", metavar="DIR", help="write diagnosis.md with residual plots per joint")
     p.add_argument("--predictions", metavar="CSV", help="write the final model's predicted validation torques (t, tau_hat1..n)")
-    p.add_argument("--lowpass", type=float, metavar="HZ", help="zero-phase low-pass before differentiating")
+    p.add_argument("--lowpass", type=_lowpass, default="auto", metavar="HZ|auto|off",
+                   help="zero-phase low-pass of the kinematics, the regressor and the torque alike (default auto: chosen from each recording's spectrum)")
     p.add_argument("--torque-hold", action="store_true", help="torques were held over the period before each sample (drive currents between SYNCs)")
     p.add_argument("--max-gap-factor", type=float, default=20.0, help="split where a step exceeds this many median steps")
     p.set_defaults(run=_diagnose)

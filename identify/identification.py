@@ -93,11 +93,25 @@ class IdentificationResult:
     validation: dict[str, Any] | None = None
     validation_samples: int = 0
     notes: list[str] = field(default_factory=list)
+    filtering: list[dict[str, Any]] = field(default_factory=list)
 
     def predict(self, segment: Segment) -> Array:
-        """Torques (n, N) the identified model predicts for a segment's motion."""
-        w = stacked_regressor(self.robot, self.effects, segment.q, segment.qd, segment.qdd)
-        return (w[:, self.base.independent] @ self.estimate.beta).reshape(segment.n_samples, -1)
+        """Torques (n, N) the identified model predicts for a segment's motion (its grid)."""
+        return self.predict_motion(segment.q, segment.qd, segment.qdd)
+
+    def predict_motion(self, q: Array, qd: Array, qdd: Array) -> Array:
+        """Torques (n, N) the model predicts at each sample of a motion."""
+        w = stacked_regressor(self.robot, self.effects, q, qd, qdd)
+        return (w[:, self.base.independent] @ self.estimate.beta).reshape(q.shape[0], -1)
+
+    def predict_stamps(self, segments: list[Segment]) -> tuple[Array, Array, Array]:
+        """Time stamps, raw measured torque and the model's torque at every input sample the
+        segments cover, each evaluated at that sample (INTERFACES.md ``--predictions``)."""
+        st = [s.at_stamps for s in segments]
+        t = np.concatenate([s.t for s in st])
+        tau = np.concatenate([s.tau for s in st])
+        tau_hat = np.concatenate([self.predict_motion(s.q, s.qd, s.qdd) for s in st])
+        return t, tau, tau_hat
 
     def parameter_values(self) -> tuple[Array, Array]:
         """Value and std per standard parameter; NaN where it has no unique value."""
@@ -170,6 +184,7 @@ class IdentificationResult:
             "validation": self.validation,
             "validation_samples": self.validation_samples,
             "preprocessing": self.notes,
+            "filtering": self.filtering,
         }
 
 
@@ -177,21 +192,44 @@ def _num(x: float) -> float | None:
     return None if not np.isfinite(x) else float(x)
 
 
+def equations(robot: Robot, effects: list[LinearEffect], seg: Segment) -> Array:
+    """(n_eq, N, p+1): the regressor's columns and the torque of one segment, both through
+    the segment's parallel filter (low-pass, edges, decimation): eq. (18) as least squares sees it."""
+    nj = robot.n_joints
+    n_cols = 10 * nj + sum(len(e.parameter_names) for e in effects)
+    filt = seg.parallel
+    if filt.cutoff_hz is None:  # no low-pass: the kept samples only, straight into place
+        idx = filt.kept(seg.n_samples)
+        q, qd, qdd, tau = seg.q[idx], seg.qd[idx], seg.qdd[idx], seg.tau[idx]
+    else:
+        q, qd, qdd, tau = seg.q, seg.qd, seg.qdd, seg.tau
+    m = np.empty((q.shape[0], nj, n_cols + 1))
+    regressor(robot, q, qd, qdd, out=m[:, :, : 10 * nj])
+    if effects:
+        m[:, :, 10 * nj : n_cols] = effect_columns(effects, q, qd, qdd)
+    m[:, :, n_cols] = tau
+    if filt.cutoff_hz is None:
+        return m
+    return np.stack([filt.apply(m[:, j, :]) for j in range(nj)], axis=1)
+
+
 def _system(robot: Robot, effects: list[LinearEffect], segments: list[Segment]) -> Array:
     """The equations of all segments, joint by joint: (N, p+1, n); row ``k`` of ``[j]`` is
     column ``k`` of ``[W_j | tau_j]``, the layout LAPACK factors without a transpose."""
     nj = robot.n_joints
     n_cols = 10 * nj + sum(len(e.parameter_names) for e in effects)
-    system = np.empty((nj, n_cols + 1, sum(s.n_samples for s in segments)))
+    system = np.empty((nj, n_cols + 1, sum(s.n_equations for s in segments)))
     start = 0
     for seg in segments:
-        view = system[:, :, start : start + seg.n_samples].transpose(2, 0, 1)  # (n, N, p+1)
-        regressor(robot, seg.q, seg.qd, seg.qdd, out=view[:, :, : 10 * nj])
-        if effects:
-            view[:, :, 10 * nj : n_cols] = effect_columns(effects, seg.q, seg.qd, seg.qdd)
-        view[:, :, n_cols] = seg.tau
-        start += seg.n_samples
+        eq = equations(robot, effects, seg)
+        system[:, :, start : start + eq.shape[0]] = eq.transpose(1, 2, 0)
+        start += eq.shape[0]
     return system
+
+
+def _equation_motion(segments: list[Segment], name: str) -> Array:
+    """A kinematic array at the equations' samples (after the parallel filter)."""
+    return np.concatenate([s.parallel.apply(getattr(s, name)) for s in segments])
 
 
 def _factors(system: Array, columns: Array) -> JointFactors:
@@ -225,8 +263,8 @@ def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepare
         raise IdentificationError("no usable samples in the identification data")
     system = _system(robot, effects, segments)
     if options.exclude_reversals:
-        qd = np.concatenate([seg.qd for seg in segments])
-        qdd = np.concatenate([seg.qdd for seg in segments])
+        qd = _equation_motion(segments, "qd")
+        qdd = _equation_motion(segments, "qdd")
         reversing = np.abs(qd) < np.maximum(0.02, np.abs(qdd) * 0.025)
         for j in range(robot.n_joints):
             system[j][:, reversing[:, j]] = 0.0  # a zero equation weighs nothing
@@ -256,12 +294,20 @@ def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     if options.covariance == "batch_means":
         est, block = _robust(system, base.independent, tau - tau_hat, est, factors, options.weighting)
         notes.append(f"standard deviations: batch-means sandwich over blocks of {block} samples (four times the residual's correlation length)")
-    result = IdentificationResult(robot, names, effects, base, est, exc, n, fit, notes=notes)
+    result = IdentificationResult(robot, names, effects, base, est, exc, sum(p.n_stamps for p in experiments), fit, notes=notes)
+    # the errors anyone can check: the model at each input sample against the raw torque
+    _, tau_raw, tau_hat_raw = result.predict_stamps(segments)
+    result.fit = summary(tau_raw, tau_hat_raw)
+    result.fit["equations"] = int(n)
     if validation:
         segs = [s for p in validation for s in p.segments]
-        tau = np.concatenate([s.tau for s in segs])
-        tau_hat = np.concatenate([result.predict(s) for s in segs])
+        _, tau, tau_hat = result.predict_stamps(segs)
         result.validation = summary(tau, tau_hat)
         result.validation_samples = int(tau.shape[0])
+        rows = sum(p.rows for p in validation)
+        result.validation["samples"] = int(tau.shape[0])
+        result.validation["input_samples"] = int(rows)
+        result.validation["left_out"] = int(rows - tau.shape[0])
         result.notes += [f"validation: {s}" for p in validation for s in p.notes]
+    result.filtering = [p.filtering() for p in experiments]
     return result

@@ -16,11 +16,13 @@ velocity may be missing. :func:`prepare` deals with each explicitly and says wha
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
-from .differentiation import five_point_derivative, lowpass
+from .differentiation import five_point_derivative
 from .errors import RecordingError
+from .filtering import SAMPLES_PER_CUTOFF, Band, ParallelFilter, choose_filter, noise_level
 from .recordings import Recording
 from .robot import Robot
 from .spatial import Array
@@ -30,7 +32,9 @@ from .spatial import Array
 class PrepareOptions:
     max_gap_factor: float = 20.0
     jitter_tolerance: float = 0.05
-    lowpass_hz: float | None = None
+    # "auto": chosen from the recording's spectrum (identify.filtering.choose_filter); a number:
+    # that cut-off in Hz; None or "off": no low-pass, no decimation (the demo's 2 ms drive data)
+    lowpass_hz: float | str | None = "auto"
     min_segment_samples: int = 20
     # the torque (current) of a sample was held over the period before its time stamp, as a
     # drive's current between two SYNCs is: it then belongs half a period earlier than the
@@ -39,8 +43,26 @@ class PrepareOptions:
 
 
 @dataclass
+class Stamps:
+    """The input's own samples inside a segment: their time stamps (n,), the kinematics the
+    model needs evaluated at each of them, and the raw torque measured there."""
+
+    t: Array
+    q: Array
+    qd: Array
+    qdd: Array
+    tau: Array
+
+
+@dataclass
 class Segment:
-    """Uniformly sampled data ready for the regressor; arrays (n, N), ``t`` (n,)."""
+    """Uniformly sampled data ready for the regressor; arrays (n, N), ``t`` (n,).
+
+    ``q, qd, qdd`` are the (low-passed) kinematics on a uniform grid, ``tau`` the torque on
+    it, unfiltered: the equations least squares sees are ``filter.apply`` of the regressor
+    columns and of ``tau`` alike (parallel filtering). ``stamps`` holds the same motion at
+    the input's own time stamps, for predictions and held-out errors against the raw torque.
+    """
 
     source: str
     t: Array
@@ -48,10 +70,29 @@ class Segment:
     qd: Array
     qdd: Array
     tau: Array
+    filter: ParallelFilter | None = None
+    stamps: Stamps | None = None
 
     @property
     def n_samples(self) -> int:
         return int(self.t.shape[0])
+
+    @property
+    def parallel(self) -> ParallelFilter:
+        """The parallel filter (identity with a 2-sample trim when none was chosen)."""
+        if self.filter is not None:
+            return self.filter
+        period = float(np.median(np.diff(self.t))) if self.t.size > 1 else 1.0
+        return ParallelFilter(period)
+
+    @property
+    def at_stamps(self) -> Stamps:
+        """The motion and raw torque at the input's stamps (the grid itself when it was not resampled)."""
+        return self.stamps if self.stamps is not None else Stamps(self.t, self.q, self.qd, self.qdd, self.tau)
+
+    @property
+    def n_equations(self) -> int:
+        return int(self.parallel.kept(self.n_samples).size)
 
 
 @dataclass
@@ -59,10 +100,28 @@ class Prepared:
     segments: list[Segment]
     notes: list[str] = field(default_factory=list)
     dropped_rows: int = 0
+    rows: int = 0  # rows in the recording
+    band: Band | None = None
 
     @property
     def n_samples(self) -> int:
         return sum(s.n_samples for s in self.segments)
+
+    @property
+    def n_stamps(self) -> int:
+        """Input samples the segments cover (predicted, and scored on held-out data)."""
+        return sum(s.at_stamps.t.size for s in self.segments)
+
+    def filtering(self) -> dict[str, Any]:
+        """What was chosen and why, for the JSON outputs."""
+        b = self.band
+        seg = self.segments[0] if self.segments else None
+        out: dict[str, Any] = {"cutoff_hz": None, "decimation": 1}
+        if seg is not None and seg.filter is not None:
+            out = {"cutoff_hz": seg.filter.cutoff_hz, "decimation": seg.filter.decimation}
+        if b is not None:
+            out.update({"excitation_band_hz": b.band_hz, "sample_rate_hz": 1.0 / b.period_s, "why": b.reason})
+        return out
 
 
 def garbage_rows(rec: Recording, robot: Robot) -> tuple[Array, list[str]]:
@@ -130,16 +189,20 @@ def prepare(rec: Recording, robot: Robot, options: PrepareOptions | None = None)
             f"{median_dt * 1e3:.3g} ms (longest {dt[gaps].max():.3g} s at t={t[gaps[np.argmax(dt[gaps])]]:.6g} s)"
         )
     bounds = np.concatenate([[0], gaps + 1, [t.size]])
+    pieces = [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b - a >= options.min_segment_samples]
+    short = len(bounds) - 1 - len(pieces)
+    if not pieces:
+        raise RecordingError(rec.source, "no segment long enough to use after cleaning: " + "; ".join(notes))
+    band = _choose_band(rec.source, t, q, qd, pieces, median_dt, options.lowpass_hz)
+    if band is not None:
+        notes.append(f"filtering: {band.reason}")
+    held = options.torque_hold or rec.torque_held
     segments = []
-    short = 0
-    for a, b in zip(bounds[:-1], bounds[1:]):
-        if b - a < options.min_segment_samples:
-            short += 1
-            continue
+    for a, b in pieces:
         seg = _uniform(rec.source, t[a:b], q[a:b], tau[a:b], None if qd is None else qd[a:b], None if qdd is None else qdd[a:b],
-                       replace(options, torque_hold=options.torque_hold or rec.torque_held), notes)
-        if seg is not None and seg.n_samples >= 1:
-            segments.append(seg)
+                       band, replace(options, torque_hold=held), notes)
+        segments.append(seg)
+    left_out = int(bad.sum()) + sum(b - a for a, b in zip(bounds[:-1], bounds[1:]) if b - a < options.min_segment_samples)
     if short:
         notes.append(f"left out {short} segment(s) shorter than {options.min_segment_samples} samples")
     derived = []
@@ -148,24 +211,97 @@ def prepare(rec: Recording, robot: Robot, options: PrepareOptions | None = None)
     if qdd is None:
         derived.append("acceleration from velocity")
     if derived:
-        filt = f" after a zero-phase {options.lowpass_hz:g} Hz low-pass" if options.lowpass_hz else ""
-        notes.append(f"{' and '.join(derived)} by the 5-point least-squares filter (Khosla 5.1){filt}")
-    if not segments:
-        raise RecordingError(rec.source, "no segment long enough to use after cleaning: " + "; ".join(notes))
-    return Prepared(segments, notes, int(bad.sum()))
+        notes.append(f"{' and '.join(derived)} by the 5-point least-squares filter (Khosla 5.1)")
+    prepared = Prepared(segments, notes, int(bad.sum()), rec.n_samples, band)
+    if left_out:
+        notes.append(f"{left_out} of {rec.n_samples} input samples are not predicted (garbage rows, segments too short)")
+    return prepared
 
 
-def _uniform(source: str, t: Array, q: Array, tau: Array, qd: Array | None, qdd: Array | None, options: PrepareOptions, notes: list[str]) -> Segment | None:
+CLEAN_KINEMATICS = 1e-3
+"""Below this ratio of acceleration noise (what a low-pass would remove) to acceleration,
+the kinematics need no low-pass (simulated or already filtered data)."""
+
+
+def _acceleration_noise(t: Array, q: Array, qd: Array | None, grid: Array, filt: ParallelFilter) -> float:
+    """Largest ratio over the moving joints of the acceleration's content above the cut-off
+    to its content below, the acceleration by the 5-point filter applied twice."""
+    period = filt.period_s
+    v = np.column_stack([np.interp(grid, t, c) for c in (q if qd is None else qd).T])
+    if qd is None:
+        v = five_point_derivative(v, period)
+    a = five_point_derivative(v, period)[6:-6]
+    if a.shape[0] < 32:
+        return np.inf
+    smooth = filt.smooth(a)
+    signal = np.std(smooth, axis=0)
+    moving = signal > 1e-9 * max(float(signal.max()), 1e-300)
+    return float(np.max(np.std(a - smooth, axis=0)[moving] / signal[moving])) if moving.any() else np.inf
+
+
+def _choose_band(source: str, t: Array, q: Array, qd: Array | None, pieces: list[tuple[int, int]], period: float,
+                 lowpass_hz: float | str | None) -> Band | None:
+    """The recording's parallel filter: from the spectrum of its longest piece (``"auto"``),
+    at a given cut-off, or none."""
+    if lowpass_hz is None or lowpass_hz == "off":
+        return None
+    a, b = max(pieces, key=lambda p: p[1] - p[0])
+    grid = t[a] + period * np.arange(int(np.floor((t[b - 1] - t[a]) / period + 1e-9)) + 1)
+    q_grid = np.column_stack([np.interp(grid, t[a:b], c) for c in q[a:b].T])
+    if lowpass_hz == "auto":
+        band = choose_filter(q_grid, period)
+        if band.cutoff_hz is not None:
+            noise = _acceleration_noise(t[a:b], q[a:b], None if qd is None else qd[a:b], grid, ParallelFilter(period, band.cutoff_hz))
+            if noise < CLEAN_KINEMATICS:
+                return Band(band.band_hz, None, 1, period,
+                            f"excitation up to {band.band_hz:.3g} Hz, but the kinematics are clean (acceleration noise "
+                            f"{noise:.2g} of its signal above a {band.cutoff_hz:.3g} Hz cut-off): no low-pass")
+        return band
+    if isinstance(lowpass_hz, str):
+        raise RecordingError(source, f"low-pass '{lowpass_hz}': give a cut-off in Hz, 'auto' or 'off'")
+    nyquist = 0.5 / period
+    cutoff = float(lowpass_hz)
+    if not 0.0 < cutoff < nyquist:
+        raise RecordingError(source, f"low-pass cut-off {cutoff:g} Hz must lie in (0, {nyquist:g}) Hz, the Nyquist frequency of this recording")
+    auto = choose_filter(q_grid, period)
+    decimation = max(1, int(np.floor(1.0 / (period * SAMPLES_PER_CUTOFF * cutoff))))
+    return Band(auto.band_hz, cutoff, decimation, period,
+                f"zero-phase {cutoff:g} Hz low-pass as asked (the excitation reaches {auto.band_hz:.3g} Hz) on the kinematics, "
+                f"the regressor and the torque alike; decimated {decimation}:1")
+
+
+def _derivative(x: Array, period: float, order: int = 1, source: Array | None = None) -> Array:
+    """Khosla's 5-point filter (5.1) on ``x``; at the two samples at each end, where it has
+    no neighbours, derivative ``order`` of a least-squares cubic over the nine samples of
+    ``source`` there (``x`` itself for a first derivative, the positions for a second)."""
+    from scipy.signal import savgol_filter
+
+    d = five_point_derivative(x, period)
+    base = x if source is None else source
+    if base.shape[0] >= 9:
+        ends = savgol_filter(base, 9, 3, deriv=order, delta=period, axis=0, mode="interp")
+        d[:2], d[-2:] = ends[:2], ends[-2:]
+    elif base.shape[0] >= 2:
+        ends = np.gradient(x, period, axis=0)
+        d[:2], d[-2:] = ends[:2], ends[-2:]
+    return d
+
+
+def _uniform(source: str, t: Array, q: Array, tau: Array, qd: Array | None, qdd: Array | None, band: Band | None,
+             options: PrepareOptions, notes: list[str]) -> Segment:
+    from scipy.interpolate import CubicSpline
+
     dt = np.diff(t)
     period = float(np.median(dt))
     jitter = float(np.max(np.abs(dt - period)) / period)
-    if jitter > options.jitter_tolerance:
-        from scipy.interpolate import CubicSpline
-
+    raw_t, raw_tau = t, tau
+    resampled = jitter > options.jitter_tolerance
+    if resampled:
         grid = t[0] + period * np.arange(int(np.floor((t[-1] - t[0]) / period + 1e-9)) + 1)
         notes.append(
             f"resampled {t.size} samples onto a uniform {period * 1e3:.4g} ms grid ({grid.size} samples; "
-            f"steps ranged {dt.min() * 1e3:.3g}-{dt.max() * 1e3:.3g} ms)"
+            f"steps ranged {dt.min() * 1e3:.3g}-{dt.max() * 1e3:.3g} ms) for filtering and differentiating; "
+            f"predictions are evaluated at the input's own stamps"
         )
         q = CubicSpline(t, q, axis=0)(grid)
         qd = None if qd is None else CubicSpline(t, qd, axis=0)(grid)
@@ -174,22 +310,26 @@ def _uniform(source: str, t: Array, q: Array, tau: Array, qd: Array | None, qdd:
         t = grid
     if options.torque_hold and tau.shape[0] > 1:
         tau = np.vstack([0.5 * (tau[:-1] + tau[1:]), tau[-1:]])
-    if options.lowpass_hz:
-        q = lowpass(q, period, options.lowpass_hz)
-        tau = lowpass(tau, period, options.lowpass_hz)
-        if qd is not None:
-            qd = lowpass(qd, period, options.lowpass_hz)
-    if qd is None:
-        qd = five_point_derivative(q, period)
-    if qdd is None:
-        qdd = five_point_derivative(qd, period)
-    valid = np.all(np.isfinite(qd), axis=1) & np.all(np.isfinite(qdd), axis=1)
-    if options.lowpass_hz:
-        # a forward-backward filter starts and ends with a transient that differentiation
-        # turns into large accelerations: leave out three time constants at both ends
-        edge = int(np.ceil(3.0 / (options.lowpass_hz * period)))
-        valid[:edge] = False
-        valid[max(valid.size - edge, 0) :] = False
-    if not valid.any():
-        return None
-    return Segment(source, t[valid], q[valid], qd[valid], qdd[valid], tau[valid])
+    filt = ParallelFilter(period, None if band is None else band.cutoff_hz, 1 if band is None else band.decimation)
+    if qd is not None and filt.cutoff_hz is not None:
+        # a recorded velocity is used unless differentiating the positions is less noisy
+        # (fine encoders beat a noisy velocity estimate): compare what the low-pass removes
+        from_q = _derivative(q, period)
+        noise_qd = float(np.median(noise_level(qd, filt) / np.maximum(np.std(qd, axis=0), 1e-12)))
+        noise_q = float(np.median(noise_level(from_q, filt) / np.maximum(np.std(qd, axis=0), 1e-12)))
+        if noise_q < 0.5 * noise_qd:
+            qd = None
+            if not any(n.startswith("velocity from positions") for n in notes):
+                notes.append(f"velocity from positions: the recorded velocity is {noise_qd / max(noise_q, 1e-300):.3g}x noisier above the cut-off")
+    q = filt.smooth(q)
+    from_positions = qd is None
+    qd = _derivative(q, period) if qd is None else filt.smooth(qd)
+    qdd = _derivative(qd, period, 2 if from_positions else 1, q if from_positions else None) if qdd is None else filt.smooth(qdd)
+    stamps = None
+    if resampled:
+        inside = (raw_t >= t[0]) & (raw_t <= t[-1] + period)
+        ts = raw_t[inside]
+        stamps = Stamps(ts, CubicSpline(t, q, axis=0)(ts), CubicSpline(t, qd, axis=0)(ts), CubicSpline(t, qdd, axis=0)(ts), raw_tau[inside])
+    elif options.torque_hold:
+        stamps = Stamps(t, q, qd, qdd, raw_tau)
+    return Segment(source, t, q, qd, qdd, tau, filt, stamps)
