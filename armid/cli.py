@@ -99,8 +99,8 @@ def _diagnose(args: argparse.Namespace) -> int:
     if args.json:
         Path(args.json).write_text(json.dumps(doc, indent=1) + "\n")
     if args.predictions:
-        t = diag.validation_motion[0]
-        write_csv(args.predictions, t, {"tau_hat": diag.residual_after[1]})
+        assert diag.predictions is not None
+        write_csv(args.predictions, diag.predictions[0], {"tau_hat": diag.predictions[2]})
     if args.report:
         from .report import write_diagnosis_report
 

@@ -38,7 +38,7 @@ from scipy import stats
 
 from .dynamics import regressor
 from .identification import declared_effects, stacked_regressor, structural_base
-from .metrics import masked_summary
+from .metrics import masked_summary, summary
 from .preprocess import Prepared
 from .robot import Robot
 from .spatial import Array
@@ -122,9 +122,21 @@ class _Data:
 
 
 def _stack(prepared: list[Prepared]) -> _Data:
+    """The equations' samples: kinematics and torque through each segment's parallel filter
+    (low-pass, edges, decimation), so that torque and motion stay aligned."""
     segs = [s for p in prepared for s in p.segments]
-    period = float(np.median(np.diff(segs[0].t)))
-    q, qd, qdd, tau, t = (np.concatenate([getattr(s, k) for s in segs]) for k in ("q", "qd", "qdd", "tau", "t"))
+    filt = segs[0].parallel
+    period = filt.period_s * filt.decimation
+    q, qd, qdd, tau = (np.concatenate([s.parallel.apply(getattr(s, k)) for s in segs]) for k in ("q", "qd", "qdd", "tau"))
+    t = np.concatenate([s.t[s.parallel.kept(s.n_samples)] for s in segs])
+    return _Data(q, qd, qdd, tau, period, t)
+
+
+def _stack_stamps(prepared: list[Prepared]) -> _Data:
+    """Every input sample the segments cover, at its own stamp, with the raw torque."""
+    st = [s.at_stamps for p in prepared for s in p.segments]
+    q, qd, qdd, tau, t = (np.concatenate([getattr(s, k) for s in st]) for k in ("q", "qd", "qdd", "tau", "t"))
+    period = float(np.median(np.diff(st[0].t))) if st[0].t.size > 1 else 1.0
     return _Data(q, qd, qdd, tau, period, t)
 
 
@@ -195,6 +207,7 @@ class Diagnosis:
     residual_after: tuple[Array, Array] | None = None
     validation_motion: tuple[Array, Array, Array, Array] | None = None  # t, q, qd, qdd
     used: Array | None = None  # (n, N) validation equations the scores used
+    predictions: tuple[Array, Array, Array] | None = None  # t, raw tau, final model's tau_hat at the validation stamps
 
     def to_json(self) -> dict[str, Any]:
         return {"found": [f.to_json() for f in self.found], "absorbed": self.absorbed, "declared": self.base_effects,
@@ -277,6 +290,7 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     """Find, add and report the undeclared effects (module docstring); errors on ``validation``."""
     opts = options or DiagnoseOptions()
     ident, valid = _stack(experiments), _stack(validation)
+    stamps = _stack_stamps(validation)
     nj = robot.n_joints
     effects = declared_effects(robot)
     base = structural_base(robot, effects)
@@ -298,6 +312,9 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     wt_v = (np.tile(1.0 / sigma, yv.size // nj) * used_v.reshape(-1))
     n_used = int(used_i.sum())
     extra_i, extra_v = np.zeros((yi.size, 0)), np.zeros((yv.size, 0))
+    extra_s = np.zeros((stamps.y.size, 0))
+    ws = base_columns(stamps)
+    before_stamps = ws @ beta0
     present: set[tuple[str, int | None]] = {(e.effect, e.joint) for e in effects}
     found: list[Finding] = []
     absorbed: list[dict[str, Any]] = []
@@ -319,6 +336,7 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
         rss_v = float(res_v @ res_v)
         if not found:
             before_pred = a_v @ beta  # the base model, fitted as every later model is
+            before_stamps = ws @ beta
         p_base = wi.shape[1]
         ctx["predict"] = lambda d, b=beta[:p_base]: (base_columns(d) @ b).reshape(-1, nj)
         # the delay's derivative leaves out Coulomb friction: a step in sign(qd) shifted by a
@@ -406,6 +424,7 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
         present.add((best.effect, best.joint))
         extra_i = np.column_stack([extra_i, ci])
         extra_v = np.column_stack([extra_v, cv])
+        extra_s = np.column_stack([extra_s, best.columns(stamps)])
     found, chosen = _merge_offset_into_spring(found, chosen)
     # the final fit with every finding; each finding's parameters from it
     a_i = np.column_stack([wi, extra_i]) * wt_i[:, None]
@@ -425,11 +444,16 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
         f.parameters = _parameters(c, gamma)
     a_v = np.column_stack([wv, extra_v])
     after_pred = a_v @ beta if found else before_pred
-    before = masked_summary(valid.tau, before_pred.reshape(-1, nj), used_v)
-    after = masked_summary(valid.tau, after_pred.reshape(-1, nj), used_v)
+    after_stamps = np.column_stack([ws, extra_s]) @ beta if found else before_stamps
+    # before and after as anyone can check them: the model at every validation sample, against the raw torque
+    before = summary(stamps.tau, before_stamps.reshape(-1, nj))
+    after = summary(stamps.tau, after_stamps.reshape(-1, nj))
+    before["moving_equations"] = masked_summary(valid.tau, before_pred.reshape(-1, nj), used_v)
+    after["moving_equations"] = masked_summary(valid.tau, after_pred.reshape(-1, nj), used_v)
     t_v = valid.t if valid.t is not None else np.arange(valid.q.shape[0]) * valid.period
     return Diagnosis(found, absorbed, before, after, [f"{e.effect}@{e.joint + 1}" for e in effects], rounds,
-                     (valid.tau, before_pred.reshape(-1, nj)), (valid.tau, after_pred.reshape(-1, nj)), (t_v, valid.q, valid.qd, valid.qdd), used_v)
+                     (valid.tau, before_pred.reshape(-1, nj)), (valid.tau, after_pred.reshape(-1, nj)), (t_v, valid.q, valid.qd, valid.qdd), used_v,
+                     (np.asarray(stamps.t), stamps.tau, after_stamps.reshape(-1, nj)))
 
 
 def _merge_offset_into_spring(found: list[Finding], chosen: list[Candidate]) -> tuple[list[Finding], list[Candidate]]:

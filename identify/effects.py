@@ -19,12 +19,17 @@ ColumnFunction = Callable[[Array, Array, Array], Array]
 
 @dataclass(frozen=True)
 class LinearEffect:
-    """An effect on joint ``joint`` (0-based) with ``tau_j += columns(q, qd, qdd) @ params``."""
+    """An effect on joint ``joint`` (0-based) with ``tau_j += columns(q, qd, qdd) @ params``.
+
+    ``setting`` holds the effect's fixed nonlinear parameters (a Coulomb model's smoothing
+    velocity, a Stribeck velocity), chosen on a grid by the identification.
+    """
 
     effect: str
     joint: int
     parameter_names: tuple[str, ...]
     column_function: ColumnFunction
+    setting: tuple[tuple[str, float], ...] = ()
 
     def columns(self, q: Array, qd: Array, qdd: Array) -> Array:
         """(n, k) columns for the joint's torque row."""
@@ -34,13 +39,19 @@ class LinearEffect:
         """Column names in the parameter list: parameter name plus the 1-based joint."""
         return [f"{p}{self.joint + 1}" for p in self.parameter_names]
 
+    def with_setting(self, **setting: float) -> LinearEffect:
+        """The same effect with other fixed nonlinear parameters."""
+        return linear_effect(self.effect, self.joint, **{**dict(self.setting), **setting})
+
 
 def _viscous(q: Array, qd: Array, qdd: Array) -> Array:
     return qd[:, None]
 
 
-def _coulomb(q: Array, qd: Array, qdd: Array) -> Array:
-    return np.sign(qd)[:, None]
+def smooth_sign(qd: Array, velocity: float) -> Array:
+    """``sign(qd)`` (velocity 0) or ``tanh(qd / velocity)``: Coulomb friction that builds up
+    over a velocity band instead of jumping (pre-sliding; the published Panda model's form)."""
+    return np.sign(qd) if velocity <= 0.0 else np.tanh(qd / velocity)
 
 
 def _offset(q: Array, qd: Array, qdd: Array) -> Array:
@@ -53,11 +64,17 @@ def _rotor(q: Array, qd: Array, qdd: Array) -> Array:
 
 LINEAR_EFFECTS: dict[str, tuple[tuple[str, ...], ColumnFunction]] = {
     "viscous_friction": (("fv",), _viscous),
-    "coulomb_friction": (("fc",), _coulomb),
     "torque_offset": (("offset",), _offset),
     "rotor_inertia": (("ia",), _rotor),
 }
 """Effects that are linear in their parameters: name -> (parameter names, columns)."""
+
+SETTINGS: dict[str, tuple[str, tuple[float, ...]]] = {
+    "coulomb_friction": ("velocity", (0.0, 0.003, 0.01, 0.03, 0.1)),
+    "stribeck_friction": ("velocity", (0.01, 0.02, 0.05, 0.1, 0.2, 0.5)),
+}
+"""Effects linear given one fixed parameter, with the grid the identification searches
+(rad/s or m/s): Coulomb friction's smoothing velocity (0: a sharp sign), the Stribeck velocity."""
 
 CATALOGUE = (
     "viscous_friction",
@@ -74,8 +91,20 @@ CATALOGUE = (
 """Every effect name INTERFACES.md fixes."""
 
 
-def linear_effect(name: str, joint: int) -> LinearEffect:
-    """The effect ``name`` on 0-based ``joint``; ``KeyError`` if it is not linear."""
+def linear_effect(name: str, joint: int, **setting: float) -> LinearEffect:
+    """The effect ``name`` on 0-based ``joint``; ``KeyError`` if it is not linear.
+
+    ``coulomb_friction`` takes ``velocity`` (0: ``sign(qd)``); ``stribeck_friction`` takes
+    ``velocity`` (the Stribeck velocity ``v_s``: ``fs tanh(qd/0.01) exp(-(qd/v_s)^2)``, the
+    friction above Coulomb's at low speed).
+    """
+    if name == "coulomb_friction":
+        v = float(setting.get("velocity", 0.0))
+        return LinearEffect(name, joint, ("fc",), lambda q, qd, qdd: smooth_sign(qd, v)[:, None], (("velocity", v),))
+    if name == "stribeck_friction":
+        vs = float(setting.get("velocity", 0.1))
+        return LinearEffect(name, joint, ("fs",), lambda q, qd, qdd: (smooth_sign(qd, 0.01) * np.exp(-((qd / vs) ** 2)))[:, None],
+                            (("velocity", vs),))
     params, fn = LINEAR_EFFECTS[name]
     return LinearEffect(name, joint, params, fn)
 

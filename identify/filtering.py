@@ -80,7 +80,7 @@ class ParallelFilter:
 def lowpass(x: Array, period_s: float, cutoff_hz: float, order: int = 4, axis: int = 0) -> Array:
     """Zero-phase Butterworth low-pass along ``axis`` (forward-backward, no delay).
 
-    Each end is extended over four periods of the cut-off by a cubic fitted to the two periods before it, so
+    Each end is extended over four periods of the cut-off by a quintic fitted to the two periods before it, so
     that position, velocity *and acceleration* carry on through the ends (an odd reflection
     would force the curvature to zero there, which differentiation turns into large
     acceleration errors); short signals are returned unfiltered.
@@ -105,8 +105,8 @@ def lowpass(x: Array, period_s: float, cutoff_hz: float, order: int = 4, axis: i
     return np.moveaxis(y[pad : pad + n].reshape(x.shape), 0, axis)
 
 
-def _extrapolate(x: Array, count: int, degree: int = 3) -> Array:
-    """``count`` samples after the end of ``x`` (m, k) from a least-squares cubic over it."""
+def _extrapolate(x: Array, count: int, degree: int = 5) -> Array:
+    """``count`` samples after the end of ``x`` (m, k) from a least-squares quintic over it."""
     m = x.shape[0]
     s = np.arange(m, dtype=float) / m
     coef = np.polynomial.polynomial.polyfit(s, x, min(degree, m - 1))

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from .dynamics import regressor
-from .effects import LinearEffect, effect_columns, linear_effect
+from .effects import SETTINGS, LinearEffect, effect_columns, linear_effect
 from .errors import IdentificationError, PoorExcitationWarning
 from .estimation import JointFactors, LeastSquares, batch_means_covariance, correlation_length, factor_columns, solve_factors
 from .identifiability import UNIQUE, BaseParameters, Excitation, base_parameters, excitation, preferred_order
@@ -43,7 +43,18 @@ def declared_effects(robot: Robot) -> list[LinearEffect]:
     out = []
     for eff in robot.effects:
         joints = range(robot.n_joints) if eff.joint is None else [eff.joint - 1]
-        out += [linear_effect(eff.effect, j) for j in joints]
+        setting = {k: float(v) for k, v in eff.options.items() if k == "velocity"}
+        out += [linear_effect(eff.effect, j, **setting) for j in joints]
+    return out
+
+
+def _searched(robot: Robot) -> set[tuple[str, int]]:
+    """Declared effects whose fixed parameter the robot file leaves to the data."""
+    out = set()
+    for eff in robot.effects:
+        if eff.effect in SETTINGS and "velocity" not in eff.options:
+            joints = range(robot.n_joints) if eff.joint is None else [eff.joint - 1]
+            out |= {(eff.effect, j) for j in joints}
     return out
 
 
@@ -167,6 +178,7 @@ class IdentificationResult:
                     "parameters": {p: _num(value[c]) for p, c in zip(e.parameter_names, cols)},
                     "std": {p: _num(std[c]) for p, c in zip(e.parameter_names, cols)},
                     "identifiability": {p: classes[c] for p, c in zip(e.parameter_names, cols)},
+                    **({"setting": dict(e.setting)} if e.setting else {}),
                 }
             )
         return {
@@ -232,6 +244,63 @@ def _equation_motion(segments: list[Segment], name: str) -> Array:
     return np.concatenate([s.parallel.apply(getattr(s, name)) for s in segments])
 
 
+def _equation_column(segments: list[Segment], effect: LinearEffect) -> Array:
+    """An effect's one column through each segment's parallel filter, concatenated."""
+    out = []
+    for seg in segments:
+        filt = seg.parallel
+        if filt.cutoff_hz is None:
+            idx = filt.kept(seg.n_samples)
+            out.append(effect.columns(seg.q[idx], seg.qd[idx], seg.qdd[idx])[:, 0])
+        else:
+            out.append(filt.apply(effect.columns(seg.q, seg.qd, seg.qdd)[:, 0]))
+    return np.concatenate(out)
+
+
+def _search_settings(system: Array, names: list[str], effects: list[LinearEffect], searched: set[tuple[str, int]],
+                     segments: list[Segment], columns: Array) -> tuple[list[LinearEffect], list[str]]:
+    """Each searched effect's fixed parameter from its grid (``SETTINGS``), joint by joint:
+    the value whose columns leave the least residual of the whole least-squares fit (one
+    sweep of coordinate descent; only the joint's own triangle is refactored per try)."""
+    nj = system.shape[0]
+    keep = np.append(columns, system.shape[1] - 1)
+    r = [_r_factor_of(system[j][keep]) for j in range(nj)]
+    notes = []
+
+    def rss(rs: list[Array]) -> float:
+        combined = np.vstack(rs)
+        r_all = np.asarray(np.linalg.qr(combined, mode="r"))
+        return float(r_all[-1, -1] ** 2)
+
+    effects = list(effects)
+    for k, e in enumerate(effects):
+        if (e.effect, e.joint) not in searched or len(e.parameter_names) != 1:
+            continue
+        col = names.index(e.labels()[0])
+        if col not in set(columns.tolist()):
+            continue
+        j = e.joint
+        key, grid = SETTINGS[e.effect]
+        best, best_rss, best_r = e, np.inf, r[j]
+        for value in grid:
+            trial = e.with_setting(**{key: value})
+            system[j][col] = _equation_column(segments, trial)
+            rj = _r_factor_of(system[j][keep])
+            score = rss(r[:j] + [rj] + r[j + 1 :])
+            if score < best_rss * (1 - 1e-9):
+                best, best_rss, best_r = trial, score, rj
+        system[j][col] = _equation_column(segments, best)
+        r[j] = best_r
+        effects[k] = best
+        notes.append(f"{e.effect} on joint {j + 1}: {key} {dict(best.setting)[key]:g} (grid {', '.join(f'{v:g}' for v in grid)})")
+    return effects, notes
+
+
+def _r_factor_of(a: Array) -> Array:
+    """R of the (columns, samples) block ``a`` transposed: (k, k) upper triangular."""
+    return np.asarray(np.linalg.qr(a.T, mode="r"))
+
+
 def _factors(system: Array, columns: Array) -> JointFactors:
     """Per-joint R factors of the chosen regressor columns and the torque."""
     keep = np.append(columns, system.shape[1] - 1)
@@ -270,6 +339,11 @@ def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepare
             system[j][:, reversing[:, j]] = 0.0  # a zero equation weighs nothing
     base = structural_base(robot, effects, options.seed)
     notes = [f"{s}" for p in experiments for s in p.notes]
+    # with reversals left out, a Coulomb model's smoothing has nothing to show itself on
+    searched = set() if options.exclude_reversals else _searched(robot)
+    if searched:
+        effects, found = _search_settings(system, names, effects, searched, segments, base.independent)
+        notes.append("chosen on the data: " + "; ".join(found))
     factors = _factors(system, base.independent)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", PoorExcitationWarning)

@@ -8,9 +8,13 @@ velocity may be missing. :func:`prepare` deals with each explicitly and says wha
    dropped (garbage);
 2. the record is split where a time step exceeds ``max_gap_factor`` times the median step;
 3. a segment whose steps jitter more than ``jitter_tolerance`` is resampled onto a uniform
-   grid at its median step (cubic for positions and velocities, linear for torques);
-4. missing velocity comes from positions and acceleration from velocity by Khosla's 5-point
-   filter (5.1), optionally after a zero-phase low-pass; the filter's edge samples go.
+   grid at its median step (cubic for positions and velocities, linear for torques) for
+   filtering and differentiating, while :class:`Stamps` keeps the input's own samples;
+4. the low-pass (``lowpass_hz``: "auto" chooses it from the spectrum of ``q``, see
+   :mod:`identify.filtering`) smooths the kinematics, missing velocity comes from positions
+   (also when the recorded one is much noisier) and acceleration from velocity by Khosla's
+   5-point filter (5.1); the torque is left raw, for identification filters the regressor
+   and the torque in parallel (:class:`~identify.filtering.ParallelFilter`).
 """
 
 from __future__ import annotations
@@ -32,9 +36,11 @@ from .spatial import Array
 class PrepareOptions:
     max_gap_factor: float = 20.0
     jitter_tolerance: float = 0.05
-    # "auto": chosen from the recording's spectrum (identify.filtering.choose_filter); a number:
-    # that cut-off in Hz; None or "off": no low-pass, no decimation (the demo's 2 ms drive data)
-    lowpass_hz: float | str | None = "auto"
+    # "auto": chosen from the recording's spectrum (identify.filtering.choose_filter; what
+    # `armid identify` and `diagnose` do unless told otherwise); a number: that cut-off in Hz;
+    # None or "off": no low-pass, no decimation (the demo's 2 ms drive data, whose torque
+    # noise does not bias least squares and whose velocity comes from the drives)
+    lowpass_hz: float | str | None = None
     min_segment_samples: int = 20
     # the torque (current) of a sample was held over the period before its time stamp, as a
     # drive's current between two SYNCs is: it then belongs half a period earlier than the

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from .effects import CATALOGUE, LINEAR_EFFECTS
+from .effects import CATALOGUE, LINEAR_EFFECTS, SETTINGS
 from .errors import RobotFileError
 from .robot import DeclaredEffect, Inertial, Joint, JointLimits, JointType, Robot, dh_joint, inertia_entries, mdh_joint
 
@@ -174,8 +174,10 @@ def _effects(doc: Any, n_joints: int, src: str) -> list[DeclaredEffect]:
         name = e["effect"]
         if name not in CATALOGUE:
             raise RobotFileError(src, _field(where, "effect"), f"unknown effect {name!r} (catalogue: {', '.join(CATALOGUE)})")
-        if name not in LINEAR_EFFECTS:
-            raise RobotFileError(src, _field(where, "effect"), f"{name} cannot be declared yet (declarable: {', '.join(LINEAR_EFFECTS)})")
+        if name not in LINEAR_EFFECTS and name not in SETTINGS:
+            raise RobotFileError(src, _field(where, "effect"), f"{name} cannot be declared yet (declarable: {', '.join([*LINEAR_EFFECTS, *SETTINGS])})")
+        if name in SETTINGS and "velocity" in e and (isinstance(e["velocity"], bool) or not isinstance(e["velocity"], int | float) or e["velocity"] < 0):
+            raise RobotFileError(src, _field(where, "velocity"), f"must be a velocity >= 0 (rad/s or m/s), got {e['velocity']!r}")
         joint = e.get("joint")
         if joint is not None and (isinstance(joint, bool) or not isinstance(joint, int) or not 1 <= joint <= n_joints):
             raise RobotFileError(src, _field(where, "joint"), f"must be a joint number 1..{n_joints} or null (all joints), got {joint!r}")

@@ -52,7 +52,10 @@ def _assert_found(d, effect: str, joint: int | None) -> None:  # type: ignore[no
     # named either as found, or as the look-alike the data cannot tell apart from what was found
     named = names + [(f.lookalike, f.joint) for f in d.found if f.lookalike]
     assert (effect, joint) in named, f"expected {effect} on joint {joint}, found {names}; rounds {d.rounds[:2]}"
-    assert d.after["relative_error"] <= 0.5 * d.before["relative_error"], (d.before["relative_error"], d.after["relative_error"])
+    # on the equations the search scores (filtered, joints clear of rest), as before the
+    # raw-stamp errors existed; those include the raw current noise that no model removes
+    before, after = d.before["moving_equations"]["relative_error"], d.after["moving_equations"]["relative_error"]
+    assert after <= 0.5 * before, (before, after)
 
 
 CASES = {
