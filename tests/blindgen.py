@@ -321,49 +321,59 @@ def _rms(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(x))))
 
 
-def recorded_torque(arm: Arm, traj, t: np.ndarray, effect: Effect | None) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
-    """Noise-free recorded torque at stamps t: rigid body plus the effect; also (q, qd, qdd) at t."""
+def _as_list(effects: Effect | list[Effect] | None) -> list[Effect]:
+    return [] if effects is None else [effects] if isinstance(effects, Effect) else list(effects)
+
+
+def recorded_torque(arm: Arm, traj, t: np.ndarray, effects: Effect | list[Effect] | None) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+    """Noise-free recorded torque at stamps t, and (q, qd, qdd) at t.
+
+    The rigid body under the (possibly tilted) gravity, plus the additive effects, then the
+    drive gains, then the offsets. With a time delay all of it is the torque at ``t - delay``
+    (the torque channel lags the positions), evaluated on the analytic trajectory.
+    """
+    effects = _as_list(effects)
     q, qd, qdd = traj(t)
     gravity = np.array(arm.gravity, dtype=float)
-    name = effect.name if effect else None
-    if name == "gravity_tilt":
-        gravity = _rot(effect.params["axis"], effect.params["angle_rad"]) @ gravity
-    model = build_model(arm, gravity)
-    if name == "time_delay":  # the torque lags the positions: evaluated at t - delay
-        tau = rigid_torque(model, *traj(t - effect.params["delay_s"]))
-    else:
-        tau = rigid_torque(model, q, qd, qdd)
-    if effect is None or name in ("time_delay", "gravity_tilt"):
-        return tau, (q, qd, qdd)
-    p = effect.params
+    delay = 0.0
+    for e in effects:
+        if e.name == "gravity_tilt":
+            gravity = _rot(e.params["axis"], e.params["angle_rad"]) @ gravity
+        elif e.name == "time_delay":
+            delay += e.params["delay_s"]
+        elif e.name not in EFFECTS:
+            raise ValueError(f"unknown effect {e.name!r} (known: {', '.join(EFFECTS)})")
+    qe, qde, qdde = traj(t - delay) if delay else (q, qd, qdd)
+    tau = rigid_torque(build_model(arm, gravity), qe, qde, qdde)
     out = tau.copy()
-    for k, j in enumerate(effect.joints):
-        v = qd[:, j]
-        if name == "viscous_friction":
-            out[:, j] += p["fv"][k] * v
-        elif name == "coulomb_friction":
-            out[:, j] += p["fc"][k] * np.sign(v)
-        elif name == "smooth_coulomb":
-            out[:, j] += p["fc"][k] * np.tanh(v / p["v_s"][k])
-        elif name == "stribeck_friction":
-            out[:, j] += (p["fc"][k] + (p["fs"][k] - p["fc"][k]) * np.exp(-((v / p["vs"][k]) ** 2))) * np.sign(v)
-        elif name == "torque_offset":
-            out[:, j] += p["offset"][k]
-        elif name == "rotor_inertia":
-            out[:, j] += p["ia"][k] * qdd[:, j]
-        elif name == "torque_gain":
-            out[:, j] = p["gain"][k] * tau[:, j]
-        elif name == "cogging":
-            ang = 2 * math.pi * q[:, j] / p["period_rad"][k]
-            out[:, j] += p["a_sin"][k] * np.sin(ang) + p["a_cos"][k] * np.cos(ang)
-        elif name == "spring":
-            out[:, j] += p["k"][k] * (q[:, j] - p["q0"][k])
-        elif name == "load_coulomb":
-            out[:, j] += (p["fc"][k] + p["c_load"][k] * np.abs(tau[:, j])) * np.sign(v)
-        elif name == "friction_all":
-            out[:, j] += p["fc"][k] * np.sign(v) + p["fv"][k] * v + p["offset"][k]
-        else:
-            raise ValueError(f"unknown effect {name!r} (known: {', '.join(EFFECTS)})")
+    order = {"torque_gain": 1, "torque_offset": 2}  # additive physics first, then the drive gain, then the offset
+    for e in sorted(effects, key=lambda e: order.get(e.name, 0)):
+        p, name = e.params, e.name
+        for k, j in enumerate(e.joints):
+            v = qde[:, j]
+            if name == "viscous_friction":
+                out[:, j] += p["fv"][k] * v
+            elif name == "coulomb_friction":
+                out[:, j] += p["fc"][k] * np.sign(v)
+            elif name == "smooth_coulomb":
+                out[:, j] += p["fc"][k] * np.tanh(v / p["v_s"][k])
+            elif name == "stribeck_friction":
+                out[:, j] += (p["fc"][k] + (p["fs"][k] - p["fc"][k]) * np.exp(-((v / p["vs"][k]) ** 2))) * np.sign(v)
+            elif name == "torque_offset":
+                out[:, j] += p["offset"][k]
+            elif name == "rotor_inertia":
+                out[:, j] += p["ia"][k] * qdde[:, j]
+            elif name == "torque_gain":
+                out[:, j] *= p["gain"][k]
+            elif name == "cogging":
+                ang = 2 * math.pi * qe[:, j] / p["period_rad"][k]
+                out[:, j] += p["a_sin"][k] * np.sin(ang) + p["a_cos"][k] * np.cos(ang)
+            elif name == "spring":
+                out[:, j] += p["k"][k] * (qe[:, j] - p["q0"][k])
+            elif name == "load_coulomb":
+                out[:, j] += (p["fc"][k] + p["c_load"][k] * np.abs(tau[:, j])) * np.sign(v)
+            elif name == "friction_all":
+                out[:, j] += p["fc"][k] * np.sign(v) + p["fv"][k] * v + p["offset"][k]
     return out, (q, qd, qdd)
 
 
@@ -453,6 +463,7 @@ class Sensor:
     qd_noise: float
     counts: int | None
     q_noise: float
+    current_lsb: float | None = None  # A
 
 
 def stamps(rng: np.random.Generator, duration_s: float, rate_hz: float, jitter: float) -> np.ndarray:
@@ -484,7 +495,7 @@ def _write_csv(path: Path, cols: list[str], data: np.ndarray) -> None:
     np.savetxt(path, data, delimiter=",", header=",".join(cols), comments="", fmt=fmt)
 
 
-def record(rng: np.random.Generator, arm: Arm, traj, t: np.ndarray, effect: Effect | None, sensor: Sensor,
+def record(rng: np.random.Generator, arm: Arm, traj, t: np.ndarray, effect: Effect | list[Effect] | None, sensor: Sensor,
            path: Path, clean_path: Path | None) -> dict[str, Any]:
     """Write one recording (and its noise-free torque twin); return its noise floor and size."""
     n = len(arm.links)
@@ -504,7 +515,11 @@ def record(rng: np.random.Generator, arm: Arm, traj, t: np.ndarray, effect: Effe
     kt = np.array([ln.torque_constant for ln in arm.links])
     if sensor.currents:
         cols += [f"i{j + 1}" for j in range(n)]
-        blocks.append(noisy / kt)
+        current = noisy / kt
+        if sensor.current_lsb:
+            current = np.round(current / sensor.current_lsb) * sensor.current_lsb
+            noisy = current * kt  # what the file says, for the noise floor
+        blocks.append(current)
     else:
         cols += [f"tau{j + 1}" for j in range(n)]
         blocks.append(noisy)
@@ -546,7 +561,19 @@ class Case:
     effect_realized: float | None  # measured: ||recorded - rigid|| / ||rigid|| on the affected joints, validation run
     noise_floor: float  # validation: ||tau_noisy - tau_clean|| / ||tau_noisy||
     ptp_noise_floor: float | None
-    params: dict[str, Any]
+    params: dict[str, Any]  # the main effect's parameters
+    ident_csvs: list[Path]  # every identification run (ident_csv is the first)
+
+
+def _resolve_joints(name: str, joint: int | str | None, n: int, u: float) -> list[int]:
+    """0-based joints of an effect: every joint for arm-wide effects or "all", else the 1-based one, else drawn (u in [0, 1))."""
+    if EFFECTS[name][1] or joint == "all":
+        return list(range(n))
+    if joint is None:
+        return [min(n - 1, int(u * n))]
+    if not 1 <= int(joint) <= n:
+        raise ValueError(f"effect joint {joint} is not in 1..{n}")
+    return [int(joint) - 1]
 
 
 def make_case(seed: int, out_dir: str | Path, n_joints: int | None = None, convention: str | None = None,
@@ -555,15 +582,19 @@ def make_case(seed: int, out_dir: str | Path, n_joints: int | None = None, conve
               effect_params: dict[str, Any] | None = None, velocity: bool | None = True, currents: bool | None = False,
               jitter: float | None = 0.0, duration_s: float | None = None, valid_duration_s: float | None = None,
               prismatic: bool | None = None, lowpass_hz: float | None = None, ptp: bool = False,
-              declare: list[dict[str, Any]] | None = None) -> Case:
+              declare: list[dict[str, Any]] | None = None, extra_effects: list[dict[str, Any]] | None = None,
+              n_ident: int = 1, current_lsb: float | None = None) -> Case:
     """Make one blind case in ``out_dir``: robot.yaml, ident.csv, valid.csv, valid_clean.csv, truth.json.
 
     Deterministic per ``seed``; every option left ``None`` is drawn from the seed (each option
     from its own stream, so fixing one does not change the others). ``effect_joint`` is 1-based,
     ``"all"`` for every joint, or None for a random joint. ``effect_size`` is the effect's RMS
-    relative to the joint's rigid-body torque RMS (default log-uniform 0.03-0.3). ``declare``
-    goes into the robot file's ``effects`` list. ``ptp`` adds ptp.csv/ptp_clean.csv, a
-    point-to-point validation run.
+    relative to the joint's rigid-body torque RMS on the (first) identification run (default
+    log-uniform 0.03-0.3). ``extra_effects`` adds more, each ``{"effect", "joint", "size",
+    "params"}`` as above (e.g. the friction a robot file declares, under an undeclared effect).
+    ``declare`` goes into the robot file's ``effects`` list. ``ptp`` adds ptp.csv/ptp_clean.csv,
+    a point-to-point validation run. ``n_ident`` > 1 writes ident1.csv..identK.csv, Fourier
+    runs of one design with different coefficients. ``current_lsb`` quantises the currents (A).
     """
     streams = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(8)]
     r_arm, r_exc, r_sens, r_eff, r_noise, r_model, r_opt, r_ptp = streams
@@ -586,81 +617,92 @@ def make_case(seed: int, out_dir: str | Path, n_joints: int | None = None, conve
     jitter = draw["jit"] if jitter is None else jitter
     prismatic = draw["pri"] if prismatic is None else prismatic
     prismatic_at = min(n - 1, int(draw["pj"] * n)) if prismatic else None
+    if effect is not None and effect not in EFFECTS:
+        raise ValueError(f"unknown effect {effect!r} (known: {', '.join(EFFECTS)})")
 
     arm, boxes = random_arm(r_arm, n, convention, prismatic_at)
     modeled = modeled_links(r_model, arm, boxes)
-    fourier_id = random_fourier(r_exc, arm)
-    fourier_va = random_fourier(r_exc, arm, fourier_id.f0 * float(r_exc.uniform(0.8, 1.25)))  # same design, new coefficients
-    dur_id = duration_s if duration_s is not None else float(np.clip(2.0 / fourier_id.f0, 20.0, 45.0))
+    fourier_id = [random_fourier(r_exc, arm)]
+    fourier_va = random_fourier(r_exc, arm, fourier_id[0].f0 * float(r_exc.uniform(0.8, 1.25)))  # same design, new coefficients
+    fourier_id += [random_fourier(r_exc, arm, fourier_id[0].f0 * float(r_exc.uniform(0.8, 1.25))) for _ in range(n_ident - 1)]
+    dur_id = duration_s if duration_s is not None else float(np.clip(2.0 / fourier_id[0].f0, 20.0, 45.0))
     dur_va = valid_duration_s if valid_duration_s is not None else float(np.clip(1.0 / fourier_va.f0, 10.0, 20.0))
-    t_id = stamps(r_sens, dur_id, rate_hz, jitter)
+    t_id = [stamps(r_sens, dur_id, rate_hz, jitter)]
     t_va = stamps(r_sens, dur_va, rate_hz, jitter)
+    t_id += [stamps(r_sens, dur_id, rate_hz, jitter) for _ in range(n_ident - 1)]
 
-    eff = None
+    main = None
+    size = effect_size if effect_size is not None else draw["size"]
     if effect is not None:
-        if effect not in EFFECTS:
-            raise ValueError(f"unknown effect {effect!r} (known: {', '.join(EFFECTS)})")
-        arm_wide = EFFECTS[effect][1]
-        if arm_wide or effect_joint == "all":
-            joints = list(range(n))
-        elif effect_joint is None:
-            joints = [min(n - 1, int(draw["ej"] * n))]
-        else:
-            joints = [int(effect_joint) - 1]
-        size = effect_size if effect_size is not None else draw["size"]
-        eff = size_effect(r_eff, arm, fourier_id, t_id, effect, joints, size, effect_params)
+        joints = _resolve_joints(effect, effect_joint, n, draw["ej"])
+        main = size_effect(r_eff, arm, fourier_id[0], t_id[0], effect, joints, size, effect_params)
+    extras = []
+    for e in extra_effects or []:
+        if e["effect"] not in EFFECTS:
+            raise ValueError(f"unknown effect {e['effect']!r} (known: {', '.join(EFFECTS)})")
+        joints = _resolve_joints(e["effect"], e.get("joint"), n, float(r_eff.random()))
+        extras.append(size_effect(r_eff, arm, fourier_id[0], t_id[0], e["effect"], joints, float(e.get("size", 0.1)), e.get("params")))
+    effects = ([main] if main else []) + extras
 
     level = NOISE_LEVELS[noise]
     # torque noise relative to each joint's peak recorded torque on the identification run
-    peak = np.abs(recorded_torque(arm, fourier_id, t_id, eff)[0]).max(axis=0)
-    sensor = Sensor(rate_hz, jitter, noise, velocity, currents, lowpass_hz, level["torque"] * peak, level["qd"], level["counts"], level["q"])
+    peak = np.abs(recorded_torque(arm, fourier_id[0], t_id[0], effects)[0]).max(axis=0)
+    sensor = Sensor(rate_hz, jitter, noise, velocity, currents, lowpass_hz, level["torque"] * peak, level["qd"], level["counts"], level["q"],
+                    current_lsb)
 
-    ident_csv, valid_csv, valid_clean = out / "ident.csv", out / "valid.csv", out / "valid_clean.csv"
-    info_id = record(r_noise, arm, fourier_id, t_id, eff, sensor, ident_csv, out / "ident_clean.csv")
-    info_va = record(r_noise, arm, fourier_va, t_va, eff, sensor, valid_csv, valid_clean)
-    info_pt, ptp_csv, ptp_clean = None, None, None
-    traj_pt = None
+    names = ["ident"] if n_ident == 1 else [f"ident{k + 1}" for k in range(n_ident)]
+    ident_csvs = [out / f"{nm}.csv" for nm in names]
+    infos = {nm: record(r_noise, arm, f, t, effects, sensor, path, out / f"{nm}_clean.csv")
+             for nm, f, t, path in zip(names, fourier_id, t_id, ident_csvs)}
+    valid_csv, valid_clean = out / "valid.csv", out / "valid_clean.csv"
+    infos["valid"] = record(r_noise, arm, fourier_va, t_va, effects, sensor, valid_csv, valid_clean)
+    ptp_csv, ptp_clean, traj_pt = None, None, None
     if ptp:
         traj_pt = random_ptp(r_ptp, arm, dur_va)
         ptp_csv, ptp_clean = out / "ptp.csv", out / "ptp_clean.csv"
-        info_pt = record(r_noise, arm, traj_pt, stamps(r_sens, dur_va, rate_hz, jitter), eff, sensor, ptp_csv, ptp_clean)
+        infos["ptp"] = record(r_noise, arm, traj_pt, stamps(r_sens, dur_va, rate_hz, jitter), effects, sensor, ptp_csv, ptp_clean)
 
     realized = None
-    if eff is not None:
-        rigid, _ = recorded_torque(arm, fourier_va, t_va, None)
-        moved, _ = recorded_torque(arm, fourier_va, t_va, eff)
-        js = eff.joints
+    if main is not None:  # the main effect alone, on the validation run
+        rigid, _ = recorded_torque(arm, fourier_va, t_va, extras)
+        moved, _ = recorded_torque(arm, fourier_va, t_va, effects)
+        js = main.joints
         realized = float(np.linalg.norm(moved[:, js] - rigid[:, js]) / np.linalg.norm(rigid[:, js]))
 
-    peaks = np.max([info_id["max_abs_torque"], info_va["max_abs_torque"]] + ([info_pt["max_abs_torque"]] if info_pt else []), axis=0)
+    peaks = np.max([info["max_abs_torque"] for info in infos.values()], axis=0)
     robot_yaml = out / "robot.yaml"
     _write_robot(robot_yaml, f"blind_{seed}", arm, modeled, peaks, declare or [])
 
-    joint_1 = None if eff is None or len(eff.joints) != 1 else eff.joints[0] + 1
+    joint_1 = None if main is None or len(main.joints) != 1 else main.joints[0] + 1
+
+    def describe(e: Effect, requested: float | None) -> dict[str, Any]:
+        one = e.joints[0] + 1 if len(e.joints) == 1 else None
+        return {"name": e.name, "expected": EFFECTS[e.name][0], "joint": one, "joints": [j + 1 for j in e.joints],
+                "size": requested, "params": e.params}
+
     truth = {
         "seed": seed, "convention": convention, "n_joints": n, "gravity": arm.gravity,
         "links": [asdict(ln) for ln in arm.links],
         "khosla_parameters": [link_frame_parameters(ln) for ln in arm.links],
         "modeled": modeled,
         "excitation": {k: {"f0": f.f0, "a": f.a.tolist(), "b": f.b.tolist(), "q0": f.q0.tolist()}
-                       for k, f in (("ident", fourier_id), ("valid", fourier_va))},
+                       for k, f in [*zip(names, fourier_id), ("valid", fourier_va)]},
         "sensor": {"rate_hz": rate_hz, "jitter": jitter, "noise": noise, "velocity": velocity, "currents": currents,
                    "lowpass_hz": lowpass_hz, "torque_noise_std": sensor.torque_noise.tolist(), "qd_noise_std": sensor.qd_noise,
-                   "counts_per_rev": sensor.counts, "q_noise_std": sensor.q_noise},
-        "effect": None if eff is None else {"name": eff.name, "expected": EFFECTS[eff.name][0], "joint": joint_1,
-                                            "joints": [j + 1 for j in eff.joints], "size": effect_size if effect_size is not None else draw["size"],
-                                            "realized": realized, "params": eff.params},
+                   "counts_per_rev": sensor.counts, "q_noise_std": sensor.q_noise, "current_lsb": current_lsb},
+        "effect": None if main is None else {**describe(main, size), "realized": realized},
+        "extra_effects": [describe(e, float(d.get("size", 0.1))) for e, d in zip(extras, extra_effects or [])],
         "declared": declare or [],
-        "files": {"ident": info_id, "valid": info_va, "ptp": info_pt},
+        "files": infos,
     }
     if traj_pt is not None:
         truth["excitation"]["ptp"] = {"knots": traj_pt.knots.tolist(), "t_start": traj_pt.t_start.tolist(), "t_move": traj_pt.t_move.tolist()}
     truth_json = out / "truth.json"
     truth_json.write_text(json.dumps(truth, indent=1))
-    return Case(seed, out, robot_yaml, ident_csv, valid_csv, valid_clean, truth_json, ptp_csv, ptp_clean, n, convention, rate_hz,
+    return Case(seed, out, robot_yaml, ident_csvs[0], valid_csv, valid_clean, truth_json, ptp_csv, ptp_clean, n, convention, rate_hz,
                 noise, velocity, currents, jitter, lowpass_hz, effect, EFFECTS[effect][0] if effect else None, joint_1,
-                truth["effect"]["size"] if eff else None, realized, info_va["noise_floor"],
-                info_pt["noise_floor"] if info_pt else None, eff.params if eff else {})
+                size if main else None, realized, infos["valid"]["noise_floor"],
+                infos["ptp"]["noise_floor"] if ptp else None, main.params if main else {}, ident_csvs)
 
 
 def _write_robot(path: Path, name: str, arm: Arm, modeled: list[dict], peaks: np.ndarray, declare: list[dict]) -> None:

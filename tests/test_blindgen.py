@@ -336,3 +336,34 @@ def test_lowpass_matches_first_order_frequency_response():
 def test_unknown_effect_is_refused(tmp_path):
     with pytest.raises(ValueError, match="unknown effect"):
         make_case(1, tmp_path, effect="magic", duration_s=1.0, valid_duration_s=1.0)
+
+
+def test_extra_effects_runs_and_current_quantisation(tmp_path):
+    """Declared friction everywhere under an undeclared delay: the delay lags the friction too; K runs; currents in LSBs."""
+    case = make_case(51, tmp_path, n_joints=3, rate_hz=100, noise="none", currents=True, current_lsb=1e-3, effect="time_delay",
+                     effect_params={"delay_s": 0.02}, extra_effects=[{"effect": "friction_all", "size": 0.2}], n_ident=3,
+                     ptp=True, duration_s=5.0, valid_duration_s=8.0,
+                     declare=[{"effect": e, "joint": None} for e in ("coulomb_friction", "viscous_friction", "torque_offset")])
+    truth = json.loads(case.truth_json.read_text())
+    assert [p.name for p in case.ident_csvs] == ["ident1.csv", "ident2.csv", "ident3.csv"] and case.ident_csv == case.ident_csvs[0]
+    assert len({p.read_bytes() for p in case.ident_csvs}) == 3
+    from blindgen import Link as L
+    from blindgen import PointToPoint
+
+    arm = Arm(truth["convention"], [L(**ln) for ln in truth["links"]])
+    kt = np.array([ln.torque_constant for ln in arm.links])
+    fa = truth["extra_effects"][0]["params"]
+    ex = truth["excitation"]["ptp"]
+    traj = PointToPoint(np.array(ex["knots"]), np.array(ex["t_start"]), np.array(ex["t_move"]))
+    rec = read_csv(case.ptp_csv)
+    i = np.column_stack([rec[f"i{j + 1}"] for j in range(3)])
+    assert np.allclose(i / 1e-3, np.round(i / 1e-3), atol=1e-6)
+    t = rec["t"]
+    q, qd, _ = traj(t)
+    assert np.allclose(np.column_stack([rec[f"q{j + 1}"] for j in range(3)]), q, atol=1e-8)
+    assert np.mean(np.all(qd == 0, axis=1)) > 0.1  # dwells
+    ql, qdl, qddl = traj(t - 0.02)
+    expected = rigid_torque(build_model(arm), ql, qdl, qddl) + np.array(fa["fc"]) * np.sign(qdl) + np.array(fa["fv"]) * qdl + np.array(fa["offset"])
+    assert np.abs(i * kt - expected).max() <= 0.5e-3 * kt.max() + 1e-9
+    assert case.effect_realized > 0.01 and case.ptp_noise_floor > 0  # quantisation is the only noise
+    assert len(read_csv(case.ident_csvs[1])["t"]) == 500
