@@ -1,11 +1,11 @@
 #!/usr/bin/env python3
 """Blind cases: data armid did not make, scored against the raw validation torque.
 
-    python examples/blind_cases.py OUT_DIR [--seeds 0 1 2] [--set default|clean|effects|quick]
-        [--no-diagnose] [--only NAME ...] [--timeout S]
+    python examples/blind_cases.py OUT_DIR [--seeds 0 1 2] [--set default|clean|effects|quick|clean20|effects5]
+        [--no-diagnose] [--only NAME ...] [--timeout S] [--ptp]
 
 For each seed and each case of the set, ``tests/blindgen.py`` (no armid code) makes a random
-arm (generator seed 1000 * seed + the case's index in its set) and its recordings in
+arm (generator seed 1000 * seed + the case's index or spec seed) and its recordings in
 ``OUT_DIR/<case>-s<generator seed>/``; then the plain pipeline
 (``../shared/tools/baseline.py --predictions``), ``armid identify --validate --predictions``
 (the declared model: the error before diagnosis) and ``armid diagnose --predictions`` (after)
@@ -27,7 +27,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
-from blindgen import make_case, relative_error  # noqa: E402
+from blindgen import blind_specs, make_case, relative_error  # noqa: E402
 
 BASELINE = ROOT.parent / "shared" / "tools" / "baseline.py"
 
@@ -48,11 +48,20 @@ _SENSORS = [
 _EFFECTS = ["viscous_friction", "coulomb_friction", "smooth_coulomb", "stribeck_friction", "torque_offset", "rotor_inertia",
             "torque_gain", "time_delay", "cogging", "spring", "gravity_tilt", "load_coulomb", "friction_all"]
 EFFECT_CASES = [(e, dict(effect=e, effect_size=0.15, noise="medium", **_SENSORS[k % len(_SENSORS)])) for k, e in enumerate(_EFFECTS)]
+
+def _spec_name(o: dict) -> str:
+    sig = "i" if o["currents"] else "tau"
+    return f"{o.get('effect') or 'clean'}-{o['rate_hz']:g}-{sig}{'' if o['velocity'] else '-noqd'}{'-jit' if o['jitter'] else ''}-{o['noise']}"
+
+
 SETS = {
     "default": CLEAN + EFFECT_CASES,
     "clean": CLEAN,
     "effects": EFFECT_CASES,
     "quick": [(n, dict(o, duration_s=20.0, valid_duration_s=10.0)) for n, o in (CLEAN[0], CLEAN[3], EFFECT_CASES[1], EFFECT_CASES[4])],
+    # issue 16's sweeps: 20 clean cases across rates and noise levels; each effect on 5 seeds from barely visible to large
+    "clean20": [(_spec_name(o), o) for o in blind_specs("clean", 20)],
+    "effects5": [(_spec_name(o), o) for o in blind_specs("effects", 5)],
 }
 
 
@@ -82,10 +91,12 @@ def score(case, predictions: Path, ok: bool) -> dict:
     return {"error": err, "covered": covered}
 
 
-def one_case(name: str, options: dict, seed: int, out: Path, diagnose: bool, timeout: float) -> dict:
+def one_case(name: str, options: dict, seed: int, out: Path, diagnose: bool, timeout: float, ptp: bool = False) -> dict:
     folder = out / f"{name}-s{seed}"
-    case = make_case(seed, folder, **options)
-    files = [str(case.ident_csv)]
+    case = make_case(seed, folder, **options, ptp=ptp)
+    if ptp:  # hold out the point-to-point run instead of the Fourier one
+        case.valid_csv, case.valid_clean_csv, case.noise_floor = case.ptp_csv, case.ptp_clean_csv, case.ptp_noise_floor
+    files = [str(p) for p in case.ident_csvs]
     res = {"case": name, "seed": seed, "dir": str(folder), "n_joints": case.n_joints, "convention": case.convention,
            "rate_hz": case.rate_hz, "signal": "i" if case.currents else "tau", "velocity": case.velocity, "jitter": case.jitter,
            "noise": case.noise, "effect": case.effect, "expected": case.expected, "joint": case.effect_joint,
@@ -156,16 +167,19 @@ def main() -> None:
     ap.add_argument("--only", nargs="+", help="case names to keep (prefix match)")
     ap.add_argument("--no-diagnose", action="store_true", help="skip armid diagnose")
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per command")
+    ap.add_argument("--ptp", action="store_true", help="validate on a point-to-point run (quintic moves, dwells)")
     args = ap.parse_args()
     cases = [c for c in SETS[args.set] if not args.only or any(c[0].startswith(o) for o in args.only)]
     args.out.mkdir(parents=True, exist_ok=True)
     results = []
     for seed in args.seeds:
         for name, options in cases:
+            options = dict(options)
             k = [c[0] for c in SETS[args.set]].index(name)
-            res = one_case(name, options, 1000 * seed + k, args.out, not args.no_diagnose, args.timeout)  # a new arm per case
+            case_seed = 1000 * seed + options.pop("seed", k)  # a new arm per case
+            res = one_case(name, options, case_seed, args.out, not args.no_diagnose, args.timeout, args.ptp)
             results.append(res)
-            print(f"{name} s{seed}: floor {pct(res['noise_floor'])} %, baseline {pct(res['baseline']['error'])} %, "
+            print(f"{name} s{case_seed}: floor {pct(res['noise_floor'])} %, baseline {pct(res['baseline']['error'])} %, "
                   f"identify {pct(res['identify']['error'])} %" + ("" if args.no_diagnose else f", diagnose {pct(res['diagnose']['error'])} % ({res['named']})"),
                   flush=True)
             (args.out / "results.json").write_text(json.dumps(results, indent=1))

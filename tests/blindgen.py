@@ -583,7 +583,7 @@ def make_case(seed: int, out_dir: str | Path, n_joints: int | None = None, conve
               jitter: float | None = 0.0, duration_s: float | None = None, valid_duration_s: float | None = None,
               prismatic: bool | None = None, lowpass_hz: float | None = None, ptp: bool = False,
               declare: list[dict[str, Any]] | None = None, extra_effects: list[dict[str, Any]] | None = None,
-              n_ident: int = 1, current_lsb: float | None = None) -> Case:
+              n_ident: int = 1, current_lsb: float | None = None, effect_snr: float | None = None) -> Case:
     """Make one blind case in ``out_dir``: robot.yaml, ident.csv, valid.csv, valid_clean.csv, truth.json.
 
     Deterministic per ``seed``; every option left ``None`` is drawn from the seed (each option
@@ -595,6 +595,8 @@ def make_case(seed: int, out_dir: str | Path, n_joints: int | None = None, conve
     ``declare`` goes into the robot file's ``effects`` list. ``ptp`` adds ptp.csv/ptp_clean.csv,
     a point-to-point validation run. ``n_ident`` > 1 writes ident1.csv..identK.csv, Fourier
     runs of one design with different coefficients. ``current_lsb`` quantises the currents (A).
+    ``effect_snr`` sets the size instead: the effect's RMS is that many times the torque-noise
+    std on its joint(s) (1-2 is barely above the noise; needs a noise level other than "none").
     """
     streams = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(8)]
     r_arm, r_exc, r_sens, r_eff, r_noise, r_model, r_opt, r_ptp = streams
@@ -635,6 +637,12 @@ def make_case(seed: int, out_dir: str | Path, n_joints: int | None = None, conve
     size = effect_size if effect_size is not None else draw["size"]
     if effect is not None:
         joints = _resolve_joints(effect, effect_joint, n, draw["ej"])
+        if effect_snr is not None:
+            if NOISE_LEVELS[noise]["torque"] == 0:
+                raise ValueError("effect_snr needs torque noise (noise other than 'none')")
+            rigid = recorded_torque(arm, fourier_id[0], t_id[0], None)[0][:, joints]
+            noise_std = NOISE_LEVELS[noise]["torque"] * np.abs(rigid).max(axis=0)
+            size = float(effect_snr * np.sqrt(np.mean(noise_std**2)) / np.sqrt(np.mean(rigid**2)))
         main = size_effect(r_eff, arm, fourier_id[0], t_id[0], effect, joints, size, effect_params)
     extras = []
     for e in extra_effects or []:
@@ -690,7 +698,7 @@ def make_case(seed: int, out_dir: str | Path, n_joints: int | None = None, conve
         "sensor": {"rate_hz": rate_hz, "jitter": jitter, "noise": noise, "velocity": velocity, "currents": currents,
                    "lowpass_hz": lowpass_hz, "torque_noise_std": sensor.torque_noise.tolist(), "qd_noise_std": sensor.qd_noise,
                    "counts_per_rev": sensor.counts, "q_noise_std": sensor.q_noise, "current_lsb": current_lsb},
-        "effect": None if main is None else {**describe(main, size), "realized": realized},
+        "effect": None if main is None else {**describe(main, size), "realized": realized, "snr": effect_snr},
         "extra_effects": [describe(e, float(d.get("size", 0.1))) for e, d in zip(extras, extra_effects or [])],
         "declared": declare or [],
         "files": infos,
@@ -717,6 +725,34 @@ def _write_robot(path: Path, name: str, arm: Arm, modeled: list[dict], peaks: np
     doc = {"name": name, "gravity": [0.0, 0.0, -9.81], "convention": arm.convention, "joints": joints, "effects": declare}
     path.write_text("# Blind case by tests/blindgen.py: modeled inertials are the truth off by 20-30 % (truth.json)\n"
                     + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None))
+
+
+def blind_specs(kind: str, count: int, seed0: int = 0, effects: list[str] | None = None,
+                snrs: tuple[float, ...] = (1.5, 3.0, 6.0, 12.0, 25.0)) -> list[dict[str, Any]]:
+    """``make_case`` keyword sets for a blind sweep (``seed`` included).
+
+    ``clean``: ``count`` cases, no effect, rates 100/200/500/1000 Hz, noise low/medium/high,
+    velocity or not, torque or current, jitter or not, all rotating at co-prime periods.
+    ``effects``: each effect (all of EFFECTS by default) on ``count`` seeds, on a random joint,
+    at sizes from barely above the torque noise to large (``snrs``, rotating), sensors rotating
+    as for clean.
+    """
+    rates, levels = (100.0, 200.0, 500.0, 1000.0), ("low", "medium", "high")
+
+    def sensor(k: int) -> dict[str, Any]:
+        return {"rate_hz": rates[k % 4], "noise": levels[k % 3], "velocity": k % 5 not in (1, 3),
+                "currents": k % 7 in (2, 4, 6), "jitter": 0.1 if k % 2 else 0.0}
+
+    if kind == "clean":
+        return [{"seed": seed0 + k, **sensor(k)} for k in range(count)]
+    if kind == "effects":
+        out = []
+        for e_index, name in enumerate(effects or list(EFFECTS)):
+            for k in range(count):
+                m = e_index * count + k
+                out.append({"seed": seed0 + m, "effect": name, "effect_snr": snrs[m % len(snrs)], **sensor(m)})
+        return out
+    raise ValueError(f"kind must be clean or effects, got {kind!r}")
 
 
 # ---------------------------------------------------------------------- scoring

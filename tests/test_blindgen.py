@@ -367,3 +367,27 @@ def test_extra_effects_runs_and_current_quantisation(tmp_path):
     assert np.abs(i * kt - expected).max() <= 0.5e-3 * kt.max() + 1e-9
     assert case.effect_realized > 0.01 and case.ptp_noise_floor > 0  # quantisation is the only noise
     assert len(read_csv(case.ident_csvs[1])["t"]) == 500
+
+
+def test_effect_snr_sets_the_size_from_the_noise(tmp_path):
+    """effect_snr = effect RMS / torque-noise std on the joint, on the identification run."""
+    case = make_case(61, tmp_path, n_joints=4, rate_hz=100, noise="medium", effect="torque_offset", effect_joint=3, effect_snr=2.0,
+                     duration_s=6.0, valid_duration_s=2.0)
+    truth = json.loads(case.truth_json.read_text())
+    offset = truth["effect"]["params"]["offset"][0]
+    rigid = read_csv(tmp_path / "ident_clean.csv")["tau3"] - offset
+    noise_std = 0.01 * np.abs(rigid).max()  # "medium": 1 % of the joint's peak rigid-body torque
+    assert abs(offset) == pytest.approx(2.0 * noise_std, rel=1e-6)
+
+
+def test_blind_specs_cover_rates_noise_and_effects():
+    from blindgen import blind_specs
+
+    clean = blind_specs("clean", 20)
+    assert len(clean) == 20 and {c["rate_hz"] for c in clean} == {100, 200, 500, 1000}
+    assert {c["noise"] for c in clean} == {"low", "medium", "high"} and {c["velocity"] for c in clean} == {True, False}
+    assert {c["currents"] for c in clean} == {True, False} and len({c["seed"] for c in clean}) == 20
+    eff = blind_specs("effects", 5)
+    assert len(eff) == 5 * len(EFFECTS) and {e["effect"] for e in eff} == set(EFFECTS)
+    for name in EFFECTS:
+        assert len({e["effect_snr"] for e in eff if e["effect"] == name}) == 5
