@@ -625,8 +625,11 @@ def make_case(seed: int, out_dir: str | Path, n_joints: int | None = None, conve
     arm, boxes = random_arm(r_arm, n, convention, prismatic_at)
     modeled = modeled_links(r_model, arm, boxes)
     fourier_id = [random_fourier(r_exc, arm)]
-    fourier_va = random_fourier(r_exc, arm, fourier_id[0].f0 * float(r_exc.uniform(0.8, 1.25)))  # same design, new coefficients
-    fourier_id += [random_fourier(r_exc, arm, fourier_id[0].f0 * float(r_exc.uniform(0.8, 1.25))) for _ in range(n_ident - 1)]
+    def similar() -> float:  # same design, new coefficients: a nearby base frequency within 0.05-0.3 Hz
+        return float(np.clip(fourier_id[0].f0 * r_exc.uniform(0.8, 1.25), 0.05, 0.3))
+
+    fourier_va = random_fourier(r_exc, arm, similar())
+    fourier_id += [random_fourier(r_exc, arm, similar()) for _ in range(n_ident - 1)]
     dur_id = duration_s if duration_s is not None else float(np.clip(2.0 / fourier_id[0].f0, 20.0, 45.0))
     dur_va = valid_duration_s if valid_duration_s is not None else float(np.clip(1.0 / fourier_va.f0, 10.0, 20.0))
     t_id = [stamps(r_sens, dur_id, rate_hz, jitter)]

@@ -391,3 +391,23 @@ def test_blind_specs_cover_rates_noise_and_effects():
     assert len(eff) == 5 * len(EFFECTS) and {e["effect"] for e in eff} == set(EFFECTS)
     for name in EFFECTS:
         assert len({e["effect_snr"] for e in eff if e["effect"] == name}) == 5
+
+
+def test_random_arms_and_excitations_stay_in_the_specified_ranges():
+    from blindgen import random_fourier
+
+    for seed in range(30):
+        rng = np.random.default_rng(seed)
+        n = 3 + seed % 5
+        arm, boxes = random_arm(rng, n, "dh" if seed % 2 else "mdh", seed % 4 if seed % 3 == 0 else None)
+        masses = [ln.mass for ln in arm.links]
+        assert masses == sorted(masses, reverse=True) and 0.3 <= min(masses) and max(masses) <= 8.0
+        for ln in arm.links:
+            assert ln.a == 0.0 or 0.05 <= ln.a <= 0.5
+            assert ln.d == 0.0 or 0.05 <= ln.d <= 0.5
+            ev = np.linalg.eigvalsh(np.array(ln.inertia)[[0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(3, 3))
+            assert ev[0] > 0 and ev[0] + ev[1] >= ev[2] * (1 - 1e-12)  # a real body: positive, triangle inequality
+        f = random_fourier(rng, arm)
+        assert 0.05 <= f.f0 <= 0.3 and 3 <= f.a.shape[1] <= 5
+    assert sum(ln.alpha in (0.0, math.pi / 2, -math.pi / 2) for s in range(30)
+               for ln in random_arm(np.random.default_rng(s), 6, "dh", None)[0].links) > 0.7 * 180
