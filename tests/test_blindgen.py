@@ -233,6 +233,9 @@ def test_noise_floor_and_relative_error(tmp_path):
     err, covered = relative_error(case.valid_csv, pred)
     assert covered == pytest.approx(0.5, abs=0.01)
     assert err == pytest.approx(floor, rel=0.2)
+    np.savetxt(pred, rows[::-1], delimiter=",", header=",".join(cols), comments="", fmt="%.9g")  # any row order
+    err, covered = relative_error(case.valid_csv, pred)
+    assert covered == 1.0 and err == pytest.approx(floor, rel=1e-6)  # the clean torque scores exactly the noise floor
     np.savetxt(pred, rows * [1.0, 1.1, 1.1, 1.1, 1.1], delimiter=",", header=",".join(cols), comments="", fmt="%.9g")
     err, covered = relative_error(case.valid_csv, pred)
     assert covered == 1.0 and err > 0.08
