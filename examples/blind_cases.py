@@ -100,7 +100,8 @@ def one_case(name: str, options: dict, seed: int, out: Path, diagnose: bool, tim
     res = {"case": name, "seed": seed, "dir": str(folder), "n_joints": case.n_joints, "convention": case.convention,
            "rate_hz": case.rate_hz, "signal": "i" if case.currents else "tau", "velocity": case.velocity, "jitter": case.jitter,
            "noise": case.noise, "effect": case.effect, "expected": case.expected, "joint": case.effect_joint,
-           "size": case.effect_size, "realized": case.effect_realized, "noise_floor": case.noise_floor}
+           "size": case.effect_size, "realized": case.effect_realized, "distinct": case.effect_distinct,
+           "noise_floor": case.noise_floor}
     ok, res["baseline_s"] = run([sys.executable, str(BASELINE), *files, "--robot", str(case.robot_yaml), "--validate", str(case.valid_csv),
                                  "--predictions", str(folder / "baseline_pred.csv")], folder / "baseline.log", timeout)
     res["baseline"] = score(case, folder / "baseline_pred.csv", ok)
@@ -141,12 +142,12 @@ def pct(x) -> str:
 
 
 def table(results: list[dict], diagnose: bool) -> str:
-    head = ["case", "seed", "arm", "rate", "sig", "qd", "jit", "noise", "effect (joint, size)", "floor %", "baseline %", "identify %", "cover"]
+    head = ["case", "seed", "arm", "rate", "sig", "qd", "jit", "noise", "effect (joint, size, distinct)", "floor %", "baseline %", "identify %", "cover"]
     if diagnose:
         head += ["diagnose %", "found", "named"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in results:
-        eff = "—" if r["effect"] is None else f"{r['effect']} ({r['joint'] or 'all'}, {r['size']:.2f})"
+        eff = "—" if r["effect"] is None else f"{r['effect']} ({r['joint'] or 'all'}, {r['size']:.2f}, {r['distinct']:.2f})"
         cover = r["identify"]["covered"]
         row = [r["case"], str(r["seed"]), f"{r['n_joints']}{r['convention']}", f"{r['rate_hz']:g}", r["signal"], "y" if r["velocity"] else "n",
                f"{r['jitter']:.2f}", r["noise"], eff, pct(r["noise_floor"]), pct(r["baseline"]["error"]), pct(r["identify"]["error"]),

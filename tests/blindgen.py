@@ -563,6 +563,42 @@ class Case:
     ptp_noise_floor: float | None
     params: dict[str, Any]  # the main effect's parameters
     ident_csvs: list[Path]  # every identification run (ident_csv is the first)
+    effect_distinct: float | None = None  # fraction of the effect the declared model cannot absorb (distinct_fraction)
+
+
+MIN_DISTINCT = 0.25
+"""A randomly placed effect must keep at least this fraction of its torque outside the model's span."""
+
+
+def distinct_fraction(arm: Arm, traj, t: np.ndarray, effects: list[Effect], baseline: list[Effect], declare: list[dict[str, Any]],
+                      max_samples: int = 3000) -> float:
+    """How much of an effect no model parameter can absorb: ||(I - P) d|| / ||d||.
+
+    ``d`` is the recorded torque with ``effects`` minus that with ``baseline`` (stacked over
+    joints and samples), ``P`` the projection onto the rigid-body regressor (Pinocchio's, under
+    the nominal gravity) and the declared linear effects' columns. 0: the effect is a rigid-body
+    parameter's twin (rotor inertia on joint 1 and Izz1); 1: nothing in the model looks like it.
+    """
+    ts = t[:: max(1, len(t) // max_samples)]
+    with_e, (q, qd, qdd) = recorded_torque(arm, traj, ts, effects)
+    d = (with_e - recorded_torque(arm, traj, ts, baseline)[0]).reshape(-1)
+    model = build_model(arm)
+    data = model.createData()
+    n = model.nv
+    y = np.stack([pin.computeJointTorqueRegressor(model, data, q[k], qd[k], qdd[k]) for k in range(len(ts))])
+    cols = {"coulomb_friction": lambda j: np.sign(qd[:, j]), "viscous_friction": lambda j: qd[:, j],
+            "torque_offset": lambda j: np.ones(len(ts)), "rotor_inertia": lambda j: qdd[:, j]}
+    extra = []
+    for dcl in declare:
+        if dcl.get("effect") in cols:
+            for j in range(n) if dcl.get("joint") is None else [int(dcl["joint"]) - 1]:
+                c = np.zeros((len(ts), n))
+                c[:, j] = cols[dcl["effect"]](j)
+                extra.append(c[:, :, None])
+    a = np.concatenate([y, *extra], axis=2).reshape(len(ts) * n, -1)
+    a = a / np.maximum(np.linalg.norm(a, axis=0), 1e-12)
+    residual = d - a @ np.linalg.lstsq(a, d, rcond=1e-10)[0]
+    return float(np.linalg.norm(residual) / max(np.linalg.norm(d), 1e-300))
 
 
 def _resolve_joints(name: str, joint: int | str | None, n: int, u: float) -> list[int]:
@@ -636,23 +672,31 @@ def make_case(seed: int, out_dir: str | Path, n_joints: int | None = None, conve
     t_va = stamps(r_sens, dur_va, rate_hz, jitter)
     t_id += [stamps(r_sens, dur_id, rate_hz, jitter) for _ in range(n_ident - 1)]
 
-    main = None
-    size = effect_size if effect_size is not None else draw["size"]
-    if effect is not None:
-        joints = _resolve_joints(effect, effect_joint, n, draw["ej"])
-        if effect_snr is not None:
-            if NOISE_LEVELS[noise]["torque"] == 0:
-                raise ValueError("effect_snr needs torque noise (noise other than 'none')")
-            rigid = recorded_torque(arm, fourier_id[0], t_id[0], None)[0][:, joints]
-            noise_std = NOISE_LEVELS[noise]["torque"] * np.abs(rigid).max(axis=0)
-            size = float(effect_snr * np.sqrt(np.mean(noise_std**2)) / np.sqrt(np.mean(rigid**2)))
-        main = size_effect(r_eff, arm, fourier_id[0], t_id[0], effect, joints, size, effect_params)
     extras = []
     for e in extra_effects or []:
         if e["effect"] not in EFFECTS:
             raise ValueError(f"unknown effect {e['effect']!r} (known: {', '.join(EFFECTS)})")
         joints = _resolve_joints(e["effect"], e.get("joint"), n, float(r_eff.random()))
         extras.append(size_effect(r_eff, arm, fourier_id[0], t_id[0], e["effect"], joints, float(e.get("size", 0.1)), e.get("params")))
+
+    main, distinct = None, None
+    size = effect_size if effect_size is not None else draw["size"]
+    if effect is not None:
+        first = _resolve_joints(effect, effect_joint, n, draw["ej"])
+        # a joint drawn at random must be one where the effect is not a rigid-body parameter's twin
+        # (rotor inertia on joint 1 is Izz1): try the joints in turn from the drawn one
+        tries = [[(first[0] + k) % n] for k in range(n)] if effect_joint is None and len(first) == 1 else [first]
+        for joints in tries:
+            if effect_snr is not None:
+                if NOISE_LEVELS[noise]["torque"] == 0:
+                    raise ValueError("effect_snr needs torque noise (noise other than 'none')")
+                rigid = recorded_torque(arm, fourier_id[0], t_id[0], None)[0][:, joints]
+                noise_std = NOISE_LEVELS[noise]["torque"] * np.abs(rigid).max(axis=0)
+                size = float(effect_snr * np.sqrt(np.mean(noise_std**2)) / np.sqrt(np.mean(rigid**2)))
+            main = size_effect(r_eff, arm, fourier_id[0], t_id[0], effect, joints, size, effect_params)
+            distinct = distinct_fraction(arm, fourier_id[0], t_id[0], [main, *extras], extras, declare or [])
+            if distinct >= MIN_DISTINCT:
+                break
     effects = ([main] if main else []) + extras
 
     level = NOISE_LEVELS[noise]
@@ -701,7 +745,7 @@ def make_case(seed: int, out_dir: str | Path, n_joints: int | None = None, conve
         "sensor": {"rate_hz": rate_hz, "jitter": jitter, "noise": noise, "velocity": velocity, "currents": currents,
                    "lowpass_hz": lowpass_hz, "torque_noise_std": sensor.torque_noise.tolist(), "qd_noise_std": sensor.qd_noise,
                    "counts_per_rev": sensor.counts, "q_noise_std": sensor.q_noise, "current_lsb": current_lsb},
-        "effect": None if main is None else {**describe(main, size), "realized": realized, "snr": effect_snr},
+        "effect": None if main is None else {**describe(main, size), "realized": realized, "snr": effect_snr, "distinct": distinct},
         "extra_effects": [describe(e, float(d.get("size", 0.1))) for e, d in zip(extras, extra_effects or [])],
         "declared": declare or [],
         "files": infos,
@@ -713,7 +757,7 @@ def make_case(seed: int, out_dir: str | Path, n_joints: int | None = None, conve
     return Case(seed, out, robot_yaml, ident_csvs[0], valid_csv, valid_clean, truth_json, ptp_csv, ptp_clean, n, convention, rate_hz,
                 noise, velocity, currents, jitter, lowpass_hz, effect, EFFECTS[effect][0] if effect else None, joint_1,
                 size if main else None, realized, infos["valid"]["noise_floor"],
-                infos["ptp"]["noise_floor"] if ptp else None, main.params if main else {}, ident_csvs)
+                infos["ptp"]["noise_floor"] if ptp else None, main.params if main else {}, ident_csvs, distinct)
 
 
 def _write_robot(path: Path, name: str, arm: Arm, modeled: list[dict], peaks: np.ndarray, declare: list[dict]) -> None:

@@ -414,3 +414,18 @@ def test_random_arms_and_excitations_stay_in_the_specified_ranges():
         assert 0.05 <= f.f0 <= 0.3 and 3 <= f.a.shape[1] <= 5
     assert sum(ln.alpha in (0.0, math.pi / 2, -math.pi / 2) for s in range(30)
                for ln in random_arm(np.random.default_rng(s), 6, "dh", None)[0].links) > 0.7 * 180
+
+
+def test_distinct_fraction_finds_rigid_body_twins(tmp_path):
+    """Rotor inertia on joint 1 is Izz1 (distinct 0); a declared offset absorbs an offset; a random joint avoids both."""
+    kw = dict(n_joints=4, rate_hz=100, noise="low", duration_s=6.0, valid_duration_s=2.0, prismatic=False)
+    on_1 = make_case(71, tmp_path / "a", effect="rotor_inertia", effect_joint=1, effect_size=0.2, **kw)
+    assert on_1.effect_distinct < 1e-6
+    on_3 = make_case(71, tmp_path / "b", effect="rotor_inertia", effect_joint=3, effect_size=0.2, **kw)
+    assert on_3.effect_distinct > 0.1
+    declared = make_case(71, tmp_path / "c", effect="torque_offset", effect_joint=2, effect_size=0.2,
+                         declare=[{"effect": "torque_offset", "joint": 2}], **kw)
+    assert declared.effect_distinct < 1e-6
+    for seed in range(72, 76):
+        drawn = make_case(seed, tmp_path / f"d{seed}", effect="rotor_inertia", **kw)
+        assert drawn.effect_joint != 1 and drawn.effect_distinct >= 0.25
