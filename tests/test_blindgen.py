@@ -157,6 +157,13 @@ def test_kinematics_match_matrix_products_and_baseline(convention, seed, tmp_pat
         after = pin.SE3.Identity() if convention == "mdh" else pin.SE3(_dh_matrix(ln.a, ln.alpha, ln.d, ln.theta, "dh"))
         link_frame = data.oMi[i + 1] * after  # DH: the link frame is the body placement after the joint
         assert np.allclose(link_frame.homogeneous, t, atol=1e-12), i
+        # the inertial values sit in that link frame: COM and inertia (about the COM) agree in the world
+        com_world = t[:3, :3] @ np.array(ln.com) + t[:3, 3]
+        inertia = model.inertias[i + 1]
+        assert np.allclose(data.oMi[i + 1].act(inertia.lever), com_world, atol=1e-12)
+        r = data.oMi[i + 1].rotation
+        i_c = np.array(ln.inertia)[[0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(3, 3)
+        assert np.allclose(r @ inertia.inertia @ r.T, t[:3, :3] @ i_c @ t[:3, :3].T, atol=1e-12)
 
     base = _baseline()
     bmodel, kt = base.load_robot(case.robot_yaml)
