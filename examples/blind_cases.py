@@ -138,26 +138,62 @@ def named(res: dict) -> str:
 
 
 def pct(x) -> str:
-    return "—" if x is None else f"{100 * x:.2f}"
+    return "—" if x is None or x != x else f"{100 * x:.2f}"
+
+
+def ratio(x, floor) -> str:
+    return "—" if x is None or x != x else f"{x / floor:.2f}"
+
+
+def gap_closed(r: dict) -> float | None:
+    """(before - after) / (before - floor): 1 reaches the noise floor, >= 0.5 is issue 16's bar."""
+    before, after = r["identify"]["error"], r.get("diagnose", {}).get("error")
+    if before is None or after is None or before != before or after != after or before <= r["noise_floor"]:
+        return None
+    return (before - after) / (before - r["noise_floor"])
 
 
 def table(results: list[dict], diagnose: bool) -> str:
-    head = ["case", "seed", "arm", "rate", "sig", "qd", "jit", "noise", "effect (joint, size, distinct)", "floor %", "baseline %", "identify %", "cover"]
+    head = ["case", "seed", "arm", "rate", "sig", "qd", "jit", "noise", "effect (joint, size, distinct)", "floor %", "baseline %",
+            "identify %", "cover", "base/floor", "id/floor"]
     if diagnose:
-        head += ["diagnose %", "found", "named"]
+        head += ["diagnose %", "gap closed", "found", "named"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in results:
-        eff = "—" if r["effect"] is None else f"{r['effect']} ({r['joint'] or 'all'}, {r['size']:.2f}, {r['distinct']:.2f})"
+        distinct = "—" if r.get("distinct") is None else f"{r['distinct']:.2f}"
+        eff = "—" if r["effect"] is None else f"{r['effect']} ({r['joint'] or 'all'}, {r['size']:.2f}, {distinct})"
         cover = r["identify"]["covered"]
         row = [r["case"], str(r["seed"]), f"{r['n_joints']}{r['convention']}", f"{r['rate_hz']:g}", r["signal"], "y" if r["velocity"] else "n",
                f"{r['jitter']:.2f}", r["noise"], eff, pct(r["noise_floor"]), pct(r["baseline"]["error"]), pct(r["identify"]["error"]),
-               "—" if cover is None else f"{cover:.3f}"]
+               "—" if cover is None else f"{cover:.3f}", ratio(r["baseline"]["error"], r["noise_floor"]), ratio(r["identify"]["error"], r["noise_floor"])]
         if diagnose:
             found = r.get("found")
-            row += [pct(r["diagnose"]["error"]), "failed" if found is None else (", ".join(f"{f['effect']}@{f['joint'] or 'all'}" for f in found) or "nothing"),
-                    r["named"]]
+            g = gap_closed(r)
+            row += [pct(r["diagnose"]["error"]), "—" if g is None else f"{g:.2f}",
+                    "failed" if found is None else (", ".join(f"{f['effect']}@{f['joint'] or 'all'}" for f in found) or "nothing"), r["named"]]
         lines.append("| " + " | ".join(row) + " |")
     return "\n".join(lines)
+
+
+def summary(results: list[dict], diagnose: bool) -> str:
+    """Issue 15/16's bars, counted: clean cases within 10 % of the floor (>= 99 % of stamps); effects named and half the gap closed."""
+    out = []
+    clean = [r for r in results if r["effect"] is None]
+    if clean:
+        def within(res: dict, floor: float) -> bool:
+            return res["error"] is not None and res["error"] == res["error"] and (res["covered"] or 0) >= 0.99 and res["error"] <= 1.1 * floor
+
+        for key in ("baseline", "identify") + (("diagnose",) if diagnose else ()):
+            n_ok = sum(within(r[key], r["noise_floor"]) for r in clean)
+            out.append(f"- clean cases, {key} within 1.1 x noise floor over >= 99 % of the stamps: {n_ok} of {len(clean)}")
+        if diagnose:
+            out.append(f"- clean cases where diagnose found nothing: {sum(r['named'] == 'clean' for r in clean)} of {len(clean)}")
+    effects = [r for r in results if r["effect"] is not None]
+    if effects and diagnose:
+        named_ok = sum(r["named"].startswith("yes") for r in effects)
+        half = sum((gap_closed(r) or 0) >= 0.5 for r in effects)
+        out.append(f"- effect cases named (effect and joint): {named_ok} of {len(effects)}; half the gap to the floor closed: {half} of {len(effects)}")
+    return "\n".join(out)
 
 
 def main() -> None:
@@ -169,7 +205,13 @@ def main() -> None:
     ap.add_argument("--no-diagnose", action="store_true", help="skip armid diagnose")
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per command")
     ap.add_argument("--ptp", action="store_true", help="validate on a point-to-point run (quintic moves, dwells)")
+    ap.add_argument("--from-json", action="store_true", help="only print the table of OUT_DIR/results.json")
     args = ap.parse_args()
+    if args.from_json:
+        results = json.loads((args.out / "results.json").read_text())
+        diagnose = all("diagnose" in r for r in results)
+        print(table(results, diagnose) + "\n\n" + summary(results, diagnose))
+        return
     cases = [c for c in SETS[args.set] if not args.only or any(c[0].startswith(o) for o in args.only)]
     args.out.mkdir(parents=True, exist_ok=True)
     results = []
@@ -186,6 +228,8 @@ def main() -> None:
             (args.out / "results.json").write_text(json.dumps(results, indent=1))
     print()
     print(table(results, not args.no_diagnose))
+    print()
+    print(summary(results, not args.no_diagnose))
 
 
 if __name__ == "__main__":
