@@ -11,8 +11,9 @@ arm (generator seed 1000 * seed + the case's index or spec seed) and its recordi
 (the declared model: the error before diagnosis) and ``armid diagnose --predictions`` (after)
 run on it. Every error is computed here, from the predictions files, against the RAW
 validation torque (or current times torque constant) at the validation file's own stamps,
-beside the noise floor (the noise-free recorded torque against the noisy one). Prints a
-markdown table and writes ``OUT_DIR/results.json``.
+beside the noise floor (the noise-free recorded torque against the noisy one) and the oracle
+(least squares on the true kinematics with the declared model, then with the true effect's
+column: what is attainable). Prints a markdown table and writes ``OUT_DIR/results.json``.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
-from blindgen import blind_specs, make_case, relative_error  # noqa: E402
+from blindgen import blind_specs, make_case, oracle_error, relative_error  # noqa: E402
 
 BASELINE = ROOT.parent / "shared" / "tools" / "baseline.py"
 
@@ -102,6 +103,7 @@ def one_case(name: str, options: dict, seed: int, out: Path, diagnose: bool, tim
            "noise": case.noise, "effect": case.effect, "expected": case.expected, "joint": case.effect_joint,
            "size": case.effect_size, "realized": case.effect_realized, "distinct": case.effect_distinct,
            "noise_floor": case.noise_floor}
+    res["oracle"] = oracle_error(case, "ptp" if ptp else "valid")  # perfect kinematics + least squares: what is attainable
     ok, res["baseline_s"] = run([sys.executable, str(BASELINE), *files, "--robot", str(case.robot_yaml), "--validate", str(case.valid_csv),
                                  "--predictions", str(folder / "baseline_pred.csv")], folder / "baseline.log", timeout)
     res["baseline"] = score(case, folder / "baseline_pred.csv", ok)
@@ -153,8 +155,13 @@ def gap_closed(r: dict) -> float | None:
     return (before - after) / (before - r["noise_floor"])
 
 
+def _oracle(r: dict) -> str:
+    o = r.get("oracle") or {}
+    return pct(o.get("before")) + ("" if o.get("after") is None else f" -> {pct(o['after'])}")
+
+
 def table(results: list[dict], diagnose: bool) -> str:
-    head = ["case", "seed", "arm", "rate", "sig", "qd", "jit", "noise", "effect (joint, size, distinct)", "floor %", "baseline %",
+    head = ["case", "seed", "arm", "rate", "sig", "qd", "jit", "noise", "effect (joint, size, distinct)", "floor %", "oracle %", "baseline %",
             "identify %", "cover", "base/floor", "id/floor"]
     if diagnose:
         head += ["diagnose %", "gap closed", "found", "named"]
@@ -164,7 +171,7 @@ def table(results: list[dict], diagnose: bool) -> str:
         eff = "—" if r["effect"] is None else f"{r['effect']} ({r['joint'] or 'all'}, {r['size']:.2f}, {distinct})"
         cover = r["identify"]["covered"]
         row = [r["case"], str(r["seed"]), f"{r['n_joints']}{r['convention']}", f"{r['rate_hz']:g}", r["signal"], "y" if r["velocity"] else "n",
-               f"{r['jitter']:.2f}", r["noise"], eff, pct(r["noise_floor"]), pct(r["baseline"]["error"]), pct(r["identify"]["error"]),
+               f"{r['jitter']:.2f}", r["noise"], eff, pct(r["noise_floor"]), _oracle(r), pct(r["baseline"]["error"]), pct(r["identify"]["error"]),
                "—" if cover is None else f"{cover:.3f}", ratio(r["baseline"]["error"], r["noise_floor"]), ratio(r["identify"]["error"], r["noise_floor"])]
         if diagnose:
             found = r.get("found")

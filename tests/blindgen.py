@@ -858,3 +858,79 @@ def noise_floor(noisy_csv: str | Path, clean_csv: str | Path, robot_yaml: str | 
     noisy = recorded(v, kt)
     clean = recorded(read_csv(clean_csv))
     return float(np.linalg.norm(noisy - clean) / np.linalg.norm(noisy))
+
+
+def _trajectory(spec: dict[str, Any]):
+    if "knots" in spec:
+        return PointToPoint(np.array(spec["knots"]), np.array(spec["t_start"]), np.array(spec["t_move"]))
+    return Fourier(spec["f0"], np.array(spec["a"]), np.array(spec["b"]), np.array(spec["q0"]))
+
+
+def oracle_error(case: Case, validate: str = "valid", max_samples: int = 4000) -> dict[str, float | None]:
+    """What a perfect-kinematics least squares reaches on this case: an attainable reference.
+
+    The true q, qd, qdd (analytic, at each file's stamps) go into Pinocchio's regressor plus the
+    declared linear effects' columns; fitted to the recorded (noisy) identification torque,
+    evaluated on the validation run and scored against its raw torque. ``before``: that model;
+    ``after``: with the true undeclared effect added as one free column per affected joint (its
+    exact shape, the size left to the fit: what the effect's own columns reach).
+    """
+    truth = json.loads(case.truth_json.read_text())
+    arm = Arm(truth["convention"], [Link(**ln) for ln in truth["links"]], truth["gravity"])
+    n = len(arm.links)
+    kt = np.array([ln.torque_constant for ln in arm.links])
+    model = build_model(arm)
+    data = model.createData()
+    lowpass = truth["sensor"]["lowpass_hz"]
+
+    def to_effect(d: dict[str, Any]) -> Effect:
+        return Effect(d["name"], [j - 1 for j in d["joints"]], d["params"])
+
+    extras = [to_effect(d) for d in truth.get("extra_effects", [])]
+    main = to_effect(truth["effect"]) if truth["effect"] else None
+    cols = {"coulomb_friction": lambda j, qd, qdd: np.sign(qd[:, j]), "viscous_friction": lambda j, qd, qdd: qd[:, j],
+            "torque_offset": lambda j, qd, qdd: np.ones(len(qd)), "rotor_inertia": lambda j, qd, qdd: qdd[:, j]}
+
+    def columns(name: str, path: Path, stride: int, with_effect: bool) -> tuple[np.ndarray, np.ndarray]:
+        rec = read_csv(path)
+        t = rec["t"]
+        tau = recorded(rec, kt)
+        traj = _trajectory(truth["excitation"][name])
+        q, qd, qdd = traj(t)
+        keep = np.arange(0, len(t), stride)
+        blocks = [np.stack([pin.computeJointTorqueRegressor(model, data, q[k], qd[k], qdd[k]) for k in keep])]
+        for dcl in truth["declared"]:
+            if dcl.get("effect") in cols:
+                for j in range(n) if dcl.get("joint") is None else [int(dcl["joint"]) - 1]:
+                    c = np.zeros((len(keep), n, 1))
+                    c[:, j, 0] = cols[dcl["effect"]](j, qd[keep], qdd[keep])
+                    blocks.append(c)
+        if with_effect and main is not None:
+            shape = recorded_torque(arm, traj, t[keep], [main, *extras])[0] - recorded_torque(arm, traj, t[keep], extras)[0]
+            for j in main.joints:
+                c = np.zeros((len(keep), n, 1))
+                c[:, j, 0] = shape[:, j]
+                blocks.append(c)
+        a = np.concatenate(blocks, axis=2)
+        if lowpass:  # the recorded torque went through the amplifier's filter: so do the columns (linear)
+            if stride != 1:
+                raise ValueError("a low-passed case needs every sample (stride 1)")
+            a = lowpass_first_order(t, a.reshape(len(t), -1), lowpass).reshape(a.shape)
+        return a, tau[keep]
+
+    out: dict[str, float | None] = {"before": None, "after": None}
+    names = [p.stem for p in case.ident_csvs]
+    total = sum(len(read_csv(p)["t"]) for p in case.ident_csvs)
+    stride = 1 if lowpass else max(1, math.ceil(total / max_samples))
+    vpath = case.valid_csv if validate == "valid" else case.ptp_csv
+    for key, with_effect in (("before", False), ("after", True)):
+        if with_effect and main is None:
+            continue
+        fit = [columns(nm, p, stride, with_effect) for nm, p in zip(names, case.ident_csvs)]
+        a = np.concatenate([f[0] for f in fit]).reshape(-1, fit[0][0].shape[2])
+        y = np.concatenate([f[1] for f in fit]).reshape(-1)
+        x = np.linalg.lstsq(a, y, rcond=None)[0]
+        av, tv = columns(validate, vpath, 1, with_effect)
+        out[key] = float(np.linalg.norm(tv - av @ x) / np.linalg.norm(tv))
+    return out
+

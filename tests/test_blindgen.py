@@ -436,3 +436,16 @@ def test_distinct_fraction_finds_rigid_body_twins(tmp_path):
     for seed in range(72, 76):
         drawn = make_case(seed, tmp_path / f"d{seed}", effect="rotor_inertia", **kw)
         assert drawn.effect_joint != 1 and drawn.effect_distinct >= 0.25
+
+
+def test_oracle_reaches_the_noise_floor_and_the_effect_column_closes_the_gap(tmp_path):
+    """Perfect kinematics + least squares: about the noise floor on clean data; the true effect's column takes it back there."""
+    from blindgen import oracle_error
+
+    kw = dict(n_joints=3, rate_hz=100, noise="medium", currents=True, duration_s=20.0, valid_duration_s=10.0)
+    clean = make_case(81, tmp_path / "clean", **kw)
+    o = oracle_error(clean)
+    assert 0.99 * clean.noise_floor < o["before"] < 1.05 * clean.noise_floor and o["after"] is None
+    eff = make_case(82, tmp_path / "eff", effect="coulomb_friction", effect_size=0.2, n_ident=2, **kw)
+    o = oracle_error(eff)
+    assert o["before"] > 2 * eff.noise_floor and o["after"] < 1.05 * eff.noise_floor
