@@ -657,6 +657,12 @@ def make_case(seed: int, out_dir: str | Path, n_joints: int | None = None, conve
     prismatic_at = min(n - 1, int(draw["pj"] * n)) if prismatic else None
     if effect is not None and effect not in EFFECTS:
         raise ValueError(f"unknown effect {effect!r} (known: {', '.join(EFFECTS)})")
+    if noise not in NOISE_LEVELS:
+        raise ValueError(f"unknown noise level {noise!r} (known: {', '.join(NOISE_LEVELS)})")
+    if convention not in ("dh", "mdh"):
+        raise ValueError(f"convention must be dh or mdh, got {convention!r}")
+    if n < 1 or n_ident < 1:
+        raise ValueError(f"n_joints and n_ident must be positive, got {n} and {n_ident}")
 
     arm, boxes = random_arm(r_arm, n, convention, prismatic_at)
     modeled = modeled_links(r_model, arm, boxes)

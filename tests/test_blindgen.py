@@ -343,9 +343,15 @@ def test_lowpass_matches_first_order_frequency_response():
     assert np.abs(y[steady] - gain * np.sin(w * t[steady] + phase)).max() < np.diff(t).max() ** 2 * w**2 / 8
 
 
-def test_unknown_effect_is_refused(tmp_path):
+def test_bad_options_are_refused(tmp_path):
     with pytest.raises(ValueError, match="unknown effect"):
         make_case(1, tmp_path, effect="magic", duration_s=1.0, valid_duration_s=1.0)
+    with pytest.raises(ValueError, match="unknown noise level"):
+        make_case(1, tmp_path, noise="loud", duration_s=1.0, valid_duration_s=1.0)
+    with pytest.raises(ValueError, match="convention"):
+        make_case(1, tmp_path, convention="urdf", duration_s=1.0, valid_duration_s=1.0)
+    with pytest.raises(ValueError, match="effect_snr needs torque noise"):
+        make_case(1, tmp_path, noise="none", effect="cogging", effect_snr=2.0, duration_s=1.0, valid_duration_s=1.0)
 
 
 def test_extra_effects_runs_and_current_quantisation(tmp_path):
