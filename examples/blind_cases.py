@@ -2,7 +2,7 @@
 """Blind cases: data armid did not make, scored against the raw validation torque.
 
     python examples/blind_cases.py OUT_DIR [--seeds 0 1 2] [--set default|clean|effects|quick|clean20|effects5]
-        [--no-diagnose] [--only NAME ...] [--timeout S] [--ptp]
+        [--count N] [--no-diagnose] [--only NAME ...] [--timeout S] [--ptp] [--from-json]
 
 For each seed and each case of the set, ``tests/blindgen.py`` (no armid code) makes a random
 arm (generator seed 1000 * seed + the case's index or spec seed) and its recordings in
@@ -212,6 +212,7 @@ def main() -> None:
     ap.add_argument("--no-diagnose", action="store_true", help="skip armid diagnose")
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per command")
     ap.add_argument("--ptp", action="store_true", help="validate on a point-to-point run (quintic moves, dwells)")
+    ap.add_argument("--count", type=int, help="clean20/effects5: that many clean cases / seeds per effect instead")
     ap.add_argument("--from-json", action="store_true", help="only print the table of OUT_DIR/results.json")
     args = ap.parse_args()
     if args.from_json:
@@ -219,6 +220,8 @@ def main() -> None:
         diagnose = all("diagnose" in r for r in results)
         print(table(results, diagnose) + "\n\n" + summary(results, diagnose))
         return
+    if args.count and args.set in ("clean20", "effects5"):
+        SETS[args.set] = [(_spec_name(o), o) for o in blind_specs("clean" if args.set == "clean20" else "effects", args.count)]
     cases = [c for c in SETS[args.set] if not args.only or any(c[0].startswith(o) for o in args.only)]
     args.out.mkdir(parents=True, exist_ok=True)
     results = []
