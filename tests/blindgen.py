@@ -766,6 +766,23 @@ def make_case(seed: int, out_dir: str | Path, n_joints: int | None = None, conve
                 infos["ptp"]["noise_floor"] if ptp else None, main.params if main else {}, ident_csvs, distinct)
 
 
+def load_case(out_dir: str | Path) -> Case:
+    """The ``Case`` of a folder ``make_case`` wrote (read back from its truth.json)."""
+    out = Path(out_dir).resolve()
+    truth = json.loads((out / "truth.json").read_text())
+    se, eff = truth["sensor"], truth["effect"]
+    runs = [p for p in out.glob("ident[0-9]*.csv") if p.stem[5:].isdigit()]
+    idents = [out / "ident.csv"] if (out / "ident.csv").exists() else sorted(runs, key=lambda p: int(p.stem[5:]))
+    ptp = (out / "ptp.csv").exists()
+    return Case(truth["seed"], out, out / "robot.yaml", idents[0], out / "valid.csv", out / "valid_clean.csv", out / "truth.json",
+                out / "ptp.csv" if ptp else None, out / "ptp_clean.csv" if ptp else None, truth["n_joints"], truth["convention"],
+                se["rate_hz"], se["noise"], se["velocity"], se["currents"], se["jitter"], se["lowpass_hz"],
+                eff["name"] if eff else None, eff["expected"] if eff else None, eff["joint"] if eff else None,
+                eff["size"] if eff else None, eff["realized"] if eff else None, truth["files"]["valid"]["noise_floor"],
+                truth["files"]["ptp"]["noise_floor"] if ptp else None, eff["params"] if eff else {}, idents,
+                eff.get("distinct") if eff else None)
+
+
 def _write_robot(path: Path, name: str, arm: Arm, modeled: list[dict], peaks: np.ndarray, declare: list[dict]) -> None:
     joints = []
     for i, (ln, mo) in enumerate(zip(arm.links, modeled)):
@@ -872,7 +889,7 @@ def _trajectory(spec: dict[str, Any]):
     return Fourier(spec["f0"], np.array(spec["a"]), np.array(spec["b"]), np.array(spec["q0"]))
 
 
-def oracle_error(case: Case, validate: str = "valid", max_samples: int = 4000) -> dict[str, float | None]:
+def oracle_error(case: Case | str | Path, validate: str = "valid", max_samples: int = 4000) -> dict[str, float | None]:
     """What a perfect-kinematics least squares reaches on this case: an attainable reference.
 
     The true q, qd, qdd (analytic, at each file's stamps) go into Pinocchio's regressor plus the
@@ -880,7 +897,10 @@ def oracle_error(case: Case, validate: str = "valid", max_samples: int = 4000) -
     evaluated on the validation run and scored against its raw torque. ``before``: that model;
     ``after``: with the true undeclared effect added as one free column per affected joint (its
     exact shape, the size left to the fit: what the effect's own columns reach).
+    ``case`` may be a folder ``make_case`` wrote.
     """
+    if not isinstance(case, Case):
+        case = load_case(case)
     truth = json.loads(case.truth_json.read_text())
     arm = Arm(truth["convention"], [Link(**ln) for ln in truth["links"]], truth["gravity"])
     n = len(arm.links)

@@ -455,3 +455,11 @@ def test_oracle_reaches_the_noise_floor_and_the_effect_column_closes_the_gap(tmp
     eff = make_case(82, tmp_path / "eff", effect="coulomb_friction", effect_size=0.2, n_ident=2, **kw)
     o = oracle_error(eff)
     assert o["before"] > 2 * eff.noise_floor and o["after"] < 1.05 * eff.noise_floor
+
+
+@pytest.mark.parametrize("kw", [dict(), dict(effect="cogging", n_ident=2, ptp=True, currents=True)])
+def test_load_case_reads_back_what_make_case_returned(kw, tmp_path):
+    from blindgen import load_case
+
+    case = make_case(91, tmp_path, n_joints=3, rate_hz=100, duration_s=2.0, valid_duration_s=2.0, **kw)
+    assert load_case(tmp_path) == case
