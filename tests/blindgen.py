@@ -18,6 +18,14 @@ model is); the truth is in ``truth.json`` beside it. Each noisy file has a ``*_c
     # armid identify out/case7/ident.csv --robot out/case7/robot.yaml --validate out/case7/valid.csv \
     #     --predictions out/case7/pred.csv
     err, covered = relative_error(case.valid_csv, "out/case7/pred.csv")
+
+Public: ``make_case`` (one case; ``load_case`` reads a folder back), ``blind_specs`` (sweeps:
+clean cases across rates/noise/sensors, every effect from barely visible to large),
+``relative_error`` and ``noise_floor`` (scoring against the raw validation torque at its own
+stamps), ``oracle_error`` (least squares on the true kinematics: what is attainable),
+``distinct_fraction`` (how much of an effect the declared model cannot absorb), ``EFFECTS``,
+``NOISE_LEVELS``. Files of a case: robot.yaml, ident.csv (or ident1..K.csv), valid.csv,
+``*_clean.csv`` twins, optional ptp.csv, truth.json.
 """
 
 from __future__ import annotations
