@@ -535,7 +535,8 @@ def record(rng: np.random.Generator, arm: Arm, traj, t: np.ndarray, effect: Effe
     if clean_path is not None:
         _write_csv(clean_path, ["t"] + [f"tau{j + 1}" for j in range(n)], np.column_stack([t, clean]))
     floor = float(np.linalg.norm(noisy - clean) / np.linalg.norm(noisy))
-    return {"samples": len(t), "noise_floor": floor, "max_abs_torque": np.abs(clean).max(axis=0).tolist()}
+    return {"samples": len(t), "noise_floor": floor, "noise_norm": float(np.linalg.norm(noisy - clean)),
+            "max_abs_torque": np.abs(clean).max(axis=0).tolist()}
 
 
 # ---------------------------------------------------------------------- the case
@@ -572,6 +573,7 @@ class Case:
     params: dict[str, Any]  # the main effect's parameters
     ident_csvs: list[Path]  # every identification run (ident_csv is the first)
     effect_distinct: float | None = None  # fraction of the effect the declared model cannot absorb (distinct_fraction)
+    effect_visible: float | None = None  # validation: ||effect torque||_F / ||torque noise||_F over all joints
 
 
 MIN_DISTINCT = 0.25
@@ -609,6 +611,25 @@ def distinct_fraction(arm: Arm, traj, t: np.ndarray, effects: list[Effect], base
     return float(np.linalg.norm(residual) / max(np.linalg.norm(d), 1e-300))
 
 
+def _size_for_snr(arm: Arm, traj, t: np.ndarray, name: str, joints: list[int], overrides: dict[str, Any] | None,
+                  extras: list[Effect], snr: float, level: float, draws: int, size: float) -> tuple[Effect, float]:
+    """The effect sized so its torque, over all joints, is ``snr`` times the whole arm's torque noise.
+
+    ``||effect||_F = snr * sqrt(N * sum_j std_j^2)`` on the identification run, with std_j the
+    noise level times joint j's peak torque (without the effect): snr 1-2 is barely visible in
+    the whole-arm error (about sqrt(1 + snr^2) times the noise floor if nothing absorbs it).
+    """
+    base = recorded_torque(arm, traj, t, extras)[0]
+    target = snr * math.sqrt(len(t) * float(np.sum((level * np.abs(base).max(axis=0)) ** 2)))
+    for _ in range(3):
+        eff = size_effect(np.random.default_rng(draws), arm, traj, t, name, joints, size, overrides)
+        norm = float(np.linalg.norm(recorded_torque(arm, traj, t, [eff, *extras])[0] - base))
+        if norm <= 0 or abs(norm / target - 1) < 1e-3:
+            break
+        size *= target / norm
+    return eff, size
+
+
 def _resolve_joints(name: str, joint: int | str | None, n: int, u: float) -> list[int]:
     """0-based joints of an effect: every joint for arm-wide effects or "all", else the 1-based one, else drawn (u in [0, 1))."""
     if EFFECTS[name][1] or joint == "all":
@@ -639,8 +660,8 @@ def make_case(seed: int, out_dir: str | Path, n_joints: int | None = None, conve
     ``declare`` goes into the robot file's ``effects`` list. ``ptp`` adds ptp.csv/ptp_clean.csv,
     a point-to-point validation run. ``n_ident`` > 1 writes ident1.csv..identK.csv, Fourier
     runs of one design with different coefficients. ``current_lsb`` quantises the currents (A).
-    ``effect_snr`` sets the size instead: the effect's RMS is that many times the torque-noise
-    std on its joint(s) (1-2 is barely above the noise; needs a noise level other than "none").
+    ``effect_snr`` sets the size instead: the effect's torque over all joints is that many times
+    the whole arm's torque noise (1-2 is barely above the noise floor; see ``_size_for_snr``).
     """
     streams = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(8)]
     r_arm, r_exc, r_sens, r_eff, r_noise, r_model, r_opt, r_ptp = streams
@@ -700,14 +721,14 @@ def make_case(seed: int, out_dir: str | Path, n_joints: int | None = None, conve
         # a joint drawn at random must be one where the effect is not a rigid-body parameter's twin
         # (rotor inertia on joint 1 is Izz1): try the joints in turn from the drawn one
         tries = [[(first[0] + k) % n] for k in range(n)] if effect_joint is None and len(first) == 1 else [first]
+        if effect_snr is not None and NOISE_LEVELS[noise]["torque"] == 0:
+            raise ValueError("effect_snr needs torque noise (noise other than 'none')")
         for joints in tries:
-            if effect_snr is not None:
-                if NOISE_LEVELS[noise]["torque"] == 0:
-                    raise ValueError("effect_snr needs torque noise (noise other than 'none')")
-                rigid = recorded_torque(arm, fourier_id[0], t_id[0], None)[0][:, joints]
-                noise_std = NOISE_LEVELS[noise]["torque"] * np.abs(rigid).max(axis=0)
-                size = float(effect_snr * np.sqrt(np.mean(noise_std**2)) / np.sqrt(np.mean(rigid**2)))
-            main = size_effect(r_eff, arm, fourier_id[0], t_id[0], effect, joints, size, effect_params)
+            draws = int(r_eff.integers(2**62))  # the same random choices (signs, periods) on every sizing pass
+            main = size_effect(np.random.default_rng(draws), arm, fourier_id[0], t_id[0], effect, joints, size, effect_params)
+            if effect_snr is not None:  # two passes: the size is (nearly) linear in the parameters
+                main, size = _size_for_snr(arm, fourier_id[0], t_id[0], effect, joints, effect_params, extras, effect_snr,
+                                           NOISE_LEVELS[noise]["torque"], draws, size)
             distinct = distinct_fraction(arm, fourier_id[0], t_id[0], [main, *extras], extras, declare or [])
             if distinct >= MIN_DISTINCT:
                 break
@@ -731,12 +752,14 @@ def make_case(seed: int, out_dir: str | Path, n_joints: int | None = None, conve
         ptp_csv, ptp_clean = out / "ptp.csv", out / "ptp_clean.csv"
         infos["ptp"] = record(r_noise, arm, traj_pt, stamps(r_sens, dur_va, rate_hz, jitter), effects, sensor, ptp_csv, ptp_clean)
 
-    realized = None
+    realized, visible = None, None
     if main is not None:  # the main effect alone, on the validation run
         rigid, _ = recorded_torque(arm, fourier_va, t_va, extras)
         moved, _ = recorded_torque(arm, fourier_va, t_va, effects)
         js = main.joints
         realized = float(np.linalg.norm(moved[:, js] - rigid[:, js]) / np.linalg.norm(rigid[:, js]))
+        noise_norm = infos["valid"]["noise_norm"]
+        visible = float(np.linalg.norm(moved - rigid) / noise_norm) if noise_norm > 0 else None  # None: noise-free case
 
     peaks = np.max([info["max_abs_torque"] for info in infos.values()], axis=0)
     robot_yaml = out / "robot.yaml"
@@ -759,7 +782,8 @@ def make_case(seed: int, out_dir: str | Path, n_joints: int | None = None, conve
         "sensor": {"rate_hz": rate_hz, "jitter": jitter, "noise": noise, "velocity": velocity, "currents": currents,
                    "lowpass_hz": lowpass_hz, "torque_noise_std": sensor.torque_noise.tolist(), "qd_noise_std": sensor.qd_noise,
                    "counts_per_rev": sensor.counts, "q_noise_std": sensor.q_noise, "current_lsb": current_lsb},
-        "effect": None if main is None else {**describe(main, size), "realized": realized, "snr": effect_snr, "distinct": distinct},
+        "effect": None if main is None else {**describe(main, size), "realized": realized, "snr": effect_snr, "distinct": distinct,
+                                            "visible": visible},
         "extra_effects": [describe(e, float(d.get("size", 0.1))) for e, d in zip(extras, extra_effects or [])],
         "declared": declare or [],
         "files": infos,
@@ -771,7 +795,7 @@ def make_case(seed: int, out_dir: str | Path, n_joints: int | None = None, conve
     return Case(seed, out, robot_yaml, ident_csvs[0], valid_csv, valid_clean, truth_json, ptp_csv, ptp_clean, n, convention, rate_hz,
                 noise, velocity, currents, jitter, lowpass_hz, effect, EFFECTS[effect][0] if effect else None, joint_1,
                 size if main else None, realized, infos["valid"]["noise_floor"],
-                infos["ptp"]["noise_floor"] if ptp else None, main.params if main else {}, ident_csvs, distinct)
+                infos["ptp"]["noise_floor"] if ptp else None, main.params if main else {}, ident_csvs, distinct, visible)
 
 
 def load_case(out_dir: str | Path) -> Case:
@@ -788,7 +812,7 @@ def load_case(out_dir: str | Path) -> Case:
                 eff["name"] if eff else None, eff["expected"] if eff else None, eff["joint"] if eff else None,
                 eff["size"] if eff else None, eff["realized"] if eff else None, truth["files"]["valid"]["noise_floor"],
                 truth["files"]["ptp"]["noise_floor"] if ptp else None, eff["params"] if eff else {}, idents,
-                eff.get("distinct") if eff else None)
+                eff.get("distinct") if eff else None, eff.get("visible") if eff else None)
 
 
 def _write_robot(path: Path, name: str, arm: Arm, modeled: list[dict], peaks: np.ndarray, declare: list[dict]) -> None:
@@ -812,8 +836,9 @@ def blind_specs(kind: str, count: int, seed0: int = 0, effects: list[str] | None
     ``clean``: ``count`` cases, no effect, rates 100/200/500/1000 Hz, noise low/medium/high,
     velocity or not, torque or current, jitter or not, all rotating at co-prime periods.
     ``effects``: each effect (all of EFFECTS by default) on ``count`` seeds, on a random joint,
-    at sizes from barely above the torque noise to large (``snrs``, rotating), sensors rotating
-    as for clean.
+    at sizes from barely above the noise floor to large (``snrs``: whole-arm effect / noise,
+    rotating), sensors rotating as for clean. Effect case k uses seed0 + k like clean case k:
+    the same arm and sensor draws (a paired design), only the effect differs.
     """
     rates, levels = (100.0, 200.0, 500.0, 1000.0), ("low", "medium", "high")
 
