@@ -13,7 +13,10 @@ run on it. Every error is computed here, from the predictions files, against the
 validation torque (or current times torque constant) at the validation file's own stamps,
 beside the noise floor (the noise-free recorded torque against the noisy one) and the oracle
 (least squares on the true kinematics with the declared model, then with the true effect's
-column: what is attainable). Prints a markdown table and writes ``OUT_DIR/results.json``.
+column: what is attainable). The effect column gives the joint, the size (relative to the
+joint's torque RMS), the distinct fraction (what the declared model cannot absorb) and the
+visibility (whole-arm effect torque / torque noise). Prints a markdown table and writes
+``OUT_DIR/results.json``.
 """
 
 from __future__ import annotations
@@ -101,7 +104,7 @@ def one_case(name: str, options: dict, seed: int, out: Path, diagnose: bool, tim
     res = {"case": name, "seed": seed, "dir": str(folder), "n_joints": case.n_joints, "convention": case.convention,
            "rate_hz": case.rate_hz, "signal": "i" if case.currents else "tau", "velocity": case.velocity, "jitter": case.jitter,
            "noise": case.noise, "effect": case.effect, "expected": case.expected, "joint": case.effect_joint,
-           "size": case.effect_size, "realized": case.effect_realized, "distinct": case.effect_distinct,
+           "size": case.effect_size, "realized": case.effect_realized, "distinct": case.effect_distinct, "visible": case.effect_visible,
            "noise_floor": case.noise_floor}
     res["oracle"] = oracle_error(case, "ptp" if ptp else "valid")  # perfect kinematics + least squares: what is attainable
     ok, res["baseline_s"] = run([sys.executable, str(BASELINE), *files, "--robot", str(case.robot_yaml), "--validate", str(case.valid_csv),
@@ -161,14 +164,15 @@ def _oracle(r: dict) -> str:
 
 
 def table(results: list[dict], diagnose: bool) -> str:
-    head = ["case", "seed", "arm", "rate", "sig", "qd", "jit", "noise", "effect (joint, size, distinct)", "floor %", "oracle %", "baseline %",
+    head = ["case", "seed", "arm", "rate", "sig", "qd", "jit", "noise", "effect (joint, size, distinct, visible)", "floor %", "oracle %", "baseline %",
             "identify %", "cover", "base/floor", "id/floor"]
     if diagnose:
         head += ["diagnose %", "gap closed", "found", "named"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in results:
         distinct = "—" if r.get("distinct") is None else f"{r['distinct']:.2f}"
-        eff = "—" if r["effect"] is None else f"{r['effect']} ({r['joint'] or 'all'}, {r['size']:.2f}, {distinct})"
+        visible = "—" if r.get("visible") is None else f"{r['visible']:.1f}"
+        eff = "—" if r["effect"] is None else f"{r['effect']} ({r['joint'] or 'all'}, {r['size']:.2f}, {distinct}, {visible})"
         cover = r["identify"]["covered"]
         row = [r["case"], str(r["seed"]), f"{r['n_joints']}{r['convention']}", f"{r['rate_hz']:g}", r["signal"], "y" if r["velocity"] else "n",
                f"{r['jitter']:.2f}", r["noise"], eff, pct(r["noise_floor"]), _oracle(r), pct(r["baseline"]["error"]), pct(r["identify"]["error"]),
