@@ -241,8 +241,8 @@ class _Candidates:
         reduced: Array | None = None
         active = np.arange(m)
         for _ in range(30):  # torque: shrink the motion until the modeled torque fits
-            q = self._evaluate(q0[active], A[active], B[active])
-            w = self._regressor(*q)
+            motion = self._evaluate(q0[active], A[active], B[active])
+            w = self._regressor(*motion)
             tau = np.einsum("mtnp,p->mtn", w[..., : 10 * n], self.phi)  # not BLAS: its threads stall on a loaded machine
             with np.errstate(invalid="ignore"):
                 ratio = (np.abs(tau).max(axis=1) / (margin * lim.torque)).max(axis=1)
@@ -256,7 +256,7 @@ class _Candidates:
             active = active[over]
             if not active.size:
                 break
-            q_now = q[0][over]
+            q_now = motion[0][over]
             mid_q = 0.5 * (q_now.max(axis=1) + q_now.min(axis=1))
             q0[active] = mid_q - shrink[:, None] * (mid_q - q0[active])
             A[active] *= shrink[:, None, None]
