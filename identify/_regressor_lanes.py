@@ -295,12 +295,12 @@ def _rows(i, nj, s, carried, table):  # type: ignore[no-untyped-def]
 
 @_inline
 def _write_out(table, nl, k0, out, row_stride, seg_len, seg_stride, first_aligned):  # type: ignore[no-untyped-def]
-    """The block's lanes into ``out[k0 + lane]``, whose elements lie at ``lane * row_stride +
+    """The block's lanes into the rows ``k0 + lane`` of ``out``, the flat (1-D) memory of the
+    result from its first element on: row k's elements lie at ``k * row_stride +
     seg * seg_stride + col`` in segments of ``seg_len`` contiguous columns (one segment of
-    10 N^2 when ``out`` is C-contiguous, N of 10 N when it is a view into a wider array).
+    10 N^2 when the result is C-contiguous, N of 10 N when it is a view into a wider array).
     8 x 8 tiles go through registers; ``first_aligned[seg]`` >= 0 is a column whose address
     is a cache line's in every row, and the tiles from it go out non-temporally."""
-    row_len = out.shape[2]
     for seg in range(first_aligned.shape[0]):
         fa = first_aligned[seg]
         start = max(fa, 0)
@@ -315,21 +315,23 @@ def _write_out(table, nl, k0, out, row_stride, seg_len, seg_stride, first_aligne
                 else:
                     _transpose8_store(out, base + col, row_stride, table, (t0 + col) * L + m0, L)
             for m in range(m0, m0 + 8):
+                row = (k0 + m) * row_stride + seg * seg_stride
                 for col in range(start):
-                    out[k0 + m, (t0 + col) // row_len, (t0 + col) % row_len] = table[(t0 + col) * L + m]
+                    out[row + col] = table[(t0 + col) * L + m]
                 for col in range(stop, seg_len):
-                    out[k0 + m, (t0 + col) // row_len, (t0 + col) % row_len] = table[(t0 + col) * L + m]
+                    out[row + col] = table[(t0 + col) * L + m]
             m0 += 8
         for m in range(m0, nl):
+            row = (k0 + m) * row_stride + seg * seg_stride
             for col in range(seg_len):
-                out[k0 + m, (t0 + col) // row_len, (t0 + col) % row_len] = table[(t0 + col) * L + m]
+                out[row + col] = table[(t0 + col) * L + m]
 
 
 @numba.njit(cache=True, parallel=True, fastmath=True, error_model="numpy", boundscheck=False)
 def regressor_kernel(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g, q, qd, qdd, out, row_stride, seg_len, seg_stride, first_aligned):  # type: ignore[no-untyped-def]
-    """``out[k]`` = the regressor of sample k (eqs. 16-18), for (n, N) ``q``, ``qd``, ``qdd``;
-    the joint constants are :func:`identify.dynamics._joint_constants`'s; the layout of
-    ``out`` (rows of 8-byte elements) is :func:`_write_out`'s."""
+    """Row k of ``out`` = the regressor of sample k (eqs. 16-18), for (n, N) ``q``, ``qd``,
+    ``qdd``; the joint constants are :func:`identify.dynamics._joint_constants`'s; ``out`` is
+    the result's flat memory, laid out as :func:`_write_out` says."""
     n, nj = q.shape
     ncol = 10 * nj * nj
     nchunks = (n + CHUNK - 1) // CHUNK
@@ -360,19 +362,30 @@ def regressor_kernel(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g, q, qd, qdd, ou
 
 
 def regressor_rows(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g, q, qd, qdd, out, row_stride, seg_len, seg_stride, first_aligned):  # type: ignore[no-untyped-def]
-    """:func:`regressor_kernel`, in the calling thread alone below ``SERIAL_BELOW`` samples.
+    """:func:`regressor_kernel` into ``out`` (n, N, 10 N), possibly a view into a wider
+    array, in the calling thread alone below ``SERIAL_BELOW`` samples.
+
+    The kernel gets ``out`` as its flat memory (a 1-D view from the first element to the
+    last), so that a C-contiguous result and a view into a stacked regressor are one type
+    to numba: one compilation on a fresh machine, not two (10-28 s each measured on this
+    2-core machine under load).
 
     Waking the other threads of the parallel region costs more than a few chunks of work
     on them: measured on this 2-core machine under load (load average 9), 160 samples took
     17 ms on two threads and 0.08 ms on one, 7,840 samples 9.6 ms and 3.8 ms. A design's
     candidates, the payload estimator and every short call paid that. The thread count is
     thread-local in numba, so other threads' calls are not affected."""
-    if q.shape[0] >= SERIAL_BELOW:
-        regressor_kernel(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g, q, qd, qdd, out, row_stride, seg_len, seg_stride, first_aligned)
+    n = q.shape[0]
+    if n == 0:
+        return
+    span = (n - 1) * row_stride + (first_aligned.shape[0] - 1) * seg_stride + seg_len
+    flat = np.lib.stride_tricks.as_strided(out, shape=(span,), strides=(out.itemsize,))
+    if n >= SERIAL_BELOW:
+        regressor_kernel(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g, q, qd, qdd, flat, row_stride, seg_len, seg_stride, first_aligned)
         return
     threads = numba.get_num_threads()
     numba.set_num_threads(1)
     try:
-        regressor_kernel(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g, q, qd, qdd, out, row_stride, seg_len, seg_stride, first_aligned)
+        regressor_kernel(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g, q, qd, qdd, flat, row_stride, seg_len, seg_stride, first_aligned)
     finally:
         numba.set_num_threads(threads)
