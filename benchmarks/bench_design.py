@@ -4,8 +4,10 @@ it was before issue 19 (vendored below), in the same process, on the demo's eigh
 
 The reference is the old code as it stood: L-BFGS-B's own finite differences, one candidate
 at a time, each scaled and run through the regressor alone, the regressor recomputing the
-joints' constants on every call. Both share the compiled regressor kernel, which is warmed
-first. Per design: both times, their ratio, and the designs' quality (condition number of the
+joints' constants on every call. Both share today's compiled regressor kernel, warmed first;
+the kernel's own change (small calls on the calling thread, not numba's parallel region,
+which took 17 ms for 160 samples under load) is not in the ratio, so the ratio understates
+the gain on a loaded machine. Per design: both times, their ratio, and the designs' quality (condition number of the
 column-scaled base regressor, D-criterion ``log det(W_b^T W_b)``).
 
     python benchmarks/bench_design.py [names...]     # default: all eight (link6 ... link1 whole_a whole_b)
@@ -22,7 +24,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from identify import excitation as ex
-from identify._regressor_lanes import regressor_kernel
+from identify._regressor_lanes import regressor_rows
 from identify.dynamics import _joint_constants, _out_layout, check_joint_arrays, regressor
 from identify.effects import effect_columns
 from identify.identification import declared_effects
@@ -46,8 +48,8 @@ def _regressor_before(robot: Robot, q: np.ndarray, qd: np.ndarray, qdd: np.ndarr
     a0, ac, a_s, p0, pc, ps, t0, u = _joint_constants(robot)
     g = -np.asarray(robot.gravity, dtype=float)
     row_stride, seg_len, seg_stride, first_aligned = layout
-    regressor_kernel(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g, np.ascontiguousarray(q), np.ascontiguousarray(qd),
-                     np.ascontiguousarray(qdd), out, row_stride, seg_len, seg_stride, first_aligned)
+    regressor_rows(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g, np.ascontiguousarray(q), np.ascontiguousarray(qd),
+                   np.ascontiguousarray(qdd), out, row_stride, seg_len, seg_stride, first_aligned)
     return out
 
 

@@ -250,7 +250,7 @@ def regressor(robot: Robot, q: Array, qd: Array, qdd: Array, out: Array | None =
     (eqs. 16-17): the rows ``s_j^T R^j_i`` of all joints ``j <= i`` are carried together from
     link to link and multiplied into ``K_i`` in closed form, which is :func:`regressor_blocks`
     without the zeros of ``K_i``. A compiled kernel (:mod:`identify._regressor_lanes`) runs
-    it on blocks of samples in SIMD lanes, the blocks in parallel. ``out``
+    it on blocks of samples in SIMD lanes, the blocks of a large call on several threads. ``out``
     (n, N, 10 N), possibly a view into a wider array, receives the result when given.
     """
     q, qd, qdd = check_joint_arrays(robot, q, qd, qdd)
