@@ -122,8 +122,9 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0) -> int:
     def designed(done: int, total: int, seconds: float) -> None:
         design_times.append(seconds)
         whole_left = min(len(whole_runs), total - done)
-        per_link = float(np.mean(design_times[: len(links)])) if design_times[: len(links)] else seconds
-        per_whole = float(np.mean(design_times[len(links) :])) if design_times[len(links) :] else 3.0 * per_link
+        # medians: the first design also loads the compiled kernel; a whole-arm design takes about two single-link ones
+        per_link = float(np.median(design_times[: len(links)])) if design_times[: len(links)] else seconds
+        per_whole = float(np.median(design_times[len(links) :])) if design_times[len(links) :] else 2.0 * per_link
         phases.estimates["design"] = (time.monotonic() - phases.phase_started) + (total - done - whole_left) * per_link + whole_left * per_whole
 
     with threadpool_limits(1, "blas"):  # OpenBLAS's threads stall on a loaded 2-core machine; the demo's products are small
