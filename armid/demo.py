@@ -23,7 +23,15 @@ from identify import excitation as ex
 from identify.identification import IdentificationResult, IdentifyOptions, identify
 from identify.single_link import SequenceResult, single_link_sequence
 
-from .experiments import design_experiments, prepared_runs, run_experiments, warm_in_background, warm_payload_estimator, write_json
+from .experiments import (
+    design_experiments,
+    finish_warming,
+    prepared_runs,
+    run_experiments,
+    warm_in_background,
+    warm_payload_estimator,
+    write_json,
+)
 
 DEFAULT_RIG = Path(__file__).resolve().parent.parent / "config" / "rigs" / "sim.yaml"
 
@@ -134,14 +142,15 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0) -> int:
         phases.estimates.update(design=time.monotonic() - phases.phase_started, runs=runs_s,
                                 payload=ex.plan(experiments[-2].design, start, ex.Limits.of(robot), periods=2).duration_s + 3.0)
         phases.start("warm", "compiling and warming the on-line payload estimator, so that nothing compiles while the arm moves")
-        warm_error = warming.communicate()[1].decode().strip().splitlines()
+        warm_error = finish_warming(warming)
+        if warm_error:
+            console.print(f"  [dim]the background compilation failed ({warm_error}); compiling here[/]")
         try:
             warm_payload_estimator(robot, rig.period_s, experiments[-2].plan)
         except Exception as err:  # noqa: BLE001  a failed warm-up only costs time later
             console.print(f"  [yellow]could not warm the payload estimator ({type(err).__name__}: {err}); it will compile on first use[/]")
-        if warming.returncode:
-            console.print(f"  [dim]the background compilation ended with {warming.returncode}: {warm_error[-1] if warm_error else ''}[/]")
-        phases.start("runs", f"running the {len(experiments)} experiments on the drives in real time ({runs_s:.0f} s of motion, "
+        motion_s = sum(e.plan.duration_s for e in experiments)
+        phases.start("runs", f"running the {len(experiments)} experiments on the drives in real time ({motion_s:.0f} s of motion, "
                      "2 ms SYNC over the virtual CAN bus), each recorded as MCAP")
         with ExcitationSession(rig, simulate=True) as session:
             reports = run_experiments(session, experiments, out / "runs", console)

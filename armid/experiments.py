@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -134,7 +135,19 @@ def warm_in_background(rig_path: Path) -> subprocess.Popen[bytes]:
     computes the regressor with the plain numpy recursion
     (:func:`~identify.dynamics.regressor_blocks`, same numbers) so as not to compile its
     kernel a second time."""
-    return subprocess.Popen([sys.executable, "-c", _WARM_PAYLOAD, str(rig_path)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    errors = tempfile.TemporaryFile()  # not a pipe: a full pipe would stall the compilation until read
+    return subprocess.Popen([sys.executable, "-c", _WARM_PAYLOAD, str(rig_path)], stdout=subprocess.DEVNULL, stderr=errors)
+
+
+def finish_warming(process: subprocess.Popen[bytes]) -> str | None:
+    """Wait for :func:`warm_in_background`'s process; the last line of its errors if it failed."""
+    process.wait()
+    errors = process.stderr
+    if not process.returncode or errors is None:
+        return None
+    errors.seek(0)
+    lines = errors.read().decode(errors="replace").strip().splitlines()
+    return f"exit {process.returncode}: {lines[-1] if lines else ''}"
 
 
 def run_experiments(session: ExcitationSession, experiments: list[Experiment], out: Path, console: Any = None) -> list[RunReport]:
