@@ -25,7 +25,6 @@ from identify.single_link import SequenceResult, single_link_sequence
 
 from .experiments import (
     design_experiments,
-    finish_warming,
     prepared_runs,
     run_experiments,
     warm_in_background,
@@ -142,7 +141,7 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0) -> int:
         phases.estimates.update(design=time.monotonic() - phases.phase_started, runs=runs_s,
                                 payload=ex.plan(experiments[-2].design, start, ex.Limits.of(robot), periods=2).duration_s + 3.0)
         phases.start("warm", "compiling and warming the on-line payload estimator, so that nothing compiles while the arm moves")
-        warm_error = finish_warming(warming)
+        warm_error = warming.finish()
         if warm_error:
             console.print(f"  [dim]the background compilation failed ({warm_error}); compiling here[/]")
         try:

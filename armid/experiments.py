@@ -126,7 +126,24 @@ warm_payload_estimator(rig.robot, rig.period_s, ex.plan(traj, traj.evaluate(np.z
 """
 
 
-def warm_in_background(rig_path: Path) -> subprocess.Popen[bytes]:
+@dataclass
+class Warming:
+    """:func:`warm_in_background`'s process and the file its errors go to (not a pipe: a
+    full pipe would stall the compilation until read)."""
+
+    process: subprocess.Popen[bytes]
+    errors: Any
+
+    def finish(self) -> str | None:
+        """Wait for the process; one line on why it failed, None when it did not."""
+        self.process.wait()
+        self.errors.seek(0)
+        lines = self.errors.read().decode(errors="replace").strip().splitlines()
+        self.errors.close()
+        return f"exit {self.process.returncode}: {lines[-1] if lines else ''}" if self.process.returncode else None
+
+
+def warm_in_background(rig_path: Path) -> Warming:
     """Start a process that compiles the payload estimator's numba kernel into numba's cache
     on disk, on the other core while this one compiles the regressor kernel and designs. On
     a fresh machine the two compilations took 15-40 s and 20-47 s on this 2-core machine
@@ -135,19 +152,9 @@ def warm_in_background(rig_path: Path) -> subprocess.Popen[bytes]:
     computes the regressor with the plain numpy recursion
     (:func:`~identify.dynamics.regressor_blocks`, same numbers) so as not to compile its
     kernel a second time."""
-    errors = tempfile.TemporaryFile()  # not a pipe: a full pipe would stall the compilation until read
-    return subprocess.Popen([sys.executable, "-c", _WARM_PAYLOAD, str(rig_path)], stdout=subprocess.DEVNULL, stderr=errors)
-
-
-def finish_warming(process: subprocess.Popen[bytes]) -> str | None:
-    """Wait for :func:`warm_in_background`'s process; the last line of its errors if it failed."""
-    process.wait()
-    errors = process.stderr
-    if not process.returncode or errors is None:
-        return None
-    errors.seek(0)
-    lines = errors.read().decode(errors="replace").strip().splitlines()
-    return f"exit {process.returncode}: {lines[-1] if lines else ''}"
+    errors = tempfile.TemporaryFile()
+    process = subprocess.Popen([sys.executable, "-c", _WARM_PAYLOAD, str(rig_path)], stdout=subprocess.DEVNULL, stderr=errors)
+    return Warming(process, errors)
 
 
 def run_experiments(session: ExcitationSession, experiments: list[Experiment], out: Path, console: Any = None) -> list[RunReport]:
