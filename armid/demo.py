@@ -19,10 +19,18 @@ import numpy as np
 
 from daq.excite import ExcitationSession
 from drivers.rig import Rig, load_rig
+from identify import excitation as ex
 from identify.identification import IdentificationResult, IdentifyOptions, identify
 from identify.single_link import SequenceResult, single_link_sequence
 
-from .experiments import design_experiments, prepared_runs, run_experiments, write_json
+from .experiments import (
+    design_experiments,
+    prepared_runs,
+    run_experiments,
+    warm_in_background,
+    warm_payload_estimator,
+    write_json,
+)
 
 DEFAULT_RIG = Path(__file__).resolve().parent.parent / "config" / "rigs" / "sim.yaml"
 
@@ -62,46 +70,112 @@ def check_against_truth(rig: Rig, seq: SequenceResult, whole: IdentificationResu
     }
 
 
+class Phases:
+    """What the demo is doing and how long the rest will take, printed as each phase starts.
+
+    Each phase has an estimate in seconds, replaced by what is known as the demo goes: the
+    designs by the time the designs so far took, the runs by their plans' durations (the arm
+    runs in real time), the payload phase by its plan's. The rest are figures measured on
+    the 2-core machine the demo was written on."""
+
+    def __init__(self, console: Any, estimates: dict[str, float]) -> None:
+        self.console, self.estimates, self.started = console, dict(estimates), time.monotonic()
+        self.current: str | None = None
+        self.phase_started = self.started
+
+    def left_s(self) -> float:
+        """Seconds left: the rest of the current phase and every phase after it."""
+        keys = list(self.estimates)
+        k = keys.index(self.current) if self.current in keys else 0
+        in_phase = max(0.0, self.estimates[keys[k]] - (time.monotonic() - self.phase_started)) if self.current else self.estimates[keys[0]]
+        return in_phase + sum(self.estimates[key] for key in keys[k + 1 :])
+
+    def start(self, key: str, text: str) -> None:
+        self.current, self.phase_started = key, time.monotonic()
+        keys = list(self.estimates)
+        self.console.print(f"[bold][{keys.index(key) + 1}/{len(keys)}][/] {text} "
+                           f"[dim]({time.monotonic() - self.started:.0f} s in, about {self.left_s():.0f} s left)[/]")
+
+    def note(self, text: str) -> None:
+        self.console.print(f"  {text} [dim](about {self.left_s():.0f} s left)[/]")
+
+
+PHASE_ESTIMATES_S = {"design": 12.0, "warm": 2.0, "runs": 75.0, "identify": 8.0, "payload": 16.0, "report": 4.0}
+"""First guesses for :class:`Phases`, from runs on a 2-core machine with a warm numba cache."""
+
+
 def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0) -> int:
     from rich.console import Console
+    from threadpoolctl import threadpool_limits
 
     console = Console(stderr=True)
     started = time.monotonic()
-    rig = load_rig(rig_path or DEFAULT_RIG)
+    rig_path = rig_path or DEFAULT_RIG
+    warming = warm_in_background(rig_path)  # compiles the payload estimator on the other core while this one designs
+    rig = load_rig(rig_path)
     rig = rig.with_bus(channel=f"armid-demo-{uuid.uuid4().hex[:8]}") if rig.bus.interface == "virtual" else rig
     robot = rig.robot
     out.mkdir(parents=True, exist_ok=True)
     console.print(f"[bold]armid demo[/]: {rig.name}: {robot.n_joints} CiA 402 drives on {rig.bus.interface}:{rig.bus.channel}, "
                   f"{rig.period_s * 1000:g} ms SYNC; output in {out}")
+    phases = Phases(console, PHASE_ESTIMATES_S)
     start = np.asarray(rig.simulation.get("initial_position", np.zeros(robot.n_joints)), float)
     links = list(range(robot.n_joints - 1, -1, -1))  # Khosla: last link first
-    experiments = design_experiments(robot, start, links, [("whole_a", 2), ("whole_b", 1)], rig.period_s, seed=seed,
-                                     log=lambda m: console.print(f"  {m}"))
-    write_json(out / "designs.json", {e.name: e.design.to_json() for e in experiments})
-    console.print(f"designed and checked {len(experiments)} trajectories against every limit in {time.monotonic() - started:.1f} s; running them")
-    with ExcitationSession(rig, simulate=True) as session:
-        reports = run_experiments(session, experiments, out / "runs", console)
-    write_json(out / "runs.json", [r.to_json() for r in reports])
-    failed = [r for r in reports if not r.completed]
-    if failed:
-        console.print(f"[red]run {failed[0].name} stopped: {failed[0].stop_reason}[/]")
-        return 1
-    console.print("identifying")
-    prepared = prepared_runs(reports, robot, rig.period_s)
-    seq = single_link_sequence(robot, {e.link: [prepared[e.name]] for e in experiments if e.link is not None})
-    whole = identify(robot, [prepared["whole_a"]], [prepared["whole_b"]], IdentifyOptions(exclude_reversals=True))
-    truth = check_against_truth(rig, seq, whole)
-    comparison = seq.compare(whole)
-    console.print("diagnosing the residual")
-    from identify.diagnosis import diagnose
+    whole_runs = [("whole_a", 2), ("whole_b", 1)]
+    phases.start("design", f"designing {len(links) + len(whole_runs)} exciting trajectories (D-optimal finite Fourier series: "
+                 f"one per link, last link first, then two whole-arm) and checking each against every limit before any drive is enabled")
+    design_times: list[float] = []
 
-    diagnosis = diagnose(robot, [prepared["whole_a"]], [prepared["whole_b"]])
-    console.print("payload: a 2 kg payload attached and removed while the arm works, estimated on-line over Zenoh")
-    payload = run_payload(rig, whole, experiments[-2].design, out, console)
-    doc = {"rig": rig.name, "single_link": seq.to_json(), "whole_arm": whole.to_json(), "comparison": comparison, "truth_check": truth,
-           "diagnosis": diagnosis.to_json(), "payload": payload, "runs": [r.to_json() for r in reports]}
-    write_json(out / "demo.json", doc)
-    _write_report(out, rig, experiments, reports, seq, whole, comparison, truth, diagnosis, prepared, payload)
+    def designed(done: int, total: int, seconds: float) -> None:
+        design_times.append(seconds)
+        whole_left = min(len(whole_runs), total - done)
+        # medians: the first design also loads the compiled kernel; a whole-arm design takes about two single-link ones
+        per_link = float(np.median(design_times[: len(links)])) if design_times[: len(links)] else seconds
+        per_whole = float(np.median(design_times[len(links) :])) if design_times[len(links) :] else 2.0 * per_link
+        phases.estimates["design"] = (time.monotonic() - phases.phase_started) + (total - done - whole_left) * per_link + whole_left * per_whole
+
+    with threadpool_limits(1, "blas"):  # OpenBLAS's threads stall on a loaded 2-core machine; the demo's products are small
+        experiments = design_experiments(robot, start, links, whole_runs, rig.period_s, seed=seed, log=phases.note, progress=designed)
+        write_json(out / "designs.json", {e.name: e.design.to_json() for e in experiments})
+        runs_s = sum(e.plan.duration_s + 0.5 for e in experiments)
+        phases.estimates.update(design=time.monotonic() - phases.phase_started, runs=runs_s,
+                                payload=ex.plan(experiments[-2].design, start, ex.Limits.of(robot), periods=2).duration_s + 3.0)
+        phases.start("warm", "compiling and warming the on-line payload estimator, so that nothing compiles while the arm moves")
+        warm_error = warming.finish()
+        if warm_error:
+            console.print(f"  [dim]the background compilation failed ({warm_error}); compiling here[/]")
+        try:
+            warm_payload_estimator(robot, rig.period_s, experiments[-2].plan)
+        except Exception as err:  # noqa: BLE001  a failed warm-up only costs time later
+            console.print(f"  [yellow]could not warm the payload estimator ({type(err).__name__}: {err}); it will compile on first use[/]")
+        motion_s = sum(e.plan.duration_s for e in experiments)
+        phases.start("runs", f"running the {len(experiments)} experiments on the drives in real time ({motion_s:.0f} s of motion, "
+                     "2 ms SYNC over the virtual CAN bus), each recorded as MCAP")
+        with ExcitationSession(rig, simulate=True) as session:
+            reports = run_experiments(session, experiments, out / "runs", console)
+        write_json(out / "runs.json", [r.to_json() for r in reports])
+        failed = [r for r in reports if not r.completed]
+        if failed:
+            console.print(f"[red]run {failed[0].name} stopped: {failed[0].stop_reason}[/]")
+            return 1
+        phases.start("identify", "identifying: Khosla's single-link sequence (links 6 to 1), the whole arm (validated on whole_b), "
+                     "both against the simulator's known parameters, then diagnosing the residual")
+        prepared = prepared_runs(reports, robot, rig.period_s)
+        seq = single_link_sequence(robot, {e.link: [prepared[e.name]] for e in experiments if e.link is not None})
+        whole = identify(robot, [prepared["whole_a"]], [prepared["whole_b"]], IdentifyOptions(exclude_reversals=True))
+        truth = check_against_truth(rig, seq, whole)
+        comparison = seq.compare(whole)
+        from identify.diagnosis import diagnose
+
+        diagnosis = diagnose(robot, [prepared["whole_a"]], [prepared["whole_b"]])
+        phases.start("payload", "payload: the identified arm works through whole_a; a 2 kg payload is attached and removed, "
+                     "estimated on-line from the live Zenoh stream")
+        payload = run_payload(rig, whole, experiments[-2].design, out, console)
+        phases.start("report", "writing the report and its plots")
+        doc = {"rig": rig.name, "single_link": seq.to_json(), "whole_arm": whole.to_json(), "comparison": comparison, "truth_check": truth,
+               "diagnosis": diagnosis.to_json(), "payload": payload, "runs": [r.to_json() for r in reports]}
+        write_json(out / "demo.json", doc)
+        _write_report(out, rig, experiments, reports, seq, whole, comparison, truth, diagnosis, prepared, payload)
     s, w = truth["single_link"], truth["whole_arm"]
     console.print(f"single-link sequence: {s['within_3_sigma']} of {s['combinations']} combinations within 3 sigma of the truth "
                   f"(max |z| {s['max_abs_z']:.2f}); whole arm: {w['within_3_sigma']} of {w['combinations']} (max |z| {w['max_abs_z']:.2f}); "

@@ -16,6 +16,8 @@ ordinary stores would first read every line they are about to overwrite.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numba
 import numpy as np
 from llvmlite import ir
@@ -24,6 +26,10 @@ from numba.extending import intrinsic
 
 LANES = 128
 CHUNK = 1024
+SERIAL_BELOW = 4 * CHUNK
+"""Calls on fewer samples run the kernel in the calling thread alone (:func:`regressor_rows`)."""
+THREADS = max(1, int(getattr(numba.config, "NUMBA_NUM_THREADS", 1)))
+"""Threads that share a large call (numba's thread count: the CPUs, or ``NUMBA_NUM_THREADS``)."""
 
 # rows of the lane state ``s[row * L + lane]``; _Q, _QD, _QDD are also the rows of ``motion[i]``
 _Q, _QD, _QDD = 0, 1, 2
@@ -293,12 +299,12 @@ def _rows(i, nj, s, carried, table):  # type: ignore[no-untyped-def]
 
 @_inline
 def _write_out(table, nl, k0, out, row_stride, seg_len, seg_stride, first_aligned):  # type: ignore[no-untyped-def]
-    """The block's lanes into ``out[k0 + lane]``, whose elements lie at ``lane * row_stride +
+    """The block's lanes into the rows ``k0 + lane`` of ``out``, the flat (1-D) memory of the
+    result from its first element on: row k's elements lie at ``k * row_stride +
     seg * seg_stride + col`` in segments of ``seg_len`` contiguous columns (one segment of
-    10 N^2 when ``out`` is C-contiguous, N of 10 N when it is a view into a wider array).
+    10 N^2 when the result is C-contiguous, N of 10 N when it is a view into a wider array).
     8 x 8 tiles go through registers; ``first_aligned[seg]`` >= 0 is a column whose address
     is a cache line's in every row, and the tiles from it go out non-temporally."""
-    row_len = out.shape[2]
     for seg in range(first_aligned.shape[0]):
         fa = first_aligned[seg]
         start = max(fa, 0)
@@ -313,25 +319,29 @@ def _write_out(table, nl, k0, out, row_stride, seg_len, seg_stride, first_aligne
                 else:
                     _transpose8_store(out, base + col, row_stride, table, (t0 + col) * L + m0, L)
             for m in range(m0, m0 + 8):
+                row = (k0 + m) * row_stride + seg * seg_stride
                 for col in range(start):
-                    out[k0 + m, (t0 + col) // row_len, (t0 + col) % row_len] = table[(t0 + col) * L + m]
+                    out[row + col] = table[(t0 + col) * L + m]
                 for col in range(stop, seg_len):
-                    out[k0 + m, (t0 + col) // row_len, (t0 + col) % row_len] = table[(t0 + col) * L + m]
+                    out[row + col] = table[(t0 + col) * L + m]
             m0 += 8
         for m in range(m0, nl):
+            row = (k0 + m) * row_stride + seg * seg_stride
             for col in range(seg_len):
-                out[k0 + m, (t0 + col) // row_len, (t0 + col) % row_len] = table[(t0 + col) * L + m]
+                out[row + col] = table[(t0 + col) * L + m]
 
 
-@numba.njit(cache=True, parallel=True, fastmath=True, error_model="numpy", boundscheck=False)
-def regressor_kernel(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g, q, qd, qdd, out, row_stride, seg_len, seg_stride, first_aligned):  # type: ignore[no-untyped-def]
-    """``out[k]`` = the regressor of sample k (eqs. 16-18), for (n, N) ``q``, ``qd``, ``qdd``;
-    the joint constants are :func:`identify.dynamics._joint_constants`'s; the layout of
-    ``out`` (rows of 8-byte elements) is :func:`_write_out`'s."""
+@numba.njit(cache=True, nogil=True, fastmath=True, error_model="numpy", boundscheck=False)
+def regressor_kernel(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g, q, qd, qdd, out, row_stride, seg_len, seg_stride, first_aligned,
+                     first_chunk, stop_chunk):  # type: ignore[no-untyped-def]
+    """Rows of ``out`` = the regressor of samples k (eqs. 16-18), for (n, N) ``q``, ``qd``,
+    ``qdd``, over the chunks ``first_chunk <= k // CHUNK < stop_chunk``; the joint constants
+    are :func:`identify.dynamics._joint_constants`'s; ``out`` is the result's flat memory,
+    laid out as :func:`_write_out` says. Without the GIL, so that threads share the chunks
+    (:func:`regressor_rows`)."""
     n, nj = q.shape
     ncol = 10 * nj * nj
-    nchunks = (n + CHUNK - 1) // CHUNK
-    for chunk in numba.prange(nchunks):
+    for chunk in range(first_chunk, stop_chunk):
         # scratch for one block of lanes, allocated once per chunk
         s = np.empty(_NSTATE * L)
         motion = np.zeros((nj, 3 * L))  # lanes past the end of the data keep finite values
@@ -355,3 +365,42 @@ def regressor_kernel(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g, q, qd, qdd, ou
                 _rows(i, nj, s, carried, table)
             _write_out(table, nl, k0, out, row_stride, seg_len, seg_stride, first_aligned)
         _store_fence()
+
+
+_POOL: list[ThreadPoolExecutor] = []
+
+
+def _pool() -> ThreadPoolExecutor:
+    if not _POOL:
+        _POOL.append(ThreadPoolExecutor(max(1, THREADS - 1), thread_name_prefix="armid-regressor"))
+    return _POOL[0]
+
+
+def regressor_rows(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g, q, qd, qdd, out, row_stride, seg_len, seg_stride, first_aligned):  # type: ignore[no-untyped-def]
+    """:func:`regressor_kernel` into ``out`` (n, N, 10 N), possibly a view into a wider
+    array: the chunks shared out among ``THREADS`` threads (this one and a pool's), in this
+    thread alone below ``SERIAL_BELOW`` samples.
+
+    The kernel was a numba ``parallel=True`` function (prange over the chunks). Its parallel
+    machinery tripled the compilation on a fresh machine (66 s against 27 s measured on this
+    2-core machine at load average 11), and waking its threads cost more than a few chunks
+    of work: 160 samples took 17 ms on two threads and 0.08 ms on one at load average 9,
+    7,840 samples 9.6 ms and 3.8 ms. So the kernel is serial and releases the GIL, and
+    threads take contiguous shares of the chunks only for large calls.
+
+    The kernel gets ``out`` as its flat memory (a 1-D view from the first element to the
+    last), so that a C-contiguous result and a view into a stacked regressor are one type
+    to numba: one compilation, not two (10-28 s each measured here under load)."""
+    n = q.shape[0]
+    if n == 0:
+        return
+    span = (n - 1) * row_stride + (first_aligned.shape[0] - 1) * seg_stride + seg_len
+    flat = np.lib.stride_tricks.as_strided(out, shape=(span,), strides=(out.itemsize,))
+    args = (revolute, a0, ac, a_s, p0, pc, ps, t0, u, g, q, qd, qdd, flat, row_stride, seg_len, seg_stride, first_aligned)
+    nchunks = (n + CHUNK - 1) // CHUNK
+    threads = min(THREADS, nchunks) if n >= SERIAL_BELOW else 1
+    bounds = [nchunks * k // threads for k in range(threads + 1)]
+    others = [_pool().submit(regressor_kernel, *args, bounds[k], bounds[k + 1]) for k in range(1, threads)]
+    regressor_kernel(*args, bounds[0], bounds[1])
+    for f in others:
+        f.result()

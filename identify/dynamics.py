@@ -12,6 +12,7 @@ for letter; for modified DH and URDF joints the same formulas hold with their ow
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -249,7 +250,7 @@ def regressor(robot: Robot, q: Array, qd: Array, qdd: Array, out: Array | None =
     (eqs. 16-17): the rows ``s_j^T R^j_i`` of all joints ``j <= i`` are carried together from
     link to link and multiplied into ``K_i`` in closed form, which is :func:`regressor_blocks`
     without the zeros of ``K_i``. A compiled kernel (:mod:`identify._regressor_lanes`) runs
-    it on blocks of samples in SIMD lanes, the blocks in parallel. ``out``
+    it on blocks of samples in SIMD lanes, the blocks of a large call on several threads. ``out``
     (n, N, 10 N), possibly a view into a wider array, receives the result when given.
     """
     q, qd, qdd = check_joint_arrays(robot, q, qd, qdd)
@@ -262,15 +263,13 @@ def regressor(robot: Robot, q: Array, qd: Array, qdd: Array, out: Array | None =
     if layout is None:  # not rows of doubles: compute, then let numpy copy (and cast)
         out[...] = regressor(robot, q, qd, qdd)
         return out
-    revolute = np.array([j.revolute for j in robot.joints])
-    a0, ac, a_s, p0, pc, ps, t0, u = _joint_constants(robot)
-    g = -np.asarray(robot.gravity, dtype=float)
-    from ._regressor_lanes import regressor_kernel
+    revolute, a0, ac, a_s, p0, pc, ps, t0, u, g = _constants(robot)
+    from ._regressor_lanes import regressor_rows
 
     row_stride, seg_len, seg_stride, first_aligned = layout
-    regressor_kernel(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g,
-                     np.ascontiguousarray(q), np.ascontiguousarray(qd), np.ascontiguousarray(qdd),
-                     out, row_stride, seg_len, seg_stride, first_aligned)
+    regressor_rows(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g,
+                   np.ascontiguousarray(q), np.ascontiguousarray(qd), np.ascontiguousarray(qdd),
+                   out, row_stride, seg_len, seg_stride, first_aligned)
     return out
 
 
@@ -291,6 +290,24 @@ def _out_layout(out: Array) -> tuple[int, int, int, Array] | None:
     if row % 8 == 0:  # a segment's column starts at the same place in a cache line in every row
         first[:] = (-(address // item + np.arange(segments) * seg)) % 8
     return row, seg_len, seg, first
+
+
+_CONSTANTS: weakref.WeakKeyDictionary[Robot, tuple[tuple[bytes, ...], tuple[Array, ...]]] = weakref.WeakKeyDictionary()
+
+
+def _constants(robot: Robot) -> tuple[Array, ...]:
+    """The kernel's per-robot inputs (joint types, :func:`_joint_constants`, base acceleration),
+    computed once per robot: recomputing them took longer than the kernel on the few hundred
+    samples of a design's candidate. Kept with a fingerprint of the joints' arrays, so that a
+    robot whose arrays were changed in place gets them anew."""
+    key = tuple(x.tobytes() for j in robot.joints for x in (np.asarray(j.pre), np.asarray(j.axis), np.asarray(j.post)))
+    key += (bytes(j.revolute for j in robot.joints), np.asarray(robot.gravity, float).tobytes())
+    hit = _CONSTANTS.get(robot)
+    if hit is not None and hit[0] == key:
+        return hit[1]
+    values = (np.array([j.revolute for j in robot.joints]), *_joint_constants(robot), -np.asarray(robot.gravity, dtype=float))
+    _CONSTANTS[robot] = (key, values)
+    return values
 
 
 def _joint_constants(robot: Robot) -> tuple[Array, ...]:

@@ -24,18 +24,41 @@ enabled.
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any, TypeVar
 
 import numpy as np
 from scipy.optimize import minimize
+from threadpoolctl import threadpool_limits
 
+from ._regressor_lanes import SERIAL_BELOW
 from .dynamics import regressor
+from .effects import effect_columns
 from .errors import ArmidError
 from .identifiability import BaseParameters, base_parameters, preferred_order
 from .identification import declared_effects, stacked_regressor
 from .robot import Robot
 from .spatial import Array
 from .trajectories import FourierTrajectory
+
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+def _one_blas_thread(fn: _F) -> _F:
+    """Run ``fn`` with BLAS and LAPACK on one thread. Designing is many small products and
+    factorisations, which two OpenBLAS threads do no faster, and on a loaded machine far
+    slower: measured at load average 10 on 2 cores, the identifiability QR of one design
+    (1,872 x 78) took 1.35 s on two threads, a (25, 74,880) matrix-vector product 25 ms
+    against 0.9 ms on one. (The limit is process-wide while it holds.)"""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        with threadpool_limits(1, "blas"):
+            return fn(*args, **kwargs)
+
+    return wrapper  # type: ignore[return-value]
 
 
 class TrajectoryLimitError(ArmidError, ValueError):
@@ -141,38 +164,147 @@ def experiment_regressor(robot: Robot, rows: tuple[int, ...], q: Array, qd: Arra
     return w[:, list(rows), :].reshape(-1, w.shape[2])
 
 
-def _scaled(robot: Robot, limits: Limits, q_hold: Array, moving: tuple[int, ...], a: Array, b: Array, f_hz: float,
-            margin: float, t: Array, phi: Array) -> FourierTrajectory:
-    """Scale each moving joint's series into its limits (times ``margin``), centred in its range."""
-    n = robot.n_joints
-    A, B = np.zeros((n, a.shape[1])), np.zeros((n, a.shape[1]))
-    A[list(moving)], B[list(moving)] = a, b
-    raw = FourierTrajectory(np.zeros(n), A, B, f_hz)
-    q, qd, qdd = raw.evaluate(t)
-    lo, hi = limits.position_low, limits.position_high
-    finite = np.isfinite(lo) & np.isfinite(hi)
-    half_range = np.where(finite, 0.5 * (hi - lo), np.pi)
-    centre = np.where(finite, 0.5 * (hi + lo), q_hold)
-    span = 0.5 * np.ptp(q, axis=0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = np.minimum.reduce([margin * half_range / span, margin * limits.velocity / np.abs(qd).max(axis=0),
-                               margin * limits.acceleration / np.abs(qdd).max(axis=0)])
-    s = np.where(np.isfinite(s), s, 0.0)
-    mid = 0.5 * (q.max(axis=0) + q.min(axis=0))
-    q0 = np.array(q_hold, float)
-    for j in moving:
-        q0[j] = centre[j] - s[j] * mid[j]
-    traj = FourierTrajectory(q0, A * s[:, None], B * s[:, None], f_hz)
-    for _ in range(30):  # torque: shrink the motion until the modeled torque fits
-        tau = _model_torque(robot, traj, t, phi)
-        ratio = (np.abs(tau).max(axis=0) / (margin * limits.torque)).max()
-        if ratio <= 1.0:
-            break
-        shrink = max(0.5, 0.97 / np.sqrt(ratio))
-        q_now = traj.evaluate(t)[0]
-        mid_q = 0.5 * (q_now.max(axis=0) + q_now.min(axis=0))
-        traj = FourierTrajectory(mid_q - shrink * (mid_q - traj.q0), traj.a * shrink, traj.b * shrink, f_hz)
-    return traj
+class _Candidates:
+    """Many candidate designs of one experiment, evaluated together.
+
+    The optimiser's gradient needs the regressor at ``k + 1`` nearby coefficient vectors.
+    One at a time (L-BFGS-B's own finite differences), each paid the Python overhead of the
+    scaling and of a regressor call on a few hundred samples, then a Gram matrix and a
+    determinant: about 8 ms, 4,000 times for a whole-arm design. Here the candidates share
+    one pass: their Fourier series, their scaling into the limits, one regressor call over
+    all their samples into a buffer kept for the design (reused for the torque check and for
+    the information matrix), and one contraction with the criterion's differential
+    (:meth:`cost_and_gradient`). Each candidate goes through the arithmetic of the scaling
+    it went through on its own.
+    """
+
+    def __init__(self, robot: Robot, limits: Limits, q_hold: Array, moving: tuple[int, ...], f_hz: float, margin: float,
+                 t: Array, phi: Array, rows: tuple[int, ...], indep: list[int]) -> None:
+        self.robot, self.limits, self.moving, self.f_hz, self.margin, self.phi = robot, limits, list(moving), f_hz, margin, phi
+        self.q_hold, self.rows, self.indep, self.t = np.asarray(q_hold, float), list(rows), indep, t
+        self.effects = declared_effects(robot)
+        self.scale: Array | None = None
+        lo, hi = limits.position_low, limits.position_high
+        finite = np.isfinite(lo) & np.isfinite(hi)
+        self.half_range = np.where(finite, 0.5 * (hi - lo), np.pi)
+        self.centre = np.where(finite, 0.5 * (hi + lo), self.q_hold)
+        self.per_call = max(1, SERIAL_BELOW // t.size)  # candidates per regressor call: one thread, a few MB at a time
+        n = robot.n_joints
+        self._width = 10 * n + sum(len(e.parameter_names) for e in self.effects)
+        self._buffer = np.empty((self.per_call * t.size, n, self._width))
+
+    def _evaluate(self, q0: Array, a: Array, b: Array) -> tuple[Array, Array, Array]:
+        """``q, qd, qdd`` (m, T, N) of the series ``q0`` (m, N), ``a, b`` (m, N, L), as
+        :meth:`FourierTrajectory.evaluate` does for one."""
+        wf = 2.0 * np.pi * self.f_hz
+        harmonics = np.arange(1, a.shape[2] + 1)
+        phase = wf * np.outer(self.t, harmonics)
+        s, c = np.sin(phase), np.cos(phase)
+        lw = wf * harmonics
+        q = q0[:, None, :] + s @ (a / lw).transpose(0, 2, 1) - c @ (b / lw).transpose(0, 2, 1)
+        qd = c @ a.transpose(0, 2, 1) + s @ b.transpose(0, 2, 1)
+        qdd = -s @ (a * lw).transpose(0, 2, 1) + c @ (b * lw).transpose(0, 2, 1)
+        return q, qd, qdd
+
+    def _regressor(self, q: Array, qd: Array, qdd: Array) -> Array:
+        """(m, T, N, P) stacked regressor (rigid body and declared effects) of every sample, as
+        :func:`~identify.identification.stacked_regressor`; a view of the buffer, for
+        m < ``per_call``, valid until the next call."""
+        m, T, n = q.shape
+        q, qd, qdd = q.reshape(-1, n), qd.reshape(-1, n), qdd.reshape(-1, n)
+        if m > self.per_call:
+            return stacked_regressor(self.robot, self.effects, q, qd, qdd).reshape(m, T, n, -1)
+        w = self._buffer[: m * T]
+        regressor(self.robot, q, qd, qdd, out=w[:, :, : 10 * n])
+        if self.effects:
+            w[:, :, 10 * n :] = effect_columns(self.effects, q, qd, qdd)
+        return w.reshape(m, T, n, -1)
+
+    def scaled(self, a: Array, b: Array, reduce: Callable[[Array], Array]) -> tuple[Array, Array, Array, Array]:
+        """The moving joints' series ``a, b`` (m, k, L) scaled into the limits: ``q0`` (m, N),
+        ``A, B`` (m, N, L), and ``reduce`` of the (m, T, N, P) regressor of the final
+        trajectories (the torque check's, or computed anew for a candidate still over after 30
+        shrinks), which keeps the whole regressor of only a few candidates at a time."""
+        m, L, n, lim, margin = a.shape[0], a.shape[2], self.robot.n_joints, self.limits, self.margin
+        A, B = np.zeros((m, n, L)), np.zeros((m, n, L))
+        A[:, self.moving], B[:, self.moving] = a, b
+        q, qd, qdd = self._evaluate(np.zeros((m, n)), A, B)
+        span = 0.5 * np.ptp(q, axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = np.minimum.reduce([margin * self.half_range / span, margin * lim.velocity / np.abs(qd).max(axis=1),
+                                   margin * lim.acceleration / np.abs(qdd).max(axis=1)])
+        s = np.where(np.isfinite(s), s, 0.0)
+        mid = 0.5 * (q.max(axis=1) + q.min(axis=1))
+        q0 = np.tile(self.q_hold, (m, 1))
+        q0[:, self.moving] = self.centre[self.moving] - s[:, self.moving] * mid[:, self.moving]
+        A, B = A * s[:, :, None], B * s[:, :, None]
+        reduced: Array | None = None
+        active = np.arange(m)
+        for _ in range(30):  # torque: shrink the motion until the modeled torque fits
+            motion = self._evaluate(q0[active], A[active], B[active])
+            w = self._regressor(*motion)
+            tau = np.einsum("mtnp,p->mtn", w[..., : 10 * n], self.phi)  # not BLAS: its threads stall on a loaded machine
+            with np.errstate(invalid="ignore"):
+                ratio = (np.abs(tau).max(axis=1) / (margin * lim.torque)).max(axis=1)
+                over = ~(ratio <= 1.0)
+                r = 0.97 / np.sqrt(ratio[over])
+                shrink = np.where(r > 0.5, r, 0.5)  # as max(0.5, r), which takes 0.5 for a NaN ratio
+            if not over.all():
+                part = reduce(w if not over.any() else w[~over])
+                reduced = np.empty((m, *part.shape[1:])) if reduced is None else reduced
+                reduced[active[~over]] = part
+            active = active[over]
+            if not active.size:
+                break
+            q_now = motion[0][over]
+            mid_q = 0.5 * (q_now.max(axis=1) + q_now.min(axis=1))
+            q0[active] = mid_q - shrink[:, None] * (mid_q - q0[active])
+            A[active] *= shrink[:, None, None]
+            B[active] *= shrink[:, None, None]
+        else:
+            part = reduce(self._regressor(*self._evaluate(q0[active], A[active], B[active])))
+            reduced = np.empty((m, *part.shape[1:])) if reduced is None else reduced
+            reduced[active] = part
+        assert reduced is not None
+        return q0, A, B, reduced
+
+    def _flat_columns(self, n: int, p: int) -> Array:
+        """Indices into a sample's (N P) stacked row of the experiment's rows and base columns."""
+        return (np.asarray(self.rows)[:, None] * p + np.asarray(self.indep, dtype=int)[None, :]).ravel()
+
+    def information(self, w: Array) -> Array:
+        """The experiment's base regressors (m, T len(rows), n_b) from the (m, T, N, P) stacked ones."""
+        m, T, n, p = w.shape
+        return np.take(w.reshape(m, T, n * p), self._flat_columns(n, p), axis=2).reshape(m, T * len(self.rows), len(self.indep))
+
+    def cost_and_gradient(self, a: Array, b: Array, dx: Array) -> tuple[float, Array]:
+        """Minus the D-criterion at the design ``a[0], b[0]`` and its gradient, from the
+        designs ``a[1:], b[1:]`` whose coefficient vectors are that one's moved by ``dx``
+        (k,) each along one coordinate.
+
+        The criterion is ``f = -log det G`` of the column-scaled (``S``), sample-normalised
+        information matrix ``G = S W^T W S / n``, whose differential is
+        ``df = -(2/n) <W S G^-1 S, dW>``: one matrix, the lever, weighs each candidate's
+        change of regressor in one pass over it, where the finite difference of ``f`` itself
+        needed a Gram matrix and a determinant per candidate, the largest cost once the
+        candidates were batched. So the gradient is finite differences of the regressor, to
+        first order in the step as finite differences of ``f`` were."""
+        assert self.scale is not None
+        full = self.scaled(a[:1], b[:1], lambda w: w.copy())[3][0]
+        ws = self.information(full[None])[0] / self.scale
+        g = ws.T @ ws / ws.shape[0]
+        sign, ld = np.linalg.slogdet(g)
+        if sign <= 0:
+            return 1e6, np.zeros(dx.size)
+        lever = np.zeros(full.size)  # on the whole stacked regressor, zero off the experiment's rows and columns
+        flat = self._flat_columns(full.shape[1], full.shape[2])
+        lever.reshape(full.shape[0], -1)[:, flat] = ((-2.0 / ws.shape[0]) * np.linalg.solve(g, ws.T).T / self.scale).reshape(full.shape[0], -1)
+        at = np.einsum("k,k->", full.reshape(-1), lever)
+        change = np.empty(dx.size)
+        for k in range(1, a.shape[0], self.per_call):
+            change[k - 1 : k - 1 + self.per_call] = self.scaled(a[k : k + self.per_call], b[k : k + self.per_call],
+                                                                lambda w: np.einsum("mk,k->m", w.reshape(w.shape[0], -1), lever) - at)[3]
+        return float(-ld), change / dx
 
 
 def _model_torque(robot: Robot, traj: FourierTrajectory, t: Array, phi: Array) -> Array:
@@ -199,6 +331,7 @@ def _experiment_base(robot: Robot, rows: tuple[int, ...], moving: tuple[int, ...
     return cols, names, base, w_rand
 
 
+@_one_blas_thread
 def choose_hold(robot: Robot, joint: int, q_hold: Array, candidates: int = 12, margin: float = 0.7, seed: int = 0,
                 gravity_fraction: float = 0.4) -> Array:
     """A pose of the joints before ``joint`` (the others keep ``q_hold``) at which moving
@@ -229,6 +362,7 @@ def choose_hold(robot: Robot, joint: int, q_hold: Array, candidates: int = 12, m
     return best
 
 
+@_one_blas_thread
 def design(robot: Robot, moving: tuple[int, ...] | None = None, q_hold: Array | None = None, harmonics: int = 5,
            base_frequency_hz: float = 0.1, margin: float = 0.8, samples: int = 160, seed: int = 0, iterations: int = 30,
            starts: int = 2, rows: tuple[int, ...] | None = None) -> Design:
@@ -258,37 +392,38 @@ def design(robot: Robot, moving: tuple[int, ...] | None = None, q_hold: Array | 
     indep = [cols[k] for k in base.independent]
     k_free = len(moving) * (harmonics - 1)
 
-    def trajectory_of(x: Array) -> FourierTrajectory:
-        a, b = _rest_to_rest(x[:k_free].reshape(len(moving), -1), x[k_free:].reshape(len(moving), -1))
-        return _scaled(robot, lim, q_hold, moving, a, b, base_frequency_hz, margin, t, phi)
+    space = _Candidates(robot, lim, q_hold, moving, base_frequency_hz, margin, t, phi, rows, indep)
 
-    scale: Array | None = None
+    def split(x: Array) -> tuple[Array, Array]:
+        """Coefficient vectors (m, 2 k_free) -> the moving joints' rest-to-rest ``a, b`` (m, k, L)."""
+        m = x.shape[0]
+        fa, fb = x[:, :k_free].reshape(m * len(moving), -1), x[:, k_free:].reshape(m * len(moving), -1)
+        a, b = _rest_to_rest(fa, fb)
+        return a.reshape(m, len(moving), -1), b.reshape(m, len(moving), -1)
 
-    def log_det(traj: FourierTrajectory) -> tuple[float, Array]:
-        q, qd, qdd = traj.evaluate(t)
-        w = experiment_regressor(robot, rows, q, qd, qdd)[:, indep]
-        return float(np.linalg.slogdet(w.T @ w)[1]) if w.size else 0.0, w
+    def trajectory_of(x: Array) -> tuple[FourierTrajectory, Array]:
+        q0, a, b, w = space.scaled(*split(x[None]), space.information)
+        return FourierTrajectory(q0[0], a[0], b[0], base_frequency_hz), w[0]
 
-    def cost(x: Array) -> float:
-        traj = trajectory_of(x)
-        q, qd, qdd = traj.evaluate(t)
-        w = experiment_regressor(robot, rows, q, qd, qdd)[:, indep] / scale
-        sign, ld = np.linalg.slogdet(w.T @ w / w.shape[0])
-        return -ld if sign > 0 else 1e6
+    def cost_and_gradient(x: Array) -> tuple[float, Array]:
+        """The criterion and its gradient, the regressor's differences over a step of 1e-4
+        (L-BFGS-B's own finite differences took that step) evaluated as one batch."""
+        h = np.full_like(x, 1e-4)
+        return space.cost_and_gradient(*split(np.vstack([x, x + np.diag(h)])), (x + h) - x)
 
     best_x, best_cost = None, np.inf
     for start in range(starts):
         x0 = rng.normal(size=2 * k_free)
-        if scale is None:
-            _, w0 = log_det(trajectory_of(x0))
+        if space.scale is None:
+            w0 = trajectory_of(x0)[1]
             norms = np.linalg.norm(w0, axis=0)
-            scale = np.where(norms > 0, norms / np.sqrt(w0.shape[0]), 1.0)
-        res = minimize(cost, x0, method="L-BFGS-B", options={"maxiter": iterations // 3 if start else iterations, "eps": 1e-4})
+            space.scale = np.where(norms > 0, norms / np.sqrt(w0.shape[0]), 1.0)
+        res = minimize(cost_and_gradient, x0, jac=True, method="L-BFGS-B", options={"maxiter": iterations // 3 if start else iterations})
         if res.fun < best_cost:
             best_x, best_cost = res.x, float(res.fun)
     assert best_x is not None
-    traj = trajectory_of(best_x)
-    ld, w = log_det(traj)
+    traj, w = trajectory_of(best_x)
+    ld = float(np.linalg.slogdet(w.T @ w)[1]) if w.size else 0.0
     norms = np.linalg.norm(w, axis=0)
     sv = np.linalg.svd(w / np.where(norms > 0, norms, 1.0), compute_uv=False)
     rank = int(np.sum(sv > 1e-7 * sv[0])) if sv.size and sv[0] > 0 else 0

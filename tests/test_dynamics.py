@@ -51,12 +51,13 @@ def test_fast_regressor_equals_literal_k_and_r_assembly(any_robot):  # type: ign
 @pytest.mark.parametrize("n_joints, prismatic_at", [(6, 2), (7, 4)], ids=["6j-cache-line-rows", "7j-unaligned-rows"])
 def test_regressor_into_every_kind_of_output_array(n_joints, prismatic_at):  # type: ignore[no-untyped-def]
     """The kernel writes 8 x 8 tiles (non-temporally where the rows are whole cache lines):
-    every sample count around a tile, a block of lanes and a parallel chunk, into a fresh
+    every sample count around a tile, a block of lanes, a chunk and a call shared among
+    threads (from ``SERIAL_BELOW`` samples, with a partial last chunk), into a fresh
     array, a view into a wider one (as identification uses it), one that starts mid cache
     line, and one of float32, against the literal K and R assembly; nothing outside is touched."""
     robot = random_robot(n_joints, "dh", prismatic_at, seed=21)
     ncol = 10 * n_joints
-    for n in (1, 7, 8, 9, 127, 129, 1024 + 133):
+    for n in (1, 7, 8, 9, 127, 129, 1024 + 133, 4 * 1024 + 133):
         q, qd, qdd = random_motion(n, n_joints, seed=n)
         literal = dyn.regressor_blocks(robot, q, qd, qdd)
         tol = 1e-12 * np.abs(literal).max()
