@@ -788,8 +788,14 @@ def main(argv: list[str] | None = None) -> int:
     """Run one command. The one boundary: whatever a command raises ends as one line on
     stderr and an exit code; a traceback only with ``ARMID_DEBUG=1``."""
     args = build_parser().parse_args(argv)
+
+    def show_warning(message: Any, category: Any, filename: str, lineno: int, file: Any = None, line: Any = None) -> None:
+        print(f"armid {args.command}: warning: {_one_line(str(message))}", file=sys.stderr)
+
     try:
-        return int(args.run(args))
+        with warnings.catch_warnings():
+            warnings.showwarning = show_warning
+            return int(args.run(args))
     except KeyboardInterrupt:
         print(f"armid {args.command}: interrupted", file=sys.stderr)
         return 130
