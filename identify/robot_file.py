@@ -14,8 +14,8 @@ inertia is refused. Principal moments that break the triangle inequality
 
 from __future__ import annotations
 
-from pathlib import Path
 import warnings
+from pathlib import Path
 from typing import Any
 
 import numpy as np
