@@ -376,14 +376,15 @@ def _excite(args: argparse.Namespace) -> int:
             if not 1 <= j <= n:
                 raise UsageError(f"--link: joint {j} does not exist; {robot.name} has joints 1..{n}")
             links.append(j - 1)
+    trajectory = load_trajectory(args.trajectory, n, rig.period_s) if args.trajectory else None  # checked before any drive is enabled
     out = Path(args.out or f"runs/{time.strftime('%Y%m%d-%H%M%S')}")
     # the pose the arm will be at: the rig's (simulated) start, or the drives' own report
     start = np.asarray(rig.simulation.get("initial_position", np.zeros(n)), float) if simulate else None
     with ExcitationSession(rig, simulate=simulate, tracking_limit_rad=args.tracking_limit) as session:
         if start is None or np.abs(start - session.position).max() > 0.02:
             start = session.position
-        if args.trajectory:
-            traj, moving = load_trajectory(args.trajectory, n, rig.period_s)
+        if trajectory is not None:
+            traj, moving = trajectory
             limits = ex.Limits.of(robot)
             p = ex.plan(traj, start, limits, periods=args.periods)
             ex.check_plan(robot, p, rig.period_s, limits)
