@@ -631,6 +631,16 @@ def _write_sim_log(arm: object, path: Path) -> None:
     np.savez(path, **arm.log.arrays())  # type: ignore[attr-defined]
 
 
+def _zenoh_message(err: BaseException) -> str:
+    """Zenoh's error text without its Rust source locations, on one line."""
+    import re
+
+    text = str(err)
+    inner = re.search(r'msg: "(.*?)(?: at /[^"]*)?"', text)
+    text = inner.group(1) if inner else re.sub(r" at /\S+\.rs:\d+\.?", "", text)
+    return _one_line(text, 200)
+
+
 def open_zenoh(args: argparse.Namespace) -> Any:
     """A Zenoh session from the command's options; a configuration file that cannot be read,
     names a certificate that is not there, or cannot open a session is bad input (exit 2)."""
@@ -639,13 +649,16 @@ def open_zenoh(args: argparse.Namespace) -> Any:
     from daq.stream import session_config
 
     src = args.zenoh_config
+    endpoints = "--zenoh-listen/--zenoh-connect"
+    if src is not None and not Path(src).is_file():
+        raise InputFileError(src, "", "no such file")
+    try:
+        config = session_config(args.zenoh_listen, args.zenoh_connect, src)
+    except Exception as err:  # zenoh raises ZError for syntax, schema and endpoints alike
+        if src is not None:
+            raise InputFileError(src, "", f"not a usable Zenoh configuration ({_zenoh_message(err)})") from None
+        raise OptionError(endpoints, _zenoh_message(err)) from None
     if src is not None:
-        if not Path(src).is_file():
-            raise InputFileError(src, "", "no such file")
-        try:
-            config = session_config(args.zenoh_listen, args.zenoh_connect, src)
-        except Exception as err:  # zenoh raises ZError for syntax and schema alike
-            raise InputFileError(src, "", f"not a usable Zenoh configuration ({_one_line(str(err), 200)})") from None
         try:
             tls = json.loads(config.get_json("transport/link/tls"))
         except Exception:
@@ -653,13 +666,10 @@ def open_zenoh(args: argparse.Namespace) -> Any:
         for name, value in (tls or {}).items():
             if isinstance(value, str) and name.endswith(("_certificate", "_private_key")) and not Path(value).is_file():
                 raise InputFileError(src, f"transport.link.tls.{name}", f"no such file {value}")
-    else:
-        config = session_config(args.zenoh_listen, args.zenoh_connect)
     try:
         return zenoh.open(config)
     except Exception as err:
-        where = src or "the --zenoh-listen/--zenoh-connect endpoints"
-        raise InputFileError(where, "", f"cannot open a Zenoh session ({_one_line(str(err), 200)})") from None
+        raise InputFileError(src or endpoints, "", f"cannot open a Zenoh session ({_zenoh_message(err)})") from None
 
 
 def _zenoh_arguments(p: argparse.ArgumentParser) -> None:
