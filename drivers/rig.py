@@ -192,6 +192,13 @@ def rig_from_dict(doc: Any, src: str = "<rig>", base_dir: Path | None = None) ->
     bus_doc = doc.get("bus", {}) or {}
     if not isinstance(bus_doc, dict):
         raise RigFileError(src, "bus", "must be a mapping")
+    if not isinstance(doc.get("simulation") or {}, dict):
+        raise RigFileError(src, "simulation", f"must be a mapping of settings, got {doc['simulation']!r}")
+    if not isinstance(doc.get("name", ""), str):
+        raise RigFileError(src, "name", f"must be a string, got {doc['name']!r}")
+    for key in ("channel", "port"):
+        if key in bus_doc and (isinstance(bus_doc[key], bool) or not isinstance(bus_doc[key], str | int)):
+            raise RigFileError(src, f"bus.{key}", f"must be a name or a number, got {bus_doc[key]!r}")
     if bus_doc.get("interface") == "dynamixel":
         rig = _serial_rig(doc, bus_doc, robot, src)
         _check_simulation(rig.simulation, robot, src)

@@ -215,11 +215,17 @@ def _read_npz(path: Path, robot: Robot) -> Recording:
         for key in ("times", "positions", "torques"):
             if key not in keys:
                 raise RecordingError(str(path), f"archive has no '{key}' array (has {', '.join(sorted(keys))})")
-        t = np.asarray(archive["times"], dtype=float).reshape(-1)
+        try:
+            t = np.asarray(archive["times"], dtype=float).reshape(-1)
+        except (ValueError, TypeError) as err:
+            raise RecordingError(str(path), f"'times' is not an array of numbers ({err})") from None
         arrays = {}
         for key in ("positions", "velocities", "accelerations", "torques"):
             if key in keys:
-                a = np.asarray(archive[key], dtype=float)
+                try:
+                    a = np.asarray(archive[key], dtype=float)
+                except (ValueError, TypeError) as err:
+                    raise RecordingError(str(path), f"'{key}' is not an array of numbers ({err})") from None
                 if a.ndim != 2 or a.shape != (t.shape[0], robot.n_joints):
                     raise RecordingError(
                         str(path), f"'{key}' has shape {a.shape}, expected ({t.shape[0]}, {robot.n_joints}) for {robot.name}"

@@ -162,6 +162,9 @@ def _limits(doc: Any, src: str, where: str) -> JointLimits:
 def _inertial(doc: Any, src: str, where: str) -> Inertial:
     if not isinstance(doc, dict):
         raise RobotFileError(src, where, "must be a mapping with mass, com, inertia")
+    unknown = set(doc) - {"mass", "com", "inertia"}
+    if unknown:
+        raise RobotFileError(src, _field(where, sorted(unknown)[0]), "unknown field (allowed: mass, com, inertia about the COM)")
     for key in ("mass", "com", "inertia"):
         if key not in doc:
             raise RobotFileError(src, _field(where, key), "missing")
