@@ -10,8 +10,10 @@ implausible, or return warnings for what may still be right.
   milliseconds make ``dq/dt`` 1,000 times smaller than ``qd`` (microseconds 10^6,
   nanoseconds 10^9): an error that names the unit. Any other disagreement is a warning.
 - Time: a log whose time never advances, or runs backwards throughout, is refused.
+- Angles: ``dq/dt`` 57.3 times ``qd`` (or 1/57.3) means one of them is in degrees: an error.
 - Torque: every torque zero, or constant on every joint, is refused (a dead sensor or a
-  current column not wired); one joint's constant torque is a warning.
+  current column not wired), and so is a constant torque on a joint that moves; a joint
+  that stays still with a constant torque is a warning.
 - Motion: no joint moving at all is refused: the data cannot say anything about dynamics.
 
 The functions are pure: arrays in, warnings or an error out.
@@ -29,6 +31,13 @@ UNITS = ((1e-3, "milliseconds"), (1e-6, "microseconds"), (1e-9, "nanoseconds"))
 
 AGREE = (0.5, 2.0)
 """dq/dt over qd within this band is agreement (noise and quantisation widen it)."""
+
+ANGLES = ((180.0 / np.pi, "positions q look like degrees while the velocities qd are in rad/s"),
+          (np.pi / 180.0, "velocities qd look like degrees/s while the positions q are in rad"))
+"""dq/dt over qd at these ratios: one of the columns is in degrees (revolute joints)."""
+
+ANGLE_BAND = 1.1
+"""A ratio within this factor of 180/pi (pi/180) is that mistake."""
 
 UNIT_BAND = 3.0
 """A ratio within this factor of 10^-3 (10^-6, 10^-9) is that unit."""
@@ -49,7 +58,7 @@ def check_recording(t: Array, q: Array, qd: Array | None, tau: Array, source: st
     warnings: list[str] = []
     check_time(t, source)
     check_motion(q, source)
-    warnings += check_torque(tau, source)
+    warnings += check_torque(tau, source, q)
     if qd is not None:
         warnings += check_time_units(t, q, np.asarray(qd, float), source)
     return warnings
@@ -80,8 +89,11 @@ def check_motion(q: Array, source: str) -> None:
                                      "about the dynamics (not excited)")
 
 
-def check_torque(tau: Array, source: str) -> list[str]:
-    """Refuse all-zero or everywhere-constant torque; warn about one constant joint."""
+def check_torque(tau: Array, source: str, q: Array | None = None) -> list[str]:
+    """Refuse all-zero or everywhere-constant torque, and a constant torque on a joint that
+    moves (``q`` given): no moving joint's drive holds one value to the last bit. Warn
+    about a constant torque on a joint that stays still."""
+    tau = np.asarray(tau, float)
     finite = tau[np.isfinite(tau).all(axis=1)] if tau.ndim == 2 else tau
     if finite.shape[0] < 2:
         return []
@@ -93,6 +105,11 @@ def check_torque(tau: Array, source: str) -> list[str]:
     if np.all(span == 0):
         raise RecordingError(source, f"columns tau1..tau{n}: the torque is constant on every joint "
                                      f"({', '.join(f'{v:g}' for v in finite[0])}): nothing to identify from")
+    moves = _span(q) > MIN_MOTION if q is not None and np.shape(q) == tau.shape else np.zeros(n, bool)
+    for j in range(n):
+        if span[j] == 0 and moves[j]:
+            raise RecordingError(source, f"column tau{j + 1}: the torque is constant ({finite[0, j]:g}) while joint {j + 1} "
+                                         "moves: a dead sensor or a current column not wired?")
     return [f"{source}: column tau{j + 1}: the torque is constant ({finite[0, j]:g}) over the whole recording"
             for j in range(n) if span[j] == 0]
 
@@ -128,6 +145,9 @@ def check_time_units(t: Array, q: Array, qd: Array, source: str) -> list[str]:
         if factor / UNIT_BAND <= ratio <= factor * UNIT_BAND:
             raise RecordingError(source, f"column t: the time stamps look like {unit}, not seconds: dq/dt is {ratio:.3g} "
                                          f"times the velocity columns qd (convert t to seconds)")
+    for factor, mistake in ANGLES:
+        if factor / ANGLE_BAND <= ratio <= factor * ANGLE_BAND:
+            raise RecordingError(source, f"columns q, qd: the {mistake} (dq/dt is {ratio:.3g} times qd)")
     return [f"{source}: columns qd: dq/dt is {ratio:.3g} times the velocity columns: are t in seconds and qd in "
             "rad/s (m/s)?"]
 
