@@ -123,6 +123,8 @@ def _finite_or_none(value: Any) -> Any:
         return float(value) if np.isfinite(value) else None
     if isinstance(value, np.integer):
         return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
     if isinstance(value, np.ndarray):
         return _finite_or_none(value.tolist())
     if isinstance(value, dict):
@@ -135,6 +137,12 @@ def _finite_or_none(value: Any) -> Any:
 def strict_json(doc: Any, **kwargs: Any) -> str:
     """JSON that every parser reads: ``null`` where a value is not finite, never a bare ``NaN``."""
     return json.dumps(_finite_or_none(doc), allow_nan=False, **kwargs)
+
+
+def _write_json(path: Path, doc: Any) -> None:
+    """Write ``doc`` as strict JSON (see :func:`strict_json`), making the folder."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(strict_json(doc, indent=1, default=float) + "\n")
 
 
 def _read_checked(path: str, robot: Any) -> Any:
@@ -351,7 +359,7 @@ def _excite(args: argparse.Namespace) -> int:
     from drivers.rig import load_rig
     from identify import excitation as ex
 
-    from .experiments import Experiment, design_experiments, run_experiments, write_json
+    from .experiments import Experiment, design_experiments, run_experiments
 
     rig = load_rig(args.rig)
     changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
@@ -395,12 +403,12 @@ def _excite(args: argparse.Namespace) -> int:
             experiments = design_experiments(robot, start, links, whole, rig.period_s, link_frequency_hz=args.frequency or 0.5,
                                               link_periods=args.periods, whole_frequency_hz=args.frequency or 0.2, seed=args.seed,
                                               log=lambda m: console.print(f"  {m}"))
-        write_json(out / "designs.json", {e.name: e.design.to_json() for e in experiments})
+        _write_json(out / "designs.json", {e.name: e.design.to_json() for e in experiments})
         console.print(f"armid excite: {len(experiments)} trajectories checked against every limit; recording to {out}")
         if args.dry_run:
             return 0
         reports = run_experiments(session, experiments, out, console)
-    write_json(out / "runs.json", [r.to_json() for r in reports])
+    _write_json(out / "runs.json", [r.to_json() for r in reports])
     for r in reports:
         status = "completed" if r.completed else f"STOPPED: {r.stop_reason}"
         console.print(f"{r.name}: {status}; {r.records} records in {r.recording}; max tracking error {1000 * max(r.max_tracking_error):.1f} mrad")
