@@ -475,6 +475,18 @@ def test_bad_trajectory(case: str, tmp_path: Path, capsys: pytest.CaptureFixture
     assert_clean_error(*run(argv, capsys), expect)
 
 
+def test_unbroken_trajectory_plans_and_writes_strict_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The unbroken file through ``armid excite --dry-run``: checked against every limit, and its
+    design (no condition number for a given trajectory) written with null, not NaN."""
+    out = tmp_path / "out"
+    argv = ["excite", "--rig", str(RIG), "--trajectory", str(_trajectory(tmp_path / "t.json", lambda d: None)), "--dry-run",
+            "--out", str(out)]
+    code, err = run(argv, capsys)
+    assert code == 0 and "checked against every limit" in err, err
+    design = json.loads((out / "designs.json").read_text(), parse_constant=_refuse_constant)["t"]
+    assert design["condition_number"] is None and design["fourier"]["base_frequency_hz"] == 0.2
+
+
 def test_unbroken_trajectory_loads(tmp_path: Path) -> None:
     traj, moving = load_trajectory(_trajectory(tmp_path / "t.json", lambda d: None), 6, 0.002)
     assert traj.base_frequency_hz == 0.2 and moving == tuple(range(6))
