@@ -297,8 +297,11 @@ class _McapScan:
         self.expected_messages: int | None = None  # from the summary's statistics
         self.chunk_starts: list[int] = []  # from the summary's chunk index
         self.summary = False
+        self.orphans: dict[int, list[tuple[int, bytes]]] = {}  # messages of a channel whose record was not read
+        self.adopted: int | None = None
         self._read_summary()
         self._read_data()
+        self._adopt_orphans()
 
     # -- framing -------------------------------------------------------------------------
     def _record(self, pos: int) -> tuple[int, int] | None:
@@ -490,8 +493,21 @@ class _McapScan:
         if len(content) < 22:
             return
         (channel,) = struct.unpack_from("<H", content, 0)
-        if self.channels.get(channel) == MCAP_TOPIC:
+        topic = self.channels.get(channel)
+        if topic == MCAP_TOPIC:
             self.messages.append((pos, content[22:]))
+        elif topic is None:
+            self.orphans.setdefault(channel, []).append((pos, content[22:]))
+
+    def _adopt_orphans(self) -> None:
+        """The channel record went down with a bad chunk (it is written once, in the first
+        chunk, and again only in the summary): when no ``/joint_state`` channel was seen and
+        every message belongs to one unknown channel, those are taken as ``/joint_state``."""
+        if MCAP_TOPIC in self.channels.values() or len(self.orphans) != 1:
+            return
+        channel, messages = next(iter(self.orphans.items()))
+        self.messages = messages
+        self.adopted = channel
 
     def _metadata(self, body: int, length: int) -> None:
         from io import BytesIO
@@ -575,6 +591,9 @@ def read_mcap_arrays(path: str | Path) -> tuple[dict[str, Array], dict[str, str]
         rows.append(msg)
         offsets.append(pos)
     notes = _loss_notes(scan, rows, offsets, len(data))
+    if scan.adopted is not None and rows:
+        notes.append(f"the /joint_state channel record was lost: the {len(rows)} messages of channel {scan.adopted}, "
+                     "the only channel left, were read as /joint_state")
     if not rows:
         if not notes:
             notes.append("no /joint_state record in the file")

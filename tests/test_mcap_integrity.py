@@ -145,3 +145,17 @@ def test_cut_file_says_how_much_of_the_cut_chunk_is_lost(intact: Path, tmp_path:
     assert said, notes[0]
     assert int(said.group(1)) == in_chunk and float(said.group(2)) == pytest.approx(0.002 * in_chunk, abs=1e-6)
     assert int(said.group(3)) == len(arrays["sequence"]) - 1
+
+
+def test_first_chunk_lost_without_summary_still_reads_the_rest(intact: Path, tmp_path: Path) -> None:
+    """The channel record lives in the first chunk only (and in the summary): with both gone,
+    the messages of the one remaining channel are still read, and said so."""
+    starts = _chunks(intact)
+    data = bytearray(intact.read_bytes())
+    data[starts[0] + 900 : starts[0] + 910] = bytes(10)
+    data_end = data.rfind(b"\x0f\x04\x00\x00\x00\x00\x00\x00\x00")
+    arrays, _, notes = read_mcap_arrays(_write(tmp_path / "headless.mcap", data[:data_end]))
+    first = int(arrays["sequence"][0])
+    assert 20 < first < 60 and np.array_equal(arrays["sequence"], np.arange(first, 5000))
+    assert re.match(rf"a chunk that fails its CRC \(bytes {starts[0]}\.\.\d+ of \d+\): {first} records \(", notes[0]), notes
+    assert "channel record was lost" in notes[-1]
