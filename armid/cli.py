@@ -146,13 +146,14 @@ def _write_json(path: Path, doc: Any) -> None:
 
 
 def _read_checked(path: str, robot: Any) -> Any:
-    """``read_recording`` and the plausibility checks (time units, torque), warnings printed."""
+    """``read_recording`` and the plausibility checks (time units, torque); their warnings are held
+    until every input is read."""
     from identify.plausibility import check_recording
     from identify.recordings import read_recording
 
     rec = read_recording(path, robot)
     for warning in check_recording(rec.t, rec.q, rec.qd, rec.tau, rec.source):
-        print(f"warning: {warning}", file=sys.stderr)
+        _WARNINGS.show(warning, None, "", 0)
     return rec
 
 
@@ -169,6 +170,7 @@ def _identify(args: argparse.Namespace) -> int:
     _check_lowpass(args.lowpass, raw + raw_validation)
     experiments = [prepare(r, robot, options) for r in raw]
     validation = [prepare(r, robot, options) for r in raw_validation]
+    _inputs_read()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", PoorExcitationWarning)
         result = identify(robot, experiments, validation, IdentifyOptions(weighting=args.weighting))
@@ -215,6 +217,7 @@ def _diagnose(args: argparse.Namespace) -> int:
     _check_lowpass(args.lowpass, raw + raw_validation)
     experiments = [prepare(r, robot, options) for r in raw]
     validation = [prepare(r, robot, options) for r in raw_validation]
+    _inputs_read()
     for path, prep in zip(list(args.data) + list(args.validate), experiments + validation):
         for note in prep.notes:
             print(f"{path}: {note}", file=sys.stderr)
@@ -258,6 +261,7 @@ def _record(args: argparse.Namespace) -> int:
     changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
     if changes and not rig.is_serial:
         rig = rig.with_bus(**changes)
+    _inputs_read()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     driver: Any
@@ -385,6 +389,7 @@ def _excite(args: argparse.Namespace) -> int:
                 raise UsageError(f"--link: joint {j} does not exist; {robot.name} has joints 1..{n}")
             links.append(j - 1)
     trajectory = load_trajectory(args.trajectory, n, rig.period_s) if args.trajectory else None  # checked before any drive is enabled
+    _inputs_read()
     out = Path(args.out or f"runs/{time.strftime('%Y%m%d-%H%M%S')}")
     # the pose the arm will be at: the rig's (simulated) start, or the drives' own report
     start = np.asarray(rig.simulation.get("initial_position", np.zeros(n)), float) if simulate else None
@@ -583,6 +588,7 @@ def _sim(args: argparse.Namespace) -> int:
     changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
     if changes and not rig.is_serial:
         rig = rig.with_bus(**changes)
+    _inputs_read()
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -780,6 +786,36 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _HeldWarnings:
+    """Warnings are held while a command reads its inputs: bad input then ends in its one
+    error line alone. Once the inputs are read (:meth:`release`) and at a successful end,
+    they are printed, one line each."""
+
+    def __init__(self) -> None:
+        self.command = ""
+        self.held: list[str] | None = []
+
+    def show(self, message: Any, category: Any, filename: str, lineno: int, file: Any = None, line: Any = None) -> None:
+        text = f"armid {self.command}: warning: {_one_line(str(message))}"
+        if self.held is None:
+            print(text, file=sys.stderr)
+        elif text not in self.held:
+            self.held.append(text)
+
+    def release(self) -> None:
+        for text in self.held or []:
+            print(text, file=sys.stderr)
+        self.held = None
+
+
+_WARNINGS = _HeldWarnings()
+
+
+def _inputs_read() -> None:
+    """The command has read and checked its inputs: print what they warned about."""
+    _WARNINGS.release()
+
+
 def _one_line(text: str, most: int = 600) -> str:
     line = " ".join(str(text).split())
     return line if len(line) <= most else line[: most - 3] + "..."
@@ -807,14 +843,13 @@ def main(argv: list[str] | None = None) -> int:
     """Run one command. The one boundary: whatever a command raises ends as one line on
     stderr and an exit code; a traceback only with ``ARMID_DEBUG=1``."""
     args = build_parser().parse_args(argv)
-
-    def show_warning(message: Any, category: Any, filename: str, lineno: int, file: Any = None, line: Any = None) -> None:
-        print(f"armid {args.command}: warning: {_one_line(str(message))}", file=sys.stderr)
-
+    _WARNINGS.command, _WARNINGS.held = args.command, []
     try:
         with warnings.catch_warnings():
-            warnings.showwarning = show_warning
-            return int(args.run(args))
+            warnings.showwarning = _WARNINGS.show
+            code = int(args.run(args))
+        _WARNINGS.release()
+        return code
     except KeyboardInterrupt:
         print(f"armid {args.command}: interrupted", file=sys.stderr)
         return 130
