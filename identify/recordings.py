@@ -3,7 +3,9 @@
 CSV with a header: ``t``, ``q1..qn``, optional ``qd1..qdn`` and ``qdd1..qddn``, and
 ``tau1..taun`` or ``i1..in`` (scaled by each joint's ``torque_constant``). Also NumPy
 ``.npz`` archives with ``times, positions, velocities[, accelerations], torques`` (the
-layout of the shared KUKA LWR4+ data). Recordings written by ``daq/`` (MCAP) are read there.
+layout of the shared KUKA LWR4+ data). MCAP recordings from ``armid record``: every chunk's
+CRC is checked, reading resumes after a bad chunk, and the notes say what was lost
+(:func:`read_mcap_arrays`).
 """
 
 from __future__ import annotations
