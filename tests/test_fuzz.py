@@ -600,3 +600,26 @@ def test_end_to_end_one_line_and_debug_traceback(tmp_path: Path) -> None:
         assert_clean_error(proc.returncode, proc.stderr, expect)
     debug = _cli(["identify", str(ms), "--robot", str(PUMA)], debug=True)
     assert debug.returncode == 2 and "Traceback" in debug.stderr and debug.stderr.strip().splitlines()[-1].startswith("armid identify: error:")
+
+
+# -- the plausibility API (identify/plausibility.py) -----------------------------------------
+
+def test_plausibility_api_warns_on_what_may_be_right_and_refuses_garbage() -> None:
+    from identify.errors import RecordingError
+    from identify.plausibility import check_recording, velocity_ratio
+
+    assert check_recording(T, Q, QD, TAU, "ex.csv") == []
+    assert velocity_ratio(T, Q, QD) == pytest.approx(1.0, abs=0.01)
+    assert velocity_ratio(T * 1e3, Q, QD) == pytest.approx(1e-3, rel=0.01)
+    still = Q.copy()
+    still[:, 5] = Q[0, 5]
+    held = TAU.copy()
+    held[:, 5] = 0.25
+    said = check_recording(T, still, None, held, "ex.csv")  # a joint that stays still, its torque held: may be right
+    assert said == ["ex.csv: column tau6: the torque is constant (0.25) over the whole recording"]
+    odd = check_recording(T, Q, QD * 3.0, TAU, "ex.csv")  # neither a time unit nor degrees: said, not refused
+    assert len(odd) == 1 and re.search(r"columns qd: dq/dt is 0.33\d times the velocity columns", odd[0]), odd
+    with pytest.raises(RecordingError, match=r"^ex\.csv: column t: the time stamps look like milliseconds"):
+        check_recording(T * 1e3, Q, QD, TAU, "ex.csv")
+    with pytest.raises(RecordingError, match=r"^ex\.csv: column tau6: the torque is constant \(0.25\) while joint 6 moves"):
+        check_recording(T, Q, QD, held, "ex.csv")
