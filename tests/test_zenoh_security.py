@@ -119,6 +119,12 @@ def _wait(condition: Any, seconds: float = 5.0) -> bool:
     return bool(condition())
 
 
+def _ask(session: Any, key: str) -> list[bytes]:
+    """Every reply from every queryable (no consolidation, all targets), sorted."""
+    replies = session.get(key, timeout=3.0, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE)
+    return sorted(bytes(r.ok.payload.to_bytes()) for r in replies if r.ok is not None)
+
+
 def test_viewer_may_subscribe_and_query_but_not_publish(pki: Path) -> None:
     endpoint = f"tls/127.0.0.1:{_free_port()}"
     robot = "aclbot"
@@ -135,9 +141,18 @@ def test_viewer_may_subscribe_and_query_but_not_publish(pki: Path) -> None:
         second = _open(pki, "operator", [], [endpoint])  # another station holding the operator's certificate
         assert _wait(lambda: len(list(operator.info.peers_zid())) == 2), "both stations connect over TLS"
         viewer.declare_subscriber(state, lambda s: at_viewer.append(bytes(s.payload.to_bytes())))
+        time.sleep(0.5)  # declarations travel
+        # the viewer's query is answered by the operator
+        assert _ask(viewer, f"armid/{robot}/status") == [b"operator status"]
+        # ... but its own queryable answers no one else, and its liveliness token reaches no one
         fake_status = viewer.declare_queryable(f"armid/{robot}/status", lambda q: q.reply(f"armid/{robot}/status", "forged status"))
         viewer.liveliness().declare_token(f"armid/{robot}/alive/recorder")
-        time.sleep(0.5)  # declarations travel
+        time.sleep(0.5)
+        assert _ask(viewer, f"armid/{robot}/status") == [b"forged status", b"operator status"]  # its own, locally
+        assert _ask(operator, f"armid/{robot}/status") == [b"operator status"]
+        alive = [str(r.ok.key_expr) for r in operator.liveliness().get(f"armid/{robot}/alive/**", timeout=2.0) if r.ok is not None]
+        assert alive == [], f"the viewer's liveliness token reached the operator: {alive}"
+        fake_status.undeclare()
         for k in range(20):
             operator.put(state, f"operator {k}")
             viewer.put(state, f"viewer {k}")
@@ -151,14 +166,6 @@ def test_viewer_may_subscribe_and_query_but_not_publish(pki: Path) -> None:
         # ... while every put of the viewer's was refused by the operator's station
         from_viewer = [(k, p) for k, p in at_operator if p.startswith(b"viewer")]
         assert from_viewer == [], f"the viewer published {len(from_viewer)} records, e.g. {from_viewer[:2]}"
-        # the viewer's query is answered by the operator; the viewer's own queryable answers no one else
-        replies = [r.ok.payload.to_bytes() for r in viewer.get(f"armid/{robot}/status", timeout=3.0) if r.ok is not None]
-        assert b"operator status" in replies
-        forged = [r.ok.payload.to_bytes() for r in operator.get(f"armid/{robot}/status", timeout=2.0) if r.ok is not None]
-        assert forged == [b"operator status"], forged
-        alive = [str(r.ok.key_expr) for r in operator.liveliness().get(f"armid/{robot}/alive/**", timeout=2.0) if r.ok is not None]
-        assert alive == [], f"the viewer's liveliness token reached the operator: {alive}"
-        fake_status.undeclare()
     finally:
         for session in (second, viewer, operator):
             if session is not None:
