@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import sys
 import warnings
 from pathlib import Path
@@ -12,39 +14,158 @@ from typing import Any
 
 import numpy as np
 
-from identify.errors import ArmidError, IdentificationError, PoorExcitationWarning, RecordingError, RobotFileError, UsageError
+from identify.errors import (
+    ArmidError,
+    IdentificationError,
+    InputFileError,
+    OptionError,
+    PoorExcitationWarning,
+    RecordingError,
+    RobotFileError,
+    UsageError,
+)
 
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # type: ignore[override]
-        self.print_usage(sys.stderr)
-        print(f"{self.prog}: error: {message}", file=sys.stderr)
+        """One line, as every other bad input gets (the usage is one ``--help`` away)."""
+        print(f"{self.prog}: error: {message} (see {self.prog} --help)", file=sys.stderr)
         raise SystemExit(2)
 
 
-def _lowpass(text: str) -> float | str:
-    """``--lowpass``: a cut-off in Hz, ``auto`` (chosen from the data) or ``off``."""
-    if text in ("auto", "off"):
-        return text
+def _number(text: str) -> float:
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not a cut-off in Hz, 'auto' or 'off'") from None
-    if not (value > 0 and np.isfinite(value)):
-        raise argparse.ArgumentTypeError(f"cut-off {text} Hz must be a positive number of Hz")
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text!r}")
     return value
+
+
+def _positive(text: str) -> float:
+    """A finite number above zero (durations, frequencies, limits)."""
+    value = _number(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
+    return value
+
+
+def _gap_factor(text: str) -> float:
+    """A step this many median steps long splits a log: below 2 every jitter would split it."""
+    value = _number(text)
+    if value < 2:
+        raise argparse.ArgumentTypeError(f"must be at least 2 (median steps), got {text}")
+    return value
+
+
+def _count(text: str) -> int:
+    """A whole number of at least 1 (periods)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {text}")
+    return value
+
+
+def _seed(text: str) -> int:
+    """NumPy seeds are whole numbers from 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
+    return value
+
+
+LOWPASS_WORDS = ("off", "auto")
+
+
+def _lowpass(text: str) -> float | str:
+    """A cutoff in Hz (checked against each recording's Nyquist frequency once it is read),
+    or one of the words ``off`` and ``auto``, passed through as given."""
+    if text.strip().lower() in LOWPASS_WORDS:
+        return text.strip().lower()
+    value = _number(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a positive cutoff in Hz, 'off' or 'auto', got {text}")
+    return value
+
+
+def _check_lowpass(value: float | str | None, recordings: list[Any]) -> None:
+    """A numeric cutoff must lie below every recording's Nyquist frequency."""
+    if value is None or isinstance(value, str):
+        return
+    for rec in recordings:
+        dt = np.diff(rec.t)
+        dt = dt[np.isfinite(dt) & (dt > 0)]
+        if dt.size == 0:
+            continue
+        nyquist = 0.5 / float(np.median(dt))
+        if value >= nyquist:
+            raise OptionError("--lowpass", f"{value:g} Hz is not below the Nyquist frequency of {rec.source} "
+                                           f"({nyquist:g} Hz at its {float(np.median(dt)):g} s sample period)")
+
+
+def _finite_or_none(value: Any) -> Any:
+    """``value`` with every non-finite float (NaN, inf) replaced by None, recursively."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, np.floating):
+        return float(value) if np.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    if isinstance(value, np.ndarray):
+        return _finite_or_none(value.tolist())
+    if isinstance(value, dict):
+        return {k: _finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite_or_none(v) for v in value]
+    return value
+
+
+def strict_json(doc: Any, **kwargs: Any) -> str:
+    """JSON that every parser reads: ``null`` where a value is not finite, never a bare ``NaN``."""
+    return json.dumps(_finite_or_none(doc), allow_nan=False, **kwargs)
+
+
+def _write_json(path: Path, doc: Any) -> None:
+    """Write ``doc`` as strict JSON (see :func:`strict_json`), making the folder."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(strict_json(doc, indent=1, default=float) + "\n")
+
+
+def _read_checked(path: str, robot: Any) -> Any:
+    """``read_recording`` and the plausibility checks (time units, torque); their warnings are held
+    until every input is read."""
+    from identify.plausibility import check_recording
+    from identify.recordings import read_recording
+
+    rec = read_recording(path, robot)
+    for warning in check_recording(rec.t, rec.q, rec.qd, rec.tau, rec.source):
+        _WARNINGS.show(warning, None, "", 0)
+    return rec
 
 
 def _identify(args: argparse.Namespace) -> int:
     from identify.identification import IdentifyOptions, identify
     from identify.preprocess import PrepareOptions, prepare
-    from identify.recordings import read_recording, write_csv
+    from identify.recordings import write_csv
     from identify.robot_file import load_robot
 
     robot = load_robot(args.robot)
     options = PrepareOptions(max_gap_factor=args.max_gap_factor, lowpass_hz=args.lowpass)
-    experiments = [prepare(read_recording(p, robot), robot, options) for p in args.data]
-    validation = [prepare(read_recording(p, robot), robot, options) for p in args.validate or []]
+    raw = [_read_checked(p, robot) for p in args.data]
+    raw_validation = [_read_checked(p, robot) for p in args.validate or []]
+    _check_lowpass(args.lowpass, raw + raw_validation)
+    experiments = [prepare(r, robot, options) for r in raw]
+    validation = [prepare(r, robot, options) for r in raw_validation]
+    _inputs_read()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", PoorExcitationWarning)
         result = identify(robot, experiments, validation, IdentifyOptions(weighting=args.weighting))
@@ -58,7 +179,7 @@ def _identify(args: argparse.Namespace) -> int:
         if out:
             Path(out).parent.mkdir(parents=True, exist_ok=True)
     if args.json:
-        Path(args.json).write_text(json.dumps(doc, indent=1) + "\n")
+        Path(args.json).write_text(strict_json(doc, indent=1) + "\n")
     segments = [s for p in (validation or experiments) for s in p.segments]
     if args.predictions:
         if not validation:
@@ -81,13 +202,17 @@ def _identify(args: argparse.Namespace) -> int:
 def _diagnose(args: argparse.Namespace) -> int:
     from identify.diagnosis import diagnose
     from identify.preprocess import PrepareOptions, prepare
-    from identify.recordings import read_recording, write_csv
+    from identify.recordings import write_csv
     from identify.robot_file import load_robot
 
     robot = load_robot(args.robot)
     options = PrepareOptions(max_gap_factor=args.max_gap_factor, lowpass_hz=args.lowpass, torque_hold=args.torque_hold)
-    experiments = [prepare(read_recording(p, robot), robot, options) for p in args.data]
-    validation = [prepare(read_recording(p, robot), robot, options) for p in args.validate]
+    raw = [_read_checked(p, robot) for p in args.data]
+    raw_validation = [_read_checked(p, robot) for p in args.validate]
+    _check_lowpass(args.lowpass, raw + raw_validation)
+    experiments = [prepare(r, robot, options) for r in raw]
+    validation = [prepare(r, robot, options) for r in raw_validation]
+    _inputs_read()
     for path, prep in zip(list(args.data) + list(args.validate), experiments + validation):
         for note in prep.notes:
             print(f"{path}: {note}", file=sys.stderr)
@@ -97,7 +222,7 @@ def _diagnose(args: argparse.Namespace) -> int:
         if out:
             Path(out).parent.mkdir(parents=True, exist_ok=True)
     if args.json:
-        Path(args.json).write_text(json.dumps(doc, indent=1) + "\n")
+        Path(args.json).write_text(strict_json(doc, indent=1) + "\n")
     if args.predictions:
         assert diag.predictions is not None
         write_csv(args.predictions, diag.predictions[0], {"tau_hat": diag.predictions[2]})
@@ -131,6 +256,7 @@ def _record(args: argparse.Namespace) -> int:
     changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
     if changes and not rig.is_serial:
         rig = rig.with_bus(**changes)
+    _inputs_read()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     driver: Any
@@ -184,11 +310,9 @@ def _record(args: argparse.Namespace) -> int:
         recorder = McapRecorder(out / "run.mcap", [j.name for j in rig.robot.joints], driver.torque_constants, metadata)
         sinks = [Sink("recorder", recorder.write, bounded=False)]
         if not args.no_zenoh:
-            import zenoh
+            from daq.stream import Stream
 
-            from daq.stream import Stream, session_config
-
-            session = zenoh.open(session_config(args.zenoh_listen, args.zenoh_connect, args.zenoh_config))
+            session = open_zenoh(args)
             stream = Stream(session, rig.robot.name, "recorder", lambda: {"records": acq.sequence, "invalid": acq.invalid.tolist(),
                                                                           "dropped_by_stream": sinks[-1].dropped})
             sinks.append(Sink("zenoh", stream.publish, bounded=True, capacity=5000))
@@ -234,7 +358,7 @@ def _excite(args: argparse.Namespace) -> int:
     from drivers.rig import load_rig
     from identify import excitation as ex
 
-    from .experiments import Experiment, design_experiments, run_experiments, write_json
+    from .experiments import Experiment, design_experiments, run_experiments
 
     rig = load_rig(args.rig)
     changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
@@ -242,6 +366,9 @@ def _excite(args: argparse.Namespace) -> int:
         rig = rig.with_bus(**changes)
     robot = rig.robot
     n = robot.n_joints
+    if args.frequency is not None and args.frequency >= 0.5 / rig.period_s:
+        raise OptionError("--frequency", f"{args.frequency:g} Hz is not below the {0.5 / rig.period_s:g} Hz Nyquist frequency "
+                                         f"of {rig.source}'s {rig.period_s:g} s period")
     console = Console(stderr=True)
     simulate = args.simulate if args.simulate is not None else rig.bus.interface == "virtual"
     links: list[int] = []
@@ -256,36 +383,114 @@ def _excite(args: argparse.Namespace) -> int:
             if not 1 <= j <= n:
                 raise UsageError(f"--link: joint {j} does not exist; {robot.name} has joints 1..{n}")
             links.append(j - 1)
+    trajectory = load_trajectory(args.trajectory, n, rig.period_s) if args.trajectory else None  # checked before any drive is enabled
+    _inputs_read()
     out = Path(args.out or f"runs/{time.strftime('%Y%m%d-%H%M%S')}")
     # the pose the arm will be at: the rig's (simulated) start, or the drives' own report
     start = np.asarray(rig.simulation.get("initial_position", np.zeros(n)), float) if simulate else None
     with ExcitationSession(rig, simulate=simulate, tracking_limit_rad=args.tracking_limit) as session:
         if start is None or np.abs(start - session.position).max() > 0.02:
             start = session.position
-        if args.trajectory:
-            doc = json.loads(Path(args.trajectory).read_text())
-            traj = ex.trajectory_from_json(doc)
+        if trajectory is not None:
+            traj, moving = trajectory
             limits = ex.Limits.of(robot)
             p = ex.plan(traj, start, limits, periods=args.periods)
             ex.check_plan(robot, p, rig.period_s, limits)
-            design = ex.Design(traj, tuple(int(j) - 1 for j in doc.get("moving_joints", range(1, n + 1))), tuple(range(n)), [], [], 0,
-                               float("nan"), float("nan"), {})
+            design = ex.Design(traj, moving, tuple(range(n)), [], [], 0, float("nan"), float("nan"), {})
             experiments = [Experiment(Path(args.trajectory).stem, design, p)]
         else:
             whole = [("whole", args.periods)] if not links or args.whole else []
             experiments = design_experiments(robot, start, links, whole, rig.period_s, link_frequency_hz=args.frequency or 0.5,
                                               link_periods=args.periods, whole_frequency_hz=args.frequency or 0.2, seed=args.seed,
                                               log=lambda m: console.print(f"  {m}"))
-        write_json(out / "designs.json", {e.name: e.design.to_json() for e in experiments})
+        _write_json(out / "designs.json", {e.name: e.design.to_json() for e in experiments})
         console.print(f"armid excite: {len(experiments)} trajectories checked against every limit; recording to {out}")
         if args.dry_run:
             return 0
         reports = run_experiments(session, experiments, out, console)
-    write_json(out / "runs.json", [r.to_json() for r in reports])
+    _write_json(out / "runs.json", [r.to_json() for r in reports])
     for r in reports:
         status = "completed" if r.completed else f"STOPPED: {r.stop_reason}"
         console.print(f"{r.name}: {status}; {r.records} records in {r.recording}; max tracking error {1000 * max(r.max_tracking_error):.1f} mrad")
     return 0 if all(r.completed for r in reports) else 1
+
+
+def load_trajectory(path: str | Path, n_joints: int, period_s: float) -> tuple[Any, tuple[int, ...]]:
+    """A trajectory JSON for ``armid excite --trajectory``: a ``designs.json`` entry (or a file
+    holding exactly one), ``{"fourier": {...}}``, or the Fourier block itself. Returns the
+    trajectory and the moving joints (0-based); every problem names the file and the field."""
+    from identify.trajectories import FourierTrajectory
+
+    src = str(path)
+    try:
+        text = Path(path).read_text()
+    except FileNotFoundError:
+        raise InputFileError(src, "", "no such file") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputFileError(src, "", f"cannot read ({err})") from None
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise InputFileError(src, f"line {err.lineno} column {err.colno}", f"not valid JSON ({err.msg})") from None
+    except RecursionError:
+        raise InputFileError(src, "", "nested too deeply to be a trajectory") from None
+    where = ""
+    if not isinstance(doc, dict):
+        raise InputFileError(src, "", f"must be a JSON object with 'fourier' (a designs.json entry), got {type(doc).__name__}")
+    if "fourier" not in doc and "q0" not in doc:
+        designs = {k: v for k, v in doc.items() if isinstance(v, dict) and "fourier" in v}
+        if len(designs) == 1 and len(doc) == 1:
+            where, doc = next(iter(designs.items()))
+        elif designs:
+            raise InputFileError(src, "", f"holds {len(designs)} designs ({', '.join(designs)}); save the one to run in a file of its own")
+        else:
+            raise InputFileError(src, "fourier", "missing (a designs.json entry or {\"fourier\": {q0, a, b, base_frequency_hz}})")
+    f = doc["fourier"] if "fourier" in doc else doc
+    fw = f"{where}.fourier" if where else ("fourier" if "fourier" in doc else "")
+
+    def field(key: str) -> str:
+        return f"{fw}.{key}" if fw else key
+
+    if not isinstance(f, dict):
+        raise InputFileError(src, fw or "fourier", "must be an object with q0, a, b, base_frequency_hz")
+    for key in ("q0", "a", "b", "base_frequency_hz"):
+        if key not in f:
+            raise InputFileError(src, field(key), "missing")
+
+    def array(key: str, ndim: int) -> np.ndarray:
+        try:
+            a = np.asarray(f[key], dtype=float)
+        except (TypeError, ValueError):
+            raise InputFileError(src, field(key), f"must be {'a list' if ndim == 1 else 'a list of lists'} of numbers") from None
+        if a.ndim != ndim:
+            raise InputFileError(src, field(key), f"must be {'a list' if ndim == 1 else 'a list of lists (joint x harmonic)'} of numbers")
+        if not np.isfinite(a).all():
+            raise InputFileError(src, field(key), "must hold finite numbers only")
+        return a
+
+    q0 = array("q0", 1)
+    if q0.shape[0] != n_joints:
+        raise InputFileError(src, field("q0"), f"{q0.shape[0]} joints, the rig's robot has {n_joints}")
+    a, b = array("a", 2), array("b", 2)
+    for key, m in (("a", a), ("b", b)):
+        if m.shape[0] != n_joints or m.shape[1] < 1:
+            raise InputFileError(src, field(key), f"shape {m.shape}, expected ({n_joints}, harmonics >= 1)")
+    if a.shape != b.shape:
+        raise InputFileError(src, field("b"), f"shape {b.shape} differs from a's {a.shape}")
+    hz = f["base_frequency_hz"]
+    if isinstance(hz, bool) or not isinstance(hz, int | float) or not math.isfinite(hz):
+        raise InputFileError(src, field("base_frequency_hz"), f"must be a finite number, got {hz!r}")
+    top = 0.5 / period_s / a.shape[1]
+    if not 0 < hz < top:
+        raise InputFileError(src, field("base_frequency_hz"), f"must lie in (0, {top:g}) Hz (its {a.shape[1]} harmonics below "
+                                                               f"the {0.5 / period_s:g} Hz Nyquist frequency of the rig's period), got {hz}")
+    moving_doc = doc.get("moving_joints", list(range(1, n_joints + 1)))
+    if (not isinstance(moving_doc, list) or not moving_doc
+            or any(isinstance(j, bool) or not isinstance(j, int) or not 1 <= j <= n_joints for j in moving_doc)
+            or len(set(moving_doc)) != len(moving_doc)):
+        raise InputFileError(src, f"{where}.moving_joints" if where else "moving_joints",
+                             f"must be a list of distinct joint numbers 1..{n_joints}, got {moving_doc!r}")
+    return FourierTrajectory(q0, a, b, float(hz)), tuple(j - 1 for j in moving_doc)
 
 
 def _estimate(args: argparse.Namespace) -> int:
@@ -332,12 +537,9 @@ def _estimate(args: argparse.Namespace) -> int:
             print(f"armid estimate: {n} updates, {len(docs)} estimates in {seconds:.2f} s"
                   + (f"; last: mass {docs[-1]['mass']:.3f} kg" if docs else ""), file=sys.stderr)
             return 0
-        import zenoh
-
         from daq.payload_service import PayloadService
-        from daq.stream import session_config
 
-        session = zenoh.open(session_config(args.zenoh_listen, args.zenoh_connect, args.zenoh_config))
+        session = open_zenoh(args)
         service = PayloadService(session, robot.name, stream, on_estimate=lambda d: out.write(json.dumps(d) + "\n"))
         print(f"armid estimate: listening on armid/{robot.name}/joint_state (Ctrl-C stops)", file=sys.stderr, flush=True)
         try:
@@ -356,13 +558,9 @@ def _estimate(args: argparse.Namespace) -> int:
 
 
 def _watch(args: argparse.Namespace) -> int:
-    import zenoh
-
-    from daq.stream import session_config
-
     from .watch import watch
 
-    with zenoh.open(session_config(args.zenoh_listen, args.zenoh_connect, args.zenoh_config)) as session:
+    with open_zenoh(args) as session:
         state = watch(session, args.robot, args.duration)
     print(f"armid watch: {state.received} records, {state.gaps} gaps ({state.missing} missing), {state.bad} unreadable", file=sys.stderr)
     return 0
@@ -385,6 +583,7 @@ def _sim(args: argparse.Namespace) -> int:
     changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
     if changes and not rig.is_serial:
         rig = rig.with_bus(**changes)
+    _inputs_read()
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -441,6 +640,47 @@ def _write_sim_log(arm: object, path: Path) -> None:
     np.savez(path, **arm.log.arrays())  # type: ignore[attr-defined]
 
 
+def _zenoh_message(err: BaseException) -> str:
+    """Zenoh's error text without its Rust source locations, on one line."""
+    import re
+
+    text = str(err)
+    inner = re.search(r'msg: "(.*?)(?: at /[^"]*)?"', text)
+    text = inner.group(1) if inner else re.sub(r" at /\S+\.rs:\d+\.?", "", text)
+    return _one_line(text, 200)
+
+
+def open_zenoh(args: argparse.Namespace) -> Any:
+    """A Zenoh session from the command's options; a configuration file that cannot be read,
+    names a certificate that is not there, or cannot open a session is bad input (exit 2)."""
+    import zenoh
+
+    from daq.stream import session_config
+
+    src = args.zenoh_config
+    endpoints = "--zenoh-listen/--zenoh-connect"
+    if src is not None and not Path(src).is_file():
+        raise InputFileError(src, "", "no such file")
+    try:
+        config = session_config(args.zenoh_listen, args.zenoh_connect, src)
+    except Exception as err:  # zenoh raises ZError for syntax, schema and endpoints alike
+        if src is not None:
+            raise InputFileError(src, "", f"not a usable Zenoh configuration ({_zenoh_message(err)})") from None
+        raise OptionError(endpoints, _zenoh_message(err)) from None
+    if src is not None:
+        try:
+            tls = json.loads(config.get_json("transport/link/tls"))
+        except Exception:
+            tls = {}
+        for name, value in (tls or {}).items():
+            if isinstance(value, str) and name.endswith(("_certificate", "_private_key")) and not Path(value).is_file():
+                raise InputFileError(src, f"transport.link.tls.{name}", f"no such file {value}")
+    try:
+        return zenoh.open(config)
+    except Exception as err:
+        raise InputFileError(src or endpoints, "", f"cannot open a Zenoh session ({_zenoh_message(err)})") from None
+
+
 def _zenoh_arguments(p: argparse.ArgumentParser) -> None:
     """Where the Zenoh session connects (peer mode, multicast scouting off)."""
     p.add_argument("--zenoh-listen", nargs="*", metavar="ENDPOINT", help="Zenoh endpoints to listen on, e.g. tcp/127.0.0.1:7447")
@@ -461,7 +701,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--weighting", choices=("wls", "ols"), default="wls", help="per-joint weighted (default) or ordinary LS")
     p.add_argument("--lowpass", type=_lowpass, default="auto", metavar="HZ|auto|off",
                    help="zero-phase low-pass of the kinematics, the regressor and the torque alike (default auto: chosen from each recording's spectrum)")
-    p.add_argument("--max-gap-factor", type=float, default=20.0, help="split where a step exceeds this many median steps")
+    p.add_argument("--max-gap-factor", type=_gap_factor, default=20.0, help="split where a step exceeds this many median steps")
     p.set_defaults(run=_identify)
 
     p = sub.add_parser("diagnose", help="residual analysis: find undeclared effects, add them, refit, error before/after")
@@ -474,13 +714,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lowpass", type=_lowpass, default="auto", metavar="HZ|auto|off",
                    help="zero-phase low-pass of the kinematics, the regressor and the torque alike (default auto: chosen from each recording's spectrum)")
     p.add_argument("--torque-hold", action="store_true", help="torques were held over the period before each sample (drive currents between SYNCs)")
-    p.add_argument("--max-gap-factor", type=float, default=20.0, help="split where a step exceeds this many median steps")
+    p.add_argument("--max-gap-factor", type=_gap_factor, default=20.0, help="split where a step exceeds this many median steps")
     p.set_defaults(run=_diagnose)
 
     p = sub.add_parser("record", help="record the drives through daq/: MCAP, raw CAN log, live Zenoh stream")
     p.add_argument("--rig", required=True, help="rig file")
     p.add_argument("--out", required=True, help="output folder (run.mcap, can.log)")
-    p.add_argument("--duration", type=float, help="seconds to record (the arm's time when it is simulated here; default: until Ctrl-C)")
+    p.add_argument("--duration", type=_positive, help="seconds to record (the arm's time when it is simulated here; default: until Ctrl-C)")
     p.add_argument("--interface", help="override the rig's python-can interface")
     p.add_argument("--channel", help="override the rig's channel")
     p.add_argument("--simulate", action=argparse.BooleanOptionalAction, default=None,
@@ -494,10 +734,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--link", action="append", metavar="J", help="single-link experiment of joint J (repeat; 'all' = Khosla's sequence N..1)")
     p.add_argument("--whole", action="store_true", help="also a whole-arm run (the default without --link)")
     p.add_argument("--trajectory", metavar="JSON", help="run this designed trajectory (designs.json entry or {fourier: ...}) instead of designing")
-    p.add_argument("--periods", type=int, default=2, help="periods of each trajectory (default 2)")
-    p.add_argument("--frequency", type=float, metavar="HZ", help="base frequency (default 0.5 Hz single-link, 0.2 Hz whole arm)")
-    p.add_argument("--tracking-limit", type=float, default=0.2, metavar="RAD", help="quick stop beyond this tracking error (default 0.2 rad)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the trajectory optimiser's starts")
+    p.add_argument("--periods", type=_count, default=2, help="periods of each trajectory (default 2)")
+    p.add_argument("--frequency", type=_positive, metavar="HZ", help="base frequency (default 0.5 Hz single-link, 0.2 Hz whole arm)")
+    p.add_argument("--tracking-limit", type=_positive, default=0.2, metavar="RAD", help="quick stop beyond this tracking error (default 0.2 rad)")
+    p.add_argument("--seed", type=_seed, default=0, help="seed of the trajectory optimiser's starts")
     p.add_argument("--out", help="output folder (default runs/<date-time>)")
     p.add_argument("--dry-run", action="store_true", help="design and check only; enable nothing")
     p.add_argument("--interface", help="override the rig's python-can interface")
@@ -508,7 +748,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("watch", help="a live view of the stream in the terminal (joints, rate, gaps, events, payload)")
     p.add_argument("--robot", required=True, help="robot name, as in armid/<robot>/... (e.g. puma560)")
-    p.add_argument("--duration", type=float, help="stop after this many seconds (default: until Ctrl-C)")
+    p.add_argument("--duration", type=_positive, help="stop after this many seconds (default: until Ctrl-C)")
     _zenoh_arguments(p)
     p.set_defaults(run=_watch)
 
@@ -528,32 +768,96 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="the whole job on the simulated arm: excitation, recording, identification, diagnosis, payload, report")
     p.add_argument("--out", default="report", help="report folder (default: report)")
     p.add_argument("--rig", help="rig file (default: the embedded config/rigs/sim.yaml)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the trajectory optimiser's starts")
+    p.add_argument("--seed", type=_seed, default=0, help="seed of the trajectory optimiser's starts")
     p.set_defaults(run=_demo)
 
     p = sub.add_parser("sim", help="simulated arm on a CAN bus (virtual, udp_multicast, socketcan), or a Dynamixel chain on a pty")
     p.add_argument("--rig", required=True, help="rig file (config/rigs/sim.yaml)")
     p.add_argument("--interface", help="override the rig's python-can interface")
     p.add_argument("--channel", help="override the rig's channel")
-    p.add_argument("--seed", type=int, help="override the simulation seed")
-    p.add_argument("--duration", type=float, help="stop after this many seconds (default: until SIGINT/SIGTERM)")
+    p.add_argument("--seed", type=_seed, help="override the simulation seed")
+    p.add_argument("--duration", type=_positive, help="stop after this many seconds (default: until SIGINT/SIGTERM)")
     p.add_argument("--log", metavar="NPZ", help="on exit, write the simulated state per SYNC")
     p.add_argument("--ready", metavar="FILE", help="write this file once the drives are on the bus (a serial chain: its port)")
     p.set_defaults(run=_sim)
     return parser
 
 
+class _HeldWarnings:
+    """Warnings are held while a command reads its inputs: bad input then ends in its one
+    error line alone. Once the inputs are read (:meth:`release`) and at a successful end,
+    they are printed, one line each."""
+
+    def __init__(self) -> None:
+        self.command = ""
+        self.held: list[str] | None = []
+
+    def show(self, message: Any, category: Any, filename: str, lineno: int, file: Any = None, line: Any = None) -> None:
+        text = f"armid {self.command}: warning: {_one_line(str(message))}"
+        if self.held is None:
+            print(text, file=sys.stderr)
+        elif text not in self.held:
+            self.held.append(text)
+
+    def release(self) -> None:
+        for text in self.held or []:
+            print(text, file=sys.stderr)
+        self.held = None
+
+
+_WARNINGS = _HeldWarnings()
+
+
+def _inputs_read() -> None:
+    """The command has read and checked its inputs: print what they warned about."""
+    _WARNINGS.release()
+
+
+def _one_line(text: str, most: int = 600) -> str:
+    line = " ".join(str(text).split())
+    return line if len(line) <= most else line[: most - 3] + "..."
+
+
+def _exit_code(err: BaseException) -> tuple[int, str]:
+    """(exit code, message) for an error that reached the command line: 2 for bad input
+    (files, recordings, options, data that cannot give an estimate, refused plans), 1 for a
+    runtime fault or a bug."""
+    if isinstance(err, ArmidError):
+        bad_input = isinstance(err, ValueError | RobotFileError | RecordingError | IdentificationError | InputFileError)
+        return (2 if bad_input else 1), str(err)
+    if isinstance(err, OSError):
+        # a named file that cannot be opened or written is the user's to fix; a socket or a
+        # device failing under a running command is a runtime fault
+        if err.filename is not None:
+            return 2, f"{err.filename}: {err.strerror or err}"
+        return 1, f"{type(err).__name__}: {err}"
+    if isinstance(err, RecursionError):
+        return 2, "an input is nested too deeply to be read"
+    return 1, f"internal error ({type(err).__name__}: {err}); ARMID_DEBUG=1 shows where"
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run one command. The one boundary: whatever a command raises ends as one line on
+    stderr and an exit code; a traceback only with ``ARMID_DEBUG=1``."""
     args = build_parser().parse_args(argv)
+    _WARNINGS.command, _WARNINGS.held = args.command, []
     try:
-        return int(args.run(args))
-    except ArmidError as err:
-        # bad input (files, recordings, data that cannot give an estimate, refused plans) is 2
-        print(f"armid {args.command}: error: {err}", file=sys.stderr)
-        return 2 if isinstance(err, ValueError | RobotFileError | RecordingError | IdentificationError) else 1
-    except OSError as err:
-        print(f"armid {args.command}: error: {err}", file=sys.stderr)
-        return 2
+        with warnings.catch_warnings():
+            warnings.showwarning = _WARNINGS.show
+            code = int(args.run(args))
+        _WARNINGS.release()
+        return code
+    except KeyboardInterrupt:
+        print(f"armid {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as err:
+        if os.environ.get("ARMID_DEBUG", "") not in ("", "0"):
+            import traceback
+
+            traceback.print_exc()
+        code, message = _exit_code(err)
+        print(f"armid {args.command}: error: {_one_line(message)}", file=sys.stderr)
+        return code
 
 
 if __name__ == "__main__":

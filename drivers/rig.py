@@ -121,8 +121,11 @@ class Rig:
         return self.robot.n_joints
 
     def with_bus(self, **changes: Any) -> Rig:
+        """The rig on another bus (``--interface``, ``--channel``); the interface is checked."""
         from dataclasses import replace
 
+        if "interface" in changes:
+            _check_interface(str(changes["interface"]), self.source, "bus.interface (--interface)")
         return replace(self, bus=replace(self.bus, **changes))
 
 
@@ -162,6 +165,10 @@ def load_rig(path: str | Path) -> Rig:
         doc = yaml.safe_load(path.read_text())
     except FileNotFoundError:
         raise RigFileError(src, "", "no such file") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise RigFileError(src, "", f"cannot read ({err})") from None
+    except RecursionError:
+        raise RigFileError(src, "", "nested too deeply to be a rig file") from None
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         raise RigFileError(src, f"line {mark.line + 1}" if mark else "YAML", "not valid YAML") from err
@@ -179,15 +186,29 @@ def rig_from_dict(doc: Any, src: str = "<rig>", base_dir: Path | None = None) ->
         return doc[key]
 
     robot_ref = need("robot")
+    if not isinstance(robot_ref, Robot | str):
+        raise RigFileError(src, "robot", f"must be the path of a robot description, got {robot_ref!r}")
     robot = load_robot(base_dir / str(robot_ref)) if not isinstance(robot_ref, Robot) else robot_ref
     bus_doc = doc.get("bus", {}) or {}
     if not isinstance(bus_doc, dict):
         raise RigFileError(src, "bus", "must be a mapping")
+    if not isinstance(doc.get("simulation") or {}, dict):
+        raise RigFileError(src, "simulation", f"must be a mapping of settings, got {doc['simulation']!r}")
+    if not isinstance(doc.get("name", ""), str):
+        raise RigFileError(src, "name", f"must be a string, got {doc['name']!r}")
+    for key in ("channel", "port"):
+        if key in bus_doc and (isinstance(bus_doc[key], bool) or not isinstance(bus_doc[key], str | int)):
+            raise RigFileError(src, f"bus.{key}", f"must be a name or a number, got {bus_doc[key]!r}")
     if bus_doc.get("interface") == "dynamixel":
-        return _serial_rig(doc, bus_doc, robot, src)
+        rig = _serial_rig(doc, bus_doc, robot, src)
+        _check_simulation(rig.simulation, robot, src)
+        return rig
     known_bus = {"interface", "channel", "bitrate"}
+    interface = bus_doc.get("interface", "virtual")
+    if "interface" in bus_doc:
+        _check_interface(interface, src, "bus.interface")
     bus = BusConfig(
-        interface=str(bus_doc.get("interface", "virtual")),
+        interface=str(interface),
         channel=str(bus_doc.get("channel", "armid")),
         bitrate=_int(bus_doc.get("bitrate", 1_000_000), src, "bus.bitrate", 10_000, 8_000_000),
         options={k: v for k, v in bus_doc.items() if k not in known_bus},
@@ -221,7 +242,73 @@ def rig_from_dict(doc: Any, src: str = "<rig>", base_dir: Path | None = None) ->
 
     if rig.pdo_plan not in PLANS:
         raise RigFileError(src, "pdo_plan", f"unknown plan {rig.pdo_plan!r}; known: {', '.join(PLANS)}")
+    if not isinstance(doc.get("bus"), dict) or "interface" not in doc["bus"]:
+        # checked last, so that a rig's other fields are reported first; no bus never means a simulated one
+        raise RigFileError(src, "bus.interface", "missing: name the bus (virtual for the simulated arm; socketcan, pcan, "
+                                                 "kvaser, ... for drives; dynamixel for a servo chain)")
+    _check_simulation(rig.simulation, robot, src)
     return rig
+
+
+SIMULATION_KEYS = ("seed", "current_noise_a", "current_time_constant_s", "substeps", "sync_timeout_s", "initial_position",
+                   "effects", "gravity_tilt_rad")
+
+
+def _check_interface(interface: Any, src: str, where: str) -> None:
+    """A python-can interface name (``can.interfaces.VALID_INTERFACES``)."""
+    from can.interfaces import VALID_INTERFACES
+
+    if not isinstance(interface, str) or interface not in VALID_INTERFACES:
+        raise RigFileError(src, where, f"unknown CAN interface {interface!r}; python-can knows "
+                                       f"{', '.join(sorted(VALID_INTERFACES))} (or dynamixel for a servo chain)")
+
+
+def _check_simulation(sim: dict[str, Any], robot: Robot, src: str) -> None:
+    """The ``simulation:`` values the simulated arm reads, against their ranges and the robot's limits."""
+    unknown = sorted(set(sim) - set(SIMULATION_KEYS))
+    if unknown:
+        raise RigFileError(src, f"simulation.{unknown[0]}", f"unknown setting; known: {', '.join(SIMULATION_KEYS)}")
+    if "seed" in sim:
+        _int(sim["seed"], src, "simulation.seed", 0, 2**32 - 1)
+    if "substeps" in sim:
+        _int(sim["substeps"], src, "simulation.substeps", 1, 1000)
+    for key in ("current_noise_a", "current_time_constant_s"):
+        if key in sim and _float(sim[key], src, f"simulation.{key}") < 0:
+            raise RigFileError(src, f"simulation.{key}", f"must not be negative, got {sim[key]}")
+    if "sync_timeout_s" in sim:
+        _float(sim["sync_timeout_s"], src, "simulation.sync_timeout_s", positive=True)
+    if sim.get("gravity_tilt_rad") is not None:
+        tilt = sim["gravity_tilt_rad"]
+        if not isinstance(tilt, list) or len(tilt) != 2:
+            raise RigFileError(src, "simulation.gravity_tilt_rad", f"must be a list of 2 numbers, got {tilt!r}")
+        for k, v in enumerate(tilt):
+            _float(v, src, f"simulation.gravity_tilt_rad[{k}]")
+    q0 = sim.get("initial_position")
+    if q0 is not None:
+        n = robot.n_joints
+        if not isinstance(q0, list) or len(q0) != n:
+            raise RigFileError(src, "simulation.initial_position", f"must be a list of {n} numbers (one per joint), got {q0!r}")
+        for j, v in enumerate(q0):
+            where = f"simulation.initial_position[{j}]"
+            x = _float(v, src, where)
+            limits = robot.joints[j].limits.position
+            if limits is not None and not limits[0] <= x <= limits[1]:
+                raise RigFileError(src, where, f"{x:g} is beyond joint {j + 1}'s position limits [{limits[0]:g}, {limits[1]:g}] "
+                                               f"({robot.source})")
+    effects = sim.get("effects")
+    if effects is not None:
+        if not isinstance(effects, list):
+            raise RigFileError(src, "simulation.effects", "must be a list like [{joint: all, viscous: 0.5}]")
+        for k, e in enumerate(effects):
+            where = f"simulation.effects[{k}]"
+            if not isinstance(e, dict) or "joint" not in e:
+                raise RigFileError(src, where, "must be a mapping with a 1-based 'joint' (or all) and effect values")
+            joint = e["joint"]
+            if joint not in (None, "all") and (isinstance(joint, bool) or not isinstance(joint, int) or not 1 <= joint <= robot.n_joints):
+                raise RigFileError(src, f"{where}.joint", f"must be 1..{robot.n_joints} or all, got {joint!r}")
+            for name, value in e.items():
+                if name != "joint":
+                    _float(value, src, f"{where}.{name}")
 
 
 def _serial_rig(doc: dict[str, Any], bus_doc: dict[str, Any], robot: Robot, src: str) -> Rig:

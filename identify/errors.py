@@ -8,6 +8,10 @@ One tree, so that a caller can catch everything armid raises, or one branch::
      +-- IdentificationError(ArmidError)            the data cannot give an estimate
      +-- UsageError(ArmidError, ValueError)         arguments that do not fit together
      +-- TrajectoryLimitError(ArmidError, ValueError)   (identify.excitation) a plan beyond a limit
+     +-- InputFileError(ArmidError, ValueError)     another input file (trajectory JSON, Zenoh
+     |                                              configuration): file, field, problem
+     +-- OptionError(UsageError)                    one option outside its meaningful range
+    ImplausibleDataWarning(UserWarning)             a recording looks odd but may be right
     PoorExcitationWarning(UserWarning)              trajectory not persistently exciting (5.2)
 
 Every message names what is wrong and where (file, field or row), so that the command
@@ -51,3 +55,29 @@ class PoorExcitationWarning(UserWarning):
 
 class UsageError(ArmidError, ValueError):
     """A command was called with arguments that do not fit together."""
+
+
+class OptionError(UsageError):
+    """One option's value is outside its meaningful range: names the option and the value."""
+
+    def __init__(self, option: str, problem: str) -> None:
+        self.option = option
+        self.problem = problem
+        super().__init__(f"{option}: {problem}")
+
+
+class InputFileError(ArmidError, ValueError):
+    """An input file other than a robot or a recording (a trajectory, a Zenoh configuration)
+    cannot be used: names the file, the field or line, and the problem."""
+
+    def __init__(self, source: str, field: str, problem: str) -> None:
+        self.source = source
+        self.field = field
+        self.problem = problem
+        where = f"{source}: {field}" if field else source
+        super().__init__(f"{where}: {problem}")
+
+
+class ImplausibleDataWarning(UserWarning):
+    """A recording looks odd (for instance a velocity column that disagrees with dq/dt)
+    but could still be right: the command line prints it and goes on."""

@@ -3,7 +3,9 @@
 CSV with a header: ``t``, ``q1..qn``, optional ``qd1..qdn`` and ``qdd1..qddn``, and
 ``tau1..taun`` or ``i1..in`` (scaled by each joint's ``torque_constant``). Also NumPy
 ``.npz`` archives with ``times, positions, velocities[, accelerations], torques`` (the
-layout of the shared KUKA LWR4+ data). Recordings written by ``daq/`` (MCAP) are read there.
+layout of the shared KUKA LWR4+ data). MCAP recordings from ``armid record``: every chunk's
+CRC is checked, reading resumes after a bad chunk, and the notes say what was lost
+(:func:`read_mcap_arrays`).
 """
 
 from __future__ import annotations
@@ -66,19 +68,39 @@ MCAP_TOPIC = "/joint_state"
 
 def _read_mcap(path: Path, robot: Robot) -> Recording:
     """A recording from ``armid record``: positions, drive velocities, measured currents
-    times the torque constants; cycles where a joint's frames did not arrive are left out."""
-    arrays, _, notes = read_mcap_arrays(path)
+    times the torque constants; cycles where a joint's frames did not arrive are left out.
+
+    The run's metadata must name ``robot`` (a recording of one arm identified as another is
+    refused). Records whose time stamp does not come after every earlier one (a clock step
+    back on the bench) are left out and said so: the sequence numbers give the order."""
+    arrays, metadata, notes = read_mcap_arrays(path)
     if not arrays:
         raise RecordingError(str(path), "no joint_state record could be read" + (f": {notes[0]}" if notes else ""))
+    recorded = metadata.get("robot")
+    if recorded is not None and recorded != robot.name:
+        raise RecordingError(str(path), f"metadata armid.run: recorded on robot {recorded!r}, but --robot {robot.source} "
+                                        f"describes {robot.name!r}")
     n = arrays["position"].shape[1]
     if n != robot.n_joints:
         raise RecordingError(str(path), f"{n} joints recorded, robot {robot.name} has {robot.n_joints}")
+    order = np.argsort(arrays["sequence"], kind="stable")
+    if np.any(order != np.arange(order.size)):
+        arrays = {k: v[order] for k, v in arrays.items()}
+        notes.append("records stored out of sequence order: put back in order by their sequence numbers")
+    t_all = arrays["t"]
+    ahead = np.concatenate([[True], t_all[1:] > np.maximum.accumulate(t_all)[:-1]])
+    if not ahead.all():
+        first = int(np.flatnonzero(~ahead)[0])
+        notes.append(f"time goes backwards at sequence {int(arrays['sequence'][first])} (t {t_all[first - 1]:.6f} -> "
+                     f"{t_all[first]:.6f} s): left out {int((~ahead).sum())} records stamped no later than an earlier one")
     valid = arrays["valid"].all(axis=1)
     if not valid.all():
         notes.append(f"left out {int((~valid).sum())} cycles with a joint marked invalid")
     kt = np.array([j.torque_constant for j in robot.joints])
-    keep = valid
-    t = arrays["t"][keep]
+    keep = valid & ahead
+    if keep.sum() < 2:
+        raise RecordingError(str(path), f"only {int(keep.sum())} usable records of {keep.size} (" + "; ".join(notes) + ")")
+    t = t_all[keep]
     velocity = _drive_velocity(t, arrays["velocity"][keep], arrays["velocity_fresh"][keep], notes)
     return Recording(str(path), t, arrays["position"][keep], arrays["measured_current"][keep] * kt, velocity, None, None,
                      notes + ["torque = measured current x torque_constant"], torque_held=True)
@@ -195,11 +217,17 @@ def _read_npz(path: Path, robot: Robot) -> Recording:
         for key in ("times", "positions", "torques"):
             if key not in keys:
                 raise RecordingError(str(path), f"archive has no '{key}' array (has {', '.join(sorted(keys))})")
-        t = np.asarray(archive["times"], dtype=float).reshape(-1)
+        try:
+            t = np.asarray(archive["times"], dtype=float).reshape(-1)
+        except (ValueError, TypeError) as err:
+            raise RecordingError(str(path), f"'times' is not an array of numbers ({err})") from None
         arrays = {}
         for key in ("positions", "velocities", "accelerations", "torques"):
             if key in keys:
-                a = np.asarray(archive[key], dtype=float)
+                try:
+                    a = np.asarray(archive[key], dtype=float)
+                except (ValueError, TypeError) as err:
+                    raise RecordingError(str(path), f"'{key}' is not an array of numbers ({err})") from None
                 if a.ndim != 2 or a.shape != (t.shape[0], robot.n_joints):
                     raise RecordingError(
                         str(path), f"'{key}' has shape {a.shape}, expected ({t.shape[0]}, {robot.n_joints}) for {robot.name}"
@@ -233,47 +261,351 @@ def write_csv(path: str | Path, t: Array, columns: dict[str, Array]) -> None:
     np.savetxt(path, np.hstack(blocks), delimiter=",", header=",".join(header), comments="", fmt="%.10g")
 
 
-def read_mcap_arrays(path: str | Path) -> tuple[dict[str, Array], dict[str, str], list[str]]:
-    """Arrays of the ``/joint_state`` messages, the run metadata, and notes on what was lost."""
-    from mcap.exceptions import McapError
-    from mcap.records import Channel, Message, Metadata
-    from mcap.stream_reader import StreamReader
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+_OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK = 0x02, 0x03, 0x04, 0x05, 0x06
+_OP_CHUNK_INDEX, _OP_STATISTICS, _OP_METADATA, _OP_DATA_END = 0x08, 0x0B, 0x0C, 0x0F
+_KNOWN_OPS = set(range(0x01, 0x10))
+_JOINT_FIELDS = ("position", "velocity", "commanded_current", "measured_current")
 
-    path = Path(path)
-    rows: list[dict[str, Any]] = []
-    metadata: dict[str, str] = {}
-    notes: list[str] = []
-    channels: dict[int, str] = {}
-    complete = False
-    with open(path, "rb") as f:
-        reader = StreamReader(f)
+
+@dataclass
+class _Loss:
+    """A stretch of the file that could not be read: where, why, and the records around it."""
+
+    offset: int
+    end: int
+    why: str
+    start_time_ns: int | None = None  # the chunk header's own span, when it could be read
+    end_time_ns: int | None = None
+
+
+class _McapScan:
+    """Every record of an MCAP file that can be trusted, read past bad chunks.
+
+    Each chunk's CRC is checked; a chunk that fails it, or whose records do not parse, is
+    left out whole. Reading resumes at the next chunk: at the offset the summary's chunk
+    index gives when the file has an intact summary, else at the next byte position that
+    holds a whole chunk with a matching CRC.
+    """
+
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+        self.channels: dict[int, str] = {}
+        self.messages: list[tuple[int, bytes]] = []  # (file offset of the chunk or record, payload)
+        self.metadata: dict[str, str] = {}
+        self.losses: list[_Loss] = []
+        self.data_end = False  # the data section ended as written (DataEnd record reached)
+        self.cut_at: int | None = None  # the file ends inside a record at this offset
+        self.expected_messages: int | None = None  # from the summary's statistics
+        self.chunk_starts: list[int] = []  # from the summary's chunk index
+        self.summary = False
+        self.orphans: dict[int, list[tuple[int, bytes]]] = {}  # messages of a channel whose record was not read
+        self.adopted: int | None = None
+        self._read_summary()
+        self._read_data()
+        self._adopt_orphans()
+
+    # -- framing -------------------------------------------------------------------------
+    def _record(self, pos: int) -> tuple[int, int] | None:
+        """(opcode, content length) of a whole record at ``pos``, or None past the end."""
+        if pos + 9 > len(self.data):
+            return None
+        op = self.data[pos]
+        (length,) = struct.unpack_from("<Q", self.data, pos + 1)
+        if pos + 9 + length > len(self.data):
+            return None
+        return op, length
+
+    def _read_summary(self) -> None:
+        """Chunk offsets and the message count from the summary, if the footer and its CRC hold."""
+        import zlib
+
+        d = self.data
+        tail = len(d) - len(MCAP_MAGIC) - 29  # footer: opcode, length 20, two u64 and a u32
+        if tail < len(MCAP_MAGIC) or not d.endswith(MCAP_MAGIC) or d[tail] != _OP_FOOTER:
+            return
+        summary_start, _, crc = struct.unpack_from("<QQI", d, tail + 9)
+        if not len(MCAP_MAGIC) <= summary_start <= tail:
+            return
+        if crc and zlib.crc32(d[summary_start : tail + 9 + 16]) != crc:
+            return
+        pos = summary_start
+        starts, count = [], None
+        while pos < tail:
+            rec = self._record(pos)
+            if rec is None:
+                return
+            op, length = rec
+            body = pos + 9
+            if op == _OP_CHUNK_INDEX and length >= 32:
+                starts.append(struct.unpack_from("<Q", d, body + 16)[0])
+            elif op == _OP_STATISTICS and length >= 46:
+                count = struct.unpack_from("<Q", d, body)[0]
+            elif op == _OP_CHANNEL:
+                self._channel(d[body : body + length])
+            pos = body + length
+        self.summary = True
+        self.chunk_starts = sorted(s for s in starts if s < len(d))
+        self.expected_messages = count
+
+    def _channel(self, content: bytes) -> None:
+        from io import BytesIO
+
+        from mcap.data_stream import ReadDataStream
+        from mcap.records import Channel
+
         try:
-            for rec in reader.records:
-                if isinstance(rec, Channel):
-                    channels[rec.id] = rec.topic
-                elif isinstance(rec, Message) and channels.get(rec.channel_id) == MCAP_TOPIC:
-                    rows.append(json.loads(rec.data))
-                elif isinstance(rec, Metadata) and rec.name == "armid.run":
-                    metadata = dict(rec.metadata)
-            complete = True
-        except (McapError, EOFError, struct.error, ValueError, KeyError, IndexError, OSError) as err:
-            # a truncated or corrupted tail: keep what came before
-            size = path.stat().st_size
-            notes.append(f"the file breaks after {len(rows)} records ({type(err).__name__}: {err}; {size} bytes): "
-                         f"read what came before, the rest of the run is lost")
-    if not complete and not rows:
-        notes.append("no record could be read")
+            ch = Channel.read(ReadDataStream(BytesIO(content)))
+        except Exception:  # a garbled channel record: its messages stay unread, and are counted lost
+            return
+        self.channels[ch.id] = ch.topic
+
+    def _read_data(self) -> None:
+        d = self.data
+        pos = len(MCAP_MAGIC)
+        while pos < len(d):
+            rec = self._record(pos)
+            if rec is None or rec[0] not in _KNOWN_OPS:
+                nxt = self._next_chunk(pos + 1)
+                if nxt is not None:
+                    self.losses.append(_Loss(pos, nxt, "unreadable record framing"))
+                    pos = nxt
+                    continue
+                if rec is None and (pos + 9 > len(d) or d[pos] in _KNOWN_OPS):
+                    self._cut(pos)  # the file ends inside this record: written no further
+                else:
+                    self.losses.append(_Loss(pos, len(d), "unreadable record framing"))
+                return
+            op, length = rec
+            body = pos + 9
+            if op == _OP_CHUNK:
+                self._chunk(pos, body, length)
+            elif op == _OP_CHANNEL:
+                self._channel(d[body : body + length])
+            elif op == _OP_MESSAGE:
+                self._message(pos, d[body : body + length])
+            elif op == _OP_METADATA:
+                self._metadata(body, length)
+            elif op == _OP_DATA_END:
+                self.data_end = True
+                return
+            elif op == _OP_FOOTER:
+                return
+            pos = body + length
+
+    def _cut(self, pos: int) -> None:
+        """The file ends inside the record at ``pos``: note it, with a cut chunk's time span."""
+        self.cut_at = pos
+        loss = _Loss(pos, len(self.data), "the file ends inside a record")
+        if self.data[pos] == _OP_CHUNK and pos + 9 + 16 <= len(self.data):
+            loss.why = "the file ends inside a chunk"
+            loss.start_time_ns, loss.end_time_ns = struct.unpack_from("<QQ", self.data, pos + 9)
+        self.losses.append(loss)
+
+    def _chunk_fields(self, pos: int) -> tuple[int, int, int, int, str, int, int] | None:
+        """(start, end, uncompressed size, CRC, compression, records offset, records length) of
+        a whole chunk at ``pos`` whose framing is consistent, else None."""
+        rec = self._record(pos)
+        if rec is None or rec[0] != _OP_CHUNK or rec[1] < 40:
+            return None
+        body, length = pos + 9, rec[1]
+        t0, t1, size, crc, clen = struct.unpack_from("<QQQII", self.data, body)
+        if clen > 16 or 36 + clen + 8 > length:
+            return None
+        try:
+            compression = self.data[body + 32 : body + 32 + clen].decode()
+        except UnicodeDecodeError:
+            return None
+        (rlen,) = struct.unpack_from("<Q", self.data, body + 32 + clen)
+        if 40 + clen + rlen != length or compression not in ("", "lz4", "zstd"):
+            return None
+        return t0, t1, size, crc, compression, body + 40 + clen, rlen
+
+    def _next_chunk(self, after: int) -> int | None:
+        """Where reading resumes: the next chunk the summary lists, or the next whole chunk
+        with a consistent frame found byte by byte."""
+        if self.summary:
+            return next((s for s in self.chunk_starts if s >= after), None)
+        pos = after
+        while True:
+            pos = self.data.find(bytes([_OP_CHUNK]), pos)
+            if pos < 0:
+                return None
+            fields = self._chunk_fields(pos)
+            if fields is not None and (fields[3] == 0 or self._crc_ok(fields)):
+                return pos
+            pos += 1
+
+    def _crc_ok(self, fields: tuple[int, int, int, int, str, int, int]) -> bool:
+        import zlib
+
+        _, _, _, crc, compression, off, rlen = fields
+        raw = self._decompress(compression, self.data[off : off + rlen], fields[2])
+        return raw is not None and (crc == 0 or zlib.crc32(raw) == crc)
+
+    @staticmethod
+    def _decompress(compression: str, data: bytes, size: int) -> bytes | None:
+        try:
+            if compression == "zstd":
+                import zstandard
+
+                return bytes(zstandard.decompress(data, size))
+            if compression == "lz4":
+                import lz4.frame
+
+                return bytes(lz4.frame.decompress(data))
+        except Exception:  # a corrupt compressed chunk: its records are lost
+            return None
+        return data
+
+    def _chunk(self, pos: int, body: int, length: int) -> None:
+        import zlib
+
+        fields = self._chunk_fields(pos)
+        if fields is None:
+            self.losses.append(_Loss(pos, body + length, "a chunk whose header is garbled"))
+            return
+        t0, t1, size, crc, compression, off, rlen = fields
+        raw = self._decompress(compression, self.data[off : off + rlen], size)
+        if raw is None or (crc and zlib.crc32(raw) != crc):
+            self.losses.append(_Loss(pos, body + length, "a chunk that fails its CRC" if raw is not None else "a chunk that does not decompress",
+                                     t0, t1))
+            return
+        inner: list[tuple[int, bytes]] = []
+        k = 0
+        while k < len(raw):
+            if k + 9 > len(raw):
+                break
+            op = raw[k]
+            (n,) = struct.unpack_from("<Q", raw, k + 1)
+            if k + 9 + n > len(raw):
+                break
+            if op == _OP_MESSAGE:
+                inner.append((pos, raw[k + 9 : k + 9 + n]))
+            elif op == _OP_CHANNEL:
+                self._channel(raw[k + 9 : k + 9 + n])
+            k += 9 + n
+        if k != len(raw):
+            self.losses.append(_Loss(pos, body + length, "a chunk whose records do not parse", t0, t1))
+            return
+        for _, payload in inner:
+            self._message(pos, payload)
+
+    def _message(self, pos: int, content: bytes) -> None:
+        if len(content) < 22:
+            return
+        (channel,) = struct.unpack_from("<H", content, 0)
+        topic = self.channels.get(channel)
+        if topic == MCAP_TOPIC:
+            self.messages.append((pos, content[22:]))
+        elif topic is None:
+            self.orphans.setdefault(channel, []).append((pos, content[22:]))
+
+    def _adopt_orphans(self) -> None:
+        """The channel record went down with a bad chunk (it is written once, in the first
+        chunk, and again only in the summary): when no ``/joint_state`` channel was seen and
+        every message belongs to one unknown channel, those are taken as ``/joint_state``."""
+        if MCAP_TOPIC in self.channels.values() or len(self.orphans) != 1:
+            return
+        channel, messages = next(iter(self.orphans.items()))
+        self.messages = messages
+        self.adopted = channel
+
+    def _metadata(self, body: int, length: int) -> None:
+        from io import BytesIO
+
+        from mcap.data_stream import ReadDataStream
+        from mcap.records import Metadata
+
+        try:
+            rec = Metadata.read(ReadDataStream(BytesIO(self.data[body : body + length])))
+        except Exception:
+            self.losses.append(_Loss(body - 9, body + length, "an unreadable metadata record"))
+            return
+        if rec.name == "armid.run":
+            self.metadata = dict(rec.metadata)
+
+
+def _check_message(msg: Any, k: int, n: int | None, source: str) -> int:
+    """Refuse a ``/joint_state`` message (CRC intact, so written so) without the fields and
+    lengths identification reads; returns its joint count."""
+
+    def bad(problem: str) -> RecordingError:
+        seq = msg.get("sequence") if isinstance(msg, dict) else None
+        return RecordingError(source, f"/joint_state message {k}" + (f" (sequence {seq})" if isinstance(seq, int) else "") + f": {problem}")
+
+    if not isinstance(msg, dict):
+        raise bad(f"must be a JSON object, got {type(msg).__name__}")
+    for key in ("sequence", "cycle"):
+        if key not in msg:
+            raise bad(f"'{key}' missing")
+        if isinstance(msg[key], bool) or not isinstance(msg[key], int):
+            raise bad(f"'{key}' must be an integer, got {msg[key]!r}")
+    stamp = msg.get("header", {}).get("stamp") if isinstance(msg.get("header"), dict) else None
+    if not isinstance(stamp, dict) or not all(isinstance(stamp.get(x), int) and not isinstance(stamp.get(x), bool) for x in ("sec", "nsec")):
+        raise bad("'header.stamp' must hold integers 'sec' and 'nsec'")
+    position = msg.get("position")
+    if not isinstance(position, list):
+        raise bad(f"'position' must be a list of numbers, got {position!r}"[:200])
+    m = len(position) if n is None else n
+    for key in _JOINT_FIELDS:
+        v = msg.get(key)
+        if v is None:
+            raise bad(f"'{key}' missing")
+        if not isinstance(v, list) or any(isinstance(x, bool) or not isinstance(x, int | float) for x in v):
+            raise bad(f"'{key}' must be a list of numbers")
+        if len(v) != m:
+            raise bad(f"'{key}' has {len(v)} values, the recording's other messages {m}")
+    for key, kind in (("valid", bool), ("velocity_fresh", bool), ("status", int)):
+        v = msg.get(key)
+        if v is None and key != "valid":
+            continue
+        if not isinstance(v, list) or len(v) != m or any(not isinstance(x, kind) for x in v):
+            raise bad(f"'{key}' must be a list of {m} {kind.__name__}s")
+    return m
+
+
+def read_mcap_arrays(path: str | Path) -> tuple[dict[str, Array], dict[str, str], list[str]]:
+    """Arrays of the ``/joint_state`` messages, the run metadata, and notes on what was lost.
+
+    Chunks that fail their CRC are left out and reading goes on after them (see
+    :class:`_McapScan`); the notes say how many records and seconds each loss cost and where.
+    A message that passed its CRC but lacks a field is refused (:class:`RecordingError`).
+    """
+    path = Path(path)
+    src = str(path)
+    try:
+        data = path.read_bytes()
+    except OSError as err:
+        raise RecordingError(src, f"cannot read ({err.strerror or err})") from None
+    if not data.startswith(MCAP_MAGIC):
+        raise RecordingError(src, "not an MCAP file (its first bytes are not the MCAP magic)")
+    scan = _McapScan(data)
+    rows: list[dict[str, Any]] = []
+    offsets: list[int] = []
+    n: int | None = None
+    for k, (pos, payload) in enumerate(scan.messages):
+        try:
+            msg = json.loads(payload)
+        except (ValueError, RecursionError):
+            raise RecordingError(src, f"/joint_state message {k} (in the chunk at byte {pos}): not valid JSON") from None
+        n = _check_message(msg, k, n, src)
+        rows.append(msg)
+        offsets.append(pos)
+    notes = _loss_notes(scan, rows, offsets, len(data))
+    if scan.adopted is not None and rows:
+        notes.append(f"the /joint_state channel record was lost: the {len(rows)} messages of channel {scan.adopted}, "
+                     "the only channel left, were read as /joint_state")
     if not rows:
-        return {}, metadata, notes
+        if not notes:
+            notes.append("no /joint_state record in the file")
+        return {}, scan.metadata, notes
     seq = np.array([r["sequence"] for r in rows])
-    gaps = np.flatnonzero(np.diff(seq) != 1)
-    if gaps.size:
-        missing = int(np.sum(np.diff(seq)[gaps] - 1))
-        notes.append(f"{missing} records missing in {gaps.size} gap(s) of the sequence numbers (first after sequence {seq[gaps[0]]})")
+    t = np.array([r["header"]["stamp"]["sec"] + 1e-9 * r["header"]["stamp"]["nsec"] for r in rows])
     arrays = {
         "sequence": seq,
         "cycle": np.array([r["cycle"] for r in rows]),
-        "t": np.array([r["header"]["stamp"]["sec"] + 1e-9 * r["header"]["stamp"]["nsec"] for r in rows]),
+        "t": t,
         "valid": np.array([r["valid"] for r in rows], bool),
         "position": np.array([r["position"] for r in rows], float),
         "velocity": np.array([r["velocity"] for r in rows], float),
@@ -282,4 +614,56 @@ def read_mcap_arrays(path: str | Path) -> tuple[dict[str, Array], dict[str, str]
         "measured_current": np.array([r["measured_current"] for r in rows], float),
         "status": np.array([r.get("status", [0] * len(r["position"])) for r in rows], np.int64),
     }
-    return arrays, metadata, notes
+    return arrays, scan.metadata, notes
+
+
+def _loss_notes(scan: _McapScan, rows: list[dict[str, Any]], offsets: list[int], size: int) -> list[str]:
+    """What was lost, in records and seconds, and where: one note per unreadable stretch,
+    one per gap in the sequence numbers that no unreadable stretch explains."""
+    notes: list[str] = []
+    seq = np.array([r["sequence"] for r in rows], dtype=np.int64)
+    t = np.array([r["header"]["stamp"]["sec"] + 1e-9 * r["header"]["stamp"]["nsec"] for r in rows])
+    pos = np.array(offsets, dtype=np.int64)
+    period = float(np.median(np.diff(t))) if t.size > 2 else float("nan")
+    explained: set[int] = set()
+    for loss in scan.losses:
+        before = int(np.searchsorted(pos, loss.offset)) - 1  # last record read before the stretch
+        after = before + 1
+        where = f"bytes {loss.offset}..{loss.end} of {size}"
+        if after < seq.size and loss.end < size:
+            explained.add(before)
+            if before >= 0:
+                lost = int(seq[after] - seq[before] - 1)
+                if lost == 0:
+                    notes.append(f"{loss.why} ({where}): no record lost")
+                    continue
+                seconds = float(t[after] - t[before]) - (period if np.isfinite(period) else 0.0)
+                span = f"sequence {seq[before] + 1}..{seq[after] - 1}, between t {t[before]:.4f} and {t[after]:.4f} s"
+            else:
+                lost = int(seq[after] - 0)
+                seconds = lost * period if np.isfinite(period) else float("nan")
+                span = f"sequence 0..{seq[after] - 1}, before t {t[after]:.4f} s"
+            notes.append(f"{loss.why} ({where}): {lost} records ({seconds:.3f} s; {span}) lost; reading resumed after it")
+        else:
+            tail = f"after sequence {seq[-1]} (t {t[-1]:.4f} s)" if seq.size else "from the start"
+            if scan.expected_messages is not None:
+                lost = scan.expected_messages - seq.size - sum(int(seq[i + 1] - seq[i] - 1) for i in range(seq.size - 1))
+                amount = f"{lost} records ({lost * period:.3f} s)" if np.isfinite(period) else f"{lost} records"
+            elif loss.start_time_ns is not None and np.isfinite(period):
+                seconds = max(0.0, (loss.end_time_ns - loss.start_time_ns) * 1e-9) + period  # type: ignore[operator]
+                amount = f"a cut chunk of about {int(round(seconds / period))} records ({seconds:.3f} s)"
+            else:
+                amount = "an unknown number of records (no summary)"
+            notes.append(f"{loss.why} ({where}): {amount} {tail} lost; the rest of the run is lost")
+    if not scan.data_end and scan.cut_at is None and not any(lo.end >= size for lo in scan.losses):
+        notes.append(f"the file ends after its last complete chunk without a summary (the recorder did not close it): "
+                     f"records after sequence {seq[-1] if seq.size else '-'} may never have been written; the rest of the run is lost")
+    if seq.size > 1:
+        d = np.diff(seq)
+        gaps = [i for i in np.flatnonzero(d != 1) if i not in explained]
+        if gaps:
+            missing = int(sum(d[i] - 1 for i in gaps))
+            i = gaps[0]
+            notes.append(f"{missing} records missing in {len(gaps)} gap(s) of the sequence numbers "
+                         f"(first after sequence {seq[i]}, t {t[i]:.4f} s)")
+    return notes

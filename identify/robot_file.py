@@ -2,19 +2,27 @@
 
 Precedence for a URDF-based file: values the YAML gives for a joint (``limits``,
 ``inertial``, ``torque_constant``) override the URDF's; everything else comes from the URDF.
-Every problem raises :class:`RobotFileError` naming the file, the field and what is wrong.
+A joint's ``type`` beside ``urdf:`` may repeat what the URDF says; one that contradicts it is
+refused, naming both. Every problem raises :class:`RobotFileError` naming the file, the
+field and what is wrong.
+
+Modeled inertias must be physical: a negative mass or a negative principal moment of
+inertia is refused. Principal moments that break the triangle inequality
+(``I1 + I2 >= I3``) give an :class:`ImplausibleDataWarning` only: published values often do
+(the PUMA 560's links 1 and 3, Armstrong et al. 1986) and the torques stay well defined.
 """
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from .effects import CATALOGUE, LINEAR_EFFECTS, SETTINGS
-from .errors import RobotFileError
-from .robot import DeclaredEffect, Inertial, Joint, JointLimits, JointType, Robot, dh_joint, inertia_entries, mdh_joint
+from .errors import ImplausibleDataWarning, RobotFileError
+from .robot import DeclaredEffect, Inertial, Joint, JointLimits, JointType, Robot, dh_joint, inertia_entries, inertia_matrix, mdh_joint
 
 CONVENTIONS = ("dh", "mdh")
 TOP_LEVEL = {"name", "gravity", "convention", "urdf", "joints", "effects", "description"}
@@ -35,6 +43,8 @@ def load_robot(path: str | Path) -> Robot:
         raise RobotFileError(src, "", f"cannot read ({err})") from err
     try:
         doc = yaml.safe_load(text)
+    except RecursionError:
+        raise RobotFileError(src, "", "nested too deeply to be a robot description") from None
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         where = f"line {mark.line + 1}" if mark is not None else "YAML"
@@ -152,6 +162,9 @@ def _limits(doc: Any, src: str, where: str) -> JointLimits:
 def _inertial(doc: Any, src: str, where: str) -> Inertial:
     if not isinstance(doc, dict):
         raise RobotFileError(src, where, "must be a mapping with mass, com, inertia")
+    unknown = set(doc) - {"mass", "com", "inertia"}
+    if unknown:
+        raise RobotFileError(src, _field(where, sorted(unknown)[0]), "unknown field (allowed: mass, com, inertia about the COM)")
     for key in ("mass", "com", "inertia"):
         if key not in doc:
             raise RobotFileError(src, _field(where, key), "missing")
@@ -160,7 +173,26 @@ def _inertial(doc: Any, src: str, where: str) -> Inertial:
         raise RobotFileError(src, _field(where, "mass"), f"must not be negative, got {mass}")
     com = _vector(doc["com"], 3, src, _field(where, "com"))
     inertia = _vector(doc["inertia"], 6, src, _field(where, "inertia"))
-    return Inertial(mass, tuple(com), tuple(inertia))  # type: ignore[arg-type]
+    inertial = Inertial(mass, tuple(com), tuple(inertia))  # type: ignore[arg-type]
+    check_physical(inertial, src, where)
+    return inertial
+
+
+def check_physical(inertial: Inertial, src: str, where: str) -> None:
+    """Refuse a negative mass or principal moment; warn when the principal moments break the
+    triangle inequality (no rigid body has them, but published tables do)."""
+    if inertial.mass_kg < 0:
+        raise RobotFileError(src, _field(where, "mass"), f"must not be negative, got {inertial.mass_kg}")
+    moments = np.linalg.eigvalsh(inertia_matrix(np.asarray(inertial.inertia_kgm2, float)))
+    tol = 1e-9 * max(float(np.abs(moments).max()), 1e-12)
+    shown = ", ".join(f"{m:.6g}" for m in moments)
+    if moments[0] < -tol:
+        raise RobotFileError(src, _field(where, "inertia"), f"not positive semi-definite (principal moments {shown}): "
+                                                            "no body has a negative moment of inertia")
+    if moments[0] + moments[1] < moments[2] - tol:
+        warnings.warn(f"{src}: {_field(where, 'inertia')}: principal moments {shown} break the triangle inequality "
+                      f"({moments[0]:.6g} + {moments[1]:.6g} < {moments[2]:.6g}): not a physical rigid body",
+                      ImplausibleDataWarning, stacklevel=2)
 
 
 def _effects(doc: Any, n_joints: int, src: str) -> list[DeclaredEffect]:
@@ -202,7 +234,7 @@ def _urdf_joints(doc: dict[str, Any], joints_doc: list[Any], src: str, base_dir:
         where = f"joints[{k}]"
         if not isinstance(j, dict) or "name" not in j:
             raise RobotFileError(src, where, "must be a mapping with the URDF joint's name")
-        extra = set(j) - {"name", "torque_constant", "limits", "inertial"}
+        extra = set(j) - {"name", "type", "torque_constant", "limits", "inertial"}
         if extra:
             raise RobotFileError(src, _field(where, sorted(extra)[0]), "not allowed with urdf (kinematics come from the URDF)")
         name = str(j["name"])
@@ -234,6 +266,12 @@ def _urdf_joints(doc: dict[str, Any], joints_doc: list[Any], src: str, base_dir:
             eff if np.isfinite(eff) and eff > 0 else None,
         )
         kind = JointType.REVOLUTE if revolute else JointType.PRISMATIC
+        if "type" in j:
+            said = _joint_type(j, src, where)
+            if said is not kind:
+                raise RobotFileError(src, _field(where, "type"), f"{said.value} here, but {urdf.name} makes {name!r} {kind.value}")
+        if "inertial" not in j:  # the file's own inertial replaces the URDF's, and is checked as read
+            check_physical(inertial, src, f"{where} ({urdf.name})")
         joints.append(Joint(name, kind, placement, axis, np.eye(4), *_joint_extras(j, src, where, limits, inertial)))
         previous = jid
     return joints

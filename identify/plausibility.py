@@ -1,0 +1,165 @@
+"""Plausibility of a recording before it is identified: garbage that parses.
+
+A log in the wrong units or from a dead sensor reads without a single bad row, and least
+squares then returns numbers: inertias 1,000 times off when the time stamps are in
+milliseconds, ``NaN`` when every torque is zero. These checks look at the raw arrays
+(before any cleaning) and either raise :class:`RecordingError` naming the file and what is
+implausible, or return warnings for what may still be right.
+
+- Time units: with velocity columns, ``dq/dt`` must agree with ``qd``. Time stamps in
+  milliseconds make ``dq/dt`` 1,000 times smaller than ``qd`` (microseconds 10^6,
+  nanoseconds 10^9): an error that names the unit. Any other disagreement is a warning.
+- Time: a log whose time never advances, or runs backwards throughout, is refused.
+- Angles: ``dq/dt`` 57.3 times ``qd`` (or 1/57.3) means one of them is in degrees: an error.
+- Torque: every torque zero, or constant on every joint, is refused (a dead sensor or a
+  current column not wired), and so is a constant torque on a joint that moves; a joint
+  that stays still with a constant torque is a warning.
+- Motion: no joint moving at all is refused: the data cannot say anything about dynamics.
+
+The functions are pure: arrays in, warnings or an error out.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import RecordingError
+from .spatial import Array
+
+UNITS = ((1e-3, "milliseconds"), (1e-6, "microseconds"), (1e-9, "nanoseconds"))
+"""Time stamps in these units make dq/dt this many times the drive's velocity."""
+
+AGREE = (0.5, 2.0)
+"""dq/dt over qd within this band is agreement (noise and quantisation widen it)."""
+
+ANGLES = ((180.0 / np.pi, "positions q look like degrees while the velocities qd are in rad/s"),
+          (np.pi / 180.0, "velocities qd look like degrees/s while the positions q are in rad"))
+"""dq/dt over qd at these ratios: one of the columns is in degrees (revolute joints)."""
+
+ANGLE_BAND = 1.1
+"""A ratio within this factor of 180/pi (pi/180) is that mistake."""
+
+UNIT_BAND = 3.0
+"""A ratio within this factor of 10^-3 (10^-6, 10^-9) is that unit."""
+
+MIN_MOTION = 1e-9
+"""Position range (rad or m) below which a joint is taken as not moving."""
+
+
+def check_recording(t: Array, q: Array, qd: Array | None, tau: Array, source: str) -> list[str]:
+    """Warnings about a recording, or :class:`RecordingError` when it is garbage.
+
+    ``t`` (n,), ``q`` (n, N), ``qd`` (n, N) or None, ``tau`` (n, N), as read (NaN allowed:
+    cleaning drops those rows later); ``source`` names the file in every message.
+    """
+    t = np.asarray(t, float)
+    q = np.asarray(q, float)
+    tau = np.asarray(tau, float)
+    warnings: list[str] = []
+    check_time(t, source)
+    check_motion(q, source)
+    warnings += check_torque(tau, source, q)
+    if qd is not None:
+        warnings += check_time_units(t, q, np.asarray(qd, float), source)
+    return warnings
+
+
+def check_time(t: Array, source: str) -> None:
+    """Time must advance: refuse a log whose stamps never change or mostly run backwards."""
+    ok = np.isfinite(t)
+    if ok.sum() < 2:
+        return  # too short: the reader or the cleaning says so
+    dt = np.diff(t[ok])
+    if not (dt != 0).any():
+        raise RecordingError(source, f"column t: time never advances (every stamp is {t[ok][0]:g})")
+    backwards = dt < 0
+    if backwards.mean() > 0.5:
+        raise RecordingError(source, f"column t: time runs backwards on {int(backwards.sum())} of {dt.size} steps "
+                                     "(a log written in reverse?)")
+
+
+def check_motion(q: Array, source: str) -> None:
+    """Refuse a recording in which no joint moves: no dynamics parameter shows in it."""
+    q = np.asarray(q, float)
+    if q.ndim != 2 or (np.isfinite(q).sum(axis=0) < 2).any():
+        return  # columns without two readable values: the reader or the cleaning says so
+    span = _span(q)
+    if span.size and np.all(span <= MIN_MOTION):
+        raise RecordingError(source, "columns q: no joint moves (every position is constant): the data cannot say anything "
+                                     "about the dynamics (not excited)")
+
+
+def check_torque(tau: Array, source: str, q: Array | None = None) -> list[str]:
+    """Refuse all-zero or everywhere-constant torque, and a constant torque on a joint that
+    moves (``q`` given): no moving joint's drive holds one value to the last bit. Warn
+    about a constant torque on a joint that stays still."""
+    tau = np.asarray(tau, float)
+    finite = tau[np.isfinite(tau).all(axis=1)] if tau.ndim == 2 else tau
+    if finite.shape[0] < 2:
+        return []
+    n = finite.shape[1]
+    if not np.any(finite):
+        raise RecordingError(source, f"columns tau1..tau{n}: every torque is zero (a sensor or a current column "
+                                     "not wired?): nothing to identify from")
+    span = _span(finite)
+    if np.all(span == 0):
+        raise RecordingError(source, f"columns tau1..tau{n}: the torque is constant on every joint "
+                                     f"({', '.join(f'{v:g}' for v in finite[0])}): nothing to identify from")
+    moves = _span(q) > MIN_MOTION if q is not None and np.shape(q) == tau.shape else np.zeros(n, bool)
+    for j in range(n):
+        if span[j] == 0 and moves[j]:
+            raise RecordingError(source, f"column tau{j + 1}: the torque is constant ({finite[0, j]:g}) while joint {j + 1} "
+                                         "moves: a dead sensor or a current column not wired?")
+    return [f"{source}: column tau{j + 1}: the torque is constant ({finite[0, j]:g}) over the whole recording"
+            for j in range(n) if span[j] == 0]
+
+
+def velocity_ratio(t: Array, q: Array, qd: Array) -> float | None:
+    """The median over moving joints of rms(dq/dt) / rms(qd) (1 when the units agree), or
+    None when no joint moves enough to tell."""
+    ok = np.isfinite(t) & np.isfinite(q).all(axis=1) & np.isfinite(qd).all(axis=1)
+    t, q, qd = t[ok], q[ok], qd[ok]
+    if t.size < 3:
+        return None
+    dt = np.diff(t)
+    step = dt > 0
+    if step.sum() < 2:
+        return None
+    dqdt = (np.diff(q, axis=0) / np.where(step, dt, 1.0)[:, None])[step]
+    mid = (0.5 * (qd[1:] + qd[:-1]))[step]
+    ratios = []
+    for j in range(q.shape[1]):
+        rms_v = float(np.sqrt(np.mean(mid[:, j] ** 2)))
+        rms_d = float(np.sqrt(np.mean(dqdt[:, j] ** 2)))
+        if rms_v > 0 and _span(q[:, j : j + 1])[0] > 1e-6:
+            ratios.append(rms_d / rms_v)
+    return float(np.median(ratios)) if ratios else None
+
+
+def check_time_units(t: Array, q: Array, qd: Array, source: str) -> list[str]:
+    """Compare the sample period against the velocity columns: dq/dt must agree with qd."""
+    ratio = velocity_ratio(t, q, qd)
+    if ratio is None or AGREE[0] <= ratio <= AGREE[1]:
+        return []
+    for factor, unit in UNITS:
+        if factor / UNIT_BAND <= ratio <= factor * UNIT_BAND:
+            raise RecordingError(source, f"column t: the time stamps look like {unit}, not seconds: dq/dt is {ratio:.3g} "
+                                         f"times the velocity columns qd (convert t to seconds)")
+    for factor, mistake in ANGLES:
+        if factor / ANGLE_BAND <= ratio <= factor * ANGLE_BAND:
+            raise RecordingError(source, f"columns q, qd: the {mistake} (dq/dt is {ratio:.3g} times qd)")
+    return [f"{source}: columns qd: dq/dt is {ratio:.3g} times the velocity columns: are t in seconds and qd in "
+            "rad/s (m/s)?"]
+
+
+def _span(x: Array) -> Array:
+    """Per column max - min over the finite entries (0 for a column without two of them)."""
+    x = np.asarray(x, float)
+    if x.ndim == 1:
+        x = x[:, None]
+    out = np.zeros(x.shape[1])
+    for j in range(x.shape[1]):
+        v = x[np.isfinite(x[:, j]), j]
+        if v.size >= 2:
+            out[j] = float(v.max() - v.min())
+    return out

@@ -1,0 +1,625 @@
+"""Bad input never crashes and never passes silently (issue 18).
+
+Every case is made from a shipped example (the PUMA 560 recording, its robot description,
+the simulated rig, a Fourier trajectory for it) by breaking one thing, and run through
+``armid.cli.main`` in this process. Each must exit 2 with exactly one ``error:`` line, the
+last line on stderr, naming what is wrong, and no traceback. A few run end to end in a
+subprocess. Each group also runs its unbroken original, so that a case fails for its one
+change and not for something else.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+
+from armid.cli import load_trajectory, main, strict_json
+
+ROOT = Path(__file__).resolve().parent.parent
+EXAMPLE = ROOT / "examples" / "puma560_excitation.csv"
+PUMA = ROOT / "config" / "robots" / "puma560.yaml"
+UR5 = ROOT / "config" / "robots" / "ur5.yaml"
+RIG = ROOT / "config" / "rigs" / "sim.yaml"
+LAB = ROOT / "config" / "zenoh" / "lab.json5"
+ROWS = 600  # of the example: enough for every check, quick to read
+
+HEADER = EXAMPLE.read_text().splitlines()[0].split(",")
+DATA = np.loadtxt(EXAMPLE, delimiter=",", skiprows=1, max_rows=ROWS)
+T, Q, QD, TAU = DATA[:, 0], DATA[:, 1:7], DATA[:, 7:13], DATA[:, 13:19]
+KT = np.array([j["torque_constant"] for j in yaml.safe_load(PUMA.read_text())["joints"]])
+RIG_DOC = yaml.safe_load(RIG.read_text())
+Q0 = RIG_DOC["simulation"]["initial_position"]
+TRAJECTORY = {"fourier": {"q0": Q0, "a": [[0.05, 0.02]] * 6, "b": [[0.0, 0.01]] * 6, "base_frequency_hz": 0.2}}
+
+
+def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
+    """``armid ARGV`` in this process: (exit code, stderr)."""
+    try:
+        code = main(argv)
+    except SystemExit as stop:  # argparse's own exit
+        code = int(stop.code or 0)
+    return code, capsys.readouterr().err
+
+
+def assert_clean_error(code: int, err: str, expect: str) -> None:
+    """Exit 2, stderr one ``error:`` line matching ``expect`` and nothing else, no traceback."""
+    assert "Traceback" not in err, err
+    lines = [line for line in err.strip().splitlines() if line.strip()]
+    assert code == 2, f"exit {code}, stderr:\n{err}"
+    assert len(lines) == 1 and ": error: " in lines[0], err
+    assert re.search(expect, lines[0]), f"{lines[0]!r} does not say {expect!r}"
+
+
+# -- recordings --------------------------------------------------------------------------
+
+def _csv(path: Path, header: list[str], rows: Any) -> Path:
+    lines = [",".join(header)] + [",".join(f"{v:.10g}" if isinstance(v, float) else str(v) for v in row) for row in rows]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def _recording(path: Path, t: Any = None, q: Any = None, qd: Any = None, tau: Any = None) -> Path:
+    cols = [T if t is None else t, Q if q is None else q, QD if qd is None else qd, TAU if tau is None else tau]
+    data = np.column_stack([np.asarray(c, float).reshape(ROWS, -1) for c in cols])
+    return _csv(path, HEADER, data.tolist())
+
+
+def _drop_column(path: Path, name: str) -> Path:
+    keep = [k for k, h in enumerate(HEADER) if h != name]
+    return _csv(path, [HEADER[k] for k in keep], DATA[:, keep].tolist())
+
+
+def _npz(path: Path, **arrays: Any) -> Path:
+    with open(path, "wb") as f:
+        np.savez(f, **arrays)
+    return path
+
+
+CSV_CASES: dict[str, tuple[Callable[[Path], Path], str]] = {
+    "time in milliseconds": (lambda p: _recording(p, t=T * 1e3), r"column t: .*milliseconds"),
+    "time in microseconds": (lambda p: _recording(p, t=T * 1e6), r"column t: .*microseconds"),
+    "time in nanoseconds": (lambda p: _recording(p, t=T * 1e9), r"column t: .*nanoseconds"),
+    "all-zero torque": (lambda p: _recording(p, tau=np.zeros_like(TAU)), r"tau1\.\.tau6: every torque is zero"),
+    "constant torque": (lambda p: _recording(p, tau=np.full_like(TAU, 3.0)), r"torque is constant on every joint"),
+    "positions in degrees": (lambda p: _recording(p, q=np.degrees(Q)), r"columns q, qd: the positions q look like degrees"),
+    "velocities in degrees/s": (lambda p: _recording(p, qd=np.degrees(QD)), r"columns q, qd: the velocities qd look like degrees/s"),
+    "one moving joint's torque dead": (lambda p: _recording(p, tau=np.column_stack([TAU[:, :5], np.zeros(ROWS)])),
+                                       r"column tau6: the torque is constant \(0\) while joint 6 moves"),
+    "time reversed": (lambda p: _recording(p, t=T[::-1]), r"column t: time runs backwards"),
+    "time frozen": (lambda p: _recording(p, t=np.zeros(ROWS)), r"column t: time never advances"),
+    "no joint moves": (lambda p: _recording(p, q=np.tile(Q[0], (ROWS, 1)), qd=np.zeros_like(QD)), r"no joint moves.*not excited"),
+    "empty file": (lambda p: (p.write_text(""), p)[1], r"empty file"),
+    "header only": (lambda p: (p.write_text(",".join(HEADER) + "\n"), p)[1], r"no data rows"),
+    "no time column": (lambda p: _csv(p, ["time"] + HEADER[1:], DATA.tolist()), r"line 1: no time column 't'"),
+    "a position column missing": (lambda p: _drop_column(p, "q3"), r"line 1: column\(s\) q3 missing"),
+    "no torque columns": (lambda p: _csv(p, HEADER[:13], DATA[:, :13].tolist()), r"neither torque columns"),
+    "duplicate column": (lambda p: _csv(p, HEADER[:-1] + ["tau5"], DATA.tolist()), r"duplicate column\(s\) tau5"),
+    "a seventh joint": (lambda p: _csv(p, HEADER + ["q7"], np.column_stack([DATA, DATA[:, 1]]).tolist()), r"column q7 but puma560 has 6"),
+    "binary garbage": (lambda p: (p.write_bytes(bytes(range(256)) * 40), p)[1], r"not a text CSV"),
+    "every cell garbage": (lambda p: _csv(p, HEADER, [["x"] * len(HEADER)] * ROWS), r"usable rows"),
+    "every row short": (lambda p: _csv(p, HEADER, DATA[:, :-2].tolist()), r"usable rows"),
+    "infinite torque": (lambda p: _recording(p, tau=np.full_like(TAU, np.inf)), r"usable rows"),
+    "no such file": (lambda p: p.with_name("missing.csv"), r"missing\.csv: no such file"),
+    "npz not an archive": (lambda p: (p.with_suffix(".npz").write_bytes(b"PK\x03\x04 not a zip"), p.with_suffix(".npz"))[1],
+                           r"not a readable \.npz"),
+    "npz without torques": (lambda p: _npz(p.with_suffix(".npz"), times=T, positions=Q), r"archive has no 'torques'"),
+    "npz wrong shape": (lambda p: _npz(p.with_suffix(".npz"), times=T, positions=Q[:, :5], torques=TAU), r"'positions' has shape"),
+    "npz of Python objects": (lambda p: _npz(p.with_suffix(".npz"), times=np.array([object()] * ROWS, dtype=object), positions=Q,
+                                             torques=TAU), r"'times' is not an array of numbers"),
+    "npz time in milliseconds": (lambda p: _npz(p.with_suffix(".npz"), times=T * 1e3, positions=Q, velocities=QD, torques=TAU),
+                                 r"milliseconds"),
+}
+
+
+@pytest.mark.parametrize("command", ["identify", "diagnose"])
+@pytest.mark.parametrize("case", list(CSV_CASES))
+def test_bad_recording(case: str, command: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    make, expect = CSV_CASES[case]
+    bad = make(tmp_path / "bad.csv")
+    good = _recording(tmp_path / "good.csv")
+    argv = [command, str(bad), "--robot", str(PUMA), "--validate", str(good)]
+    assert_clean_error(*run(argv, capsys), expect)
+
+
+def test_bad_validation_recording(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    good = _recording(tmp_path / "good.csv")
+    bad = _recording(tmp_path / "ms.csv", t=T * 1e3)
+    assert_clean_error(*run(["identify", str(good), "--robot", str(PUMA), "--validate", str(bad)], capsys), r"ms\.csv: .*milliseconds")
+
+
+def test_the_unbroken_recording_identifies(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "ident.json"
+    argv = ["identify", str(_recording(tmp_path / "good.csv")), "--robot", str(PUMA), "--json", str(out), "--lowpass", "off"]
+    code, err = run(argv, capsys)
+    assert code == 0 and "Traceback" not in err and ": error: " not in err, err
+    json.loads(out.read_text(), parse_constant=_refuse_constant)
+    # the published PUMA 560 inertias break the triangle inequality (links 1 and 3): said once each, on one line
+    for joint in (0, 2):
+        said = [line for line in err.splitlines() if f"joints[{joint}].inertial.inertia: principal moments" in line]
+        assert len(said) == 1 and said[0].startswith("armid identify: warning: ") and "triangle inequality" in said[0], err
+
+
+# -- MCAP --------------------------------------------------------------------------------
+
+def _messages() -> list[dict[str, Any]]:
+    """The example's rows as ``armid record`` writes them."""
+    out = []
+    for k in range(ROWS):
+        ns = int(round(T[k] * 1e9))
+        current = (TAU[k] / KT).tolist()
+        out.append({"header": {"stamp": {"sec": ns // 10**9, "nsec": ns % 10**9}, "frame_id": ""},
+                    "name": [f"j{j + 1}" for j in range(6)], "position": Q[k].tolist(), "velocity": QD[k].tolist(),
+                    "effort": TAU[k].tolist(), "sequence": k, "cycle": k, "valid": [True] * 6, "velocity_fresh": [True] * 6,
+                    "commanded_current": current, "measured_current": current, "status": [0x27] * 6})
+    return out
+
+
+def write_mcap(path: Path, payloads: list[bytes], metadata: dict[str, str] | None = None) -> Path:
+    """An MCAP file laid out as ``daq.recorder`` writes it (32 KiB chunks, summary, footer)."""
+    from mcap.writer import CompressionType, Writer
+
+    with open(path, "wb") as f:
+        w = Writer(f, chunk_size=32 * 1024, compression=CompressionType.NONE)
+        w.start(profile="", library="armid-test")
+        schema = w.register_schema("armid.JointState", "jsonschema", b"{}")
+        channel = w.register_channel("/joint_state", "json", schema)
+        w.add_metadata("armid.run", {"robot": "puma560"} if metadata is None else metadata)
+        for k, payload in enumerate(payloads):
+            w.add_message(channel, 2_000_000 * k, payload, 2_000_000 * k, k)
+        w.finish()
+    return path
+
+
+def _mcap_with(path: Path, change: Callable[[list[dict[str, Any]]], None], metadata: dict[str, str] | None = None) -> Path:
+    msgs = _messages()
+    change(msgs)
+    return write_mcap(path, [json.dumps(m).encode() for m in msgs], metadata)
+
+
+def _set(k: int, key: str, value: Any) -> Callable[[list[dict[str, Any]]], None]:
+    def change(msgs: list[dict[str, Any]]) -> None:
+        if value is _DELETE:
+            del msgs[k][key]
+        else:
+            msgs[k][key] = value
+    return change
+
+
+_DELETE = object()
+
+
+def _every_chunk_flipped(path: Path) -> Path:
+    write_mcap(path, [json.dumps(m).encode() for m in _messages()])
+    data = bytearray(path.read_bytes())
+    for pos in [m.start() for m in re.finditer(rb'"sequence": ', bytes(data))][::5]:
+        data[pos + 1 : pos + 5] = b"\x00\xff\x00\xff"
+    path.write_bytes(bytes(data))
+    return path
+
+
+MCAP_CASES: dict[str, tuple[Callable[[Path], Path], str]] = {
+    "message without sequence": (lambda p: _mcap_with(p, _set(300, "sequence", _DELETE)), r"message 300: 'sequence' missing"),
+    "sequence not an integer": (lambda p: _mcap_with(p, _set(10, "sequence", "ten")), r"'sequence' must be an integer"),
+    "position too short": (lambda p: _mcap_with(p, _set(200, "position", [0.0] * 5)), r"'position' has 5 values, .* 6"),
+    "position not a list": (lambda p: _mcap_with(p, _set(200, "position", "up")), r"'position' must be a list of numbers"),
+    "position of strings": (lambda p: _mcap_with(p, _set(200, "position", ["a"] * 6)), r"'position' must be a list of numbers"),
+    "measured current missing": (lambda p: _mcap_with(p, _set(5, "measured_current", _DELETE)), r"'measured_current' missing"),
+    "validity not booleans": (lambda p: _mcap_with(p, _set(5, "valid", [1] * 6)), r"'valid' must be a list of 6 bools"),
+    "stamp missing": (lambda p: _mcap_with(p, _set(7, "header", {})), r"'header\.stamp' must hold integers"),
+    "message not an object": (lambda p: write_mcap(p, [b"[1, 2, 3]"] * 10), r"must be a JSON object"),
+    "message not JSON": (lambda p: write_mcap(p, [b"{not json"] * 10), r"not valid JSON"),
+    "recorded on another robot": (lambda p: _mcap_with(p, lambda m: None, {"robot": "ur5"}),
+                                  r"recorded on robot 'ur5'.* describes 'puma560'"),
+    "seven joints recorded": (lambda p: _mcap_with(p, lambda m: [x.update({k: x[k] + x[k][:1] for k in (
+        "position", "velocity", "commanded_current", "measured_current", "valid", "velocity_fresh", "status")}) for x in m]),
+        r"7 joints recorded, robot puma560 has 6"),
+    "not an MCAP file": (lambda p: (p.write_bytes(b"hello, this is not MCAP" * 100), p)[1], r"not an MCAP file"),
+    "magic only": (lambda p: (p.write_bytes(b"\x89MCAP0\r\n"), p)[1], r"no joint_state record"),
+    "every chunk corrupt": (_every_chunk_flipped, r"no joint_state record could be read: a chunk that fails its CRC"),
+    "time stamps in milliseconds": (lambda p: _mcap_with(p, lambda m: [x["header"].update(stamp={"sec": x["sequence"] * 2, "nsec": 0})
+                                                                       for x in m]), r"milliseconds"),
+    "zero current": (lambda p: _mcap_with(p, lambda m: [x.update(measured_current=[0.0] * 6) for x in m]), r"every torque is zero"),
+}
+
+
+@pytest.mark.parametrize("case", list(MCAP_CASES))
+def test_bad_mcap(case: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    make, expect = MCAP_CASES[case]
+    bad = make(tmp_path / "bad.mcap")
+    assert_clean_error(*run(["identify", str(bad), "--robot", str(PUMA)], capsys), expect)
+
+
+def _read_as_identify_does(path: Path) -> Any:
+    """What ``armid identify`` does before preprocessing: read, then the plausibility checks."""
+    from identify.plausibility import check_recording
+    from identify.recordings import read_recording
+    from identify.robot_file import load_robot
+
+    rec = read_recording(path, load_robot(PUMA))
+    assert check_recording(rec.t, rec.q, rec.qd, rec.tau, rec.source) == []
+    return rec
+
+
+def test_the_unbroken_mcap_reads_whole() -> None:
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as folder:
+        rec = _read_as_identify_does(_mcap_with(Path(folder) / "good.mcap", lambda m: None))
+    assert rec.n_samples == ROWS and np.allclose(rec.tau, TAU) and not any("lost" in n for n in rec.notes)
+
+
+def test_mcap_time_going_backwards_is_read_and_said(tmp_path: Path) -> None:
+    """A clock step back on the bench: the records stamped before an earlier one are left out, and said so."""
+    def step_back(msgs: list[dict[str, Any]]) -> None:
+        for x in msgs[300:]:
+            ns = int(round((T[x["sequence"]] - 0.05) * 1e9))
+            x["header"]["stamp"] = {"sec": ns // 10**9, "nsec": ns % 10**9}
+    rec = _read_as_identify_does(_mcap_with(tmp_path / "step.mcap", step_back))
+    assert any(re.search(r"time goes backwards at sequence 300 .*left out 25 records", n) for n in rec.notes), rec.notes
+    assert rec.n_samples == ROWS - 25 and np.all(np.diff(rec.t) > 0)
+
+
+# -- robot descriptions ------------------------------------------------------------------
+
+def _robot(path: Path, change: Callable[[dict[str, Any]], None]) -> Path:
+    doc = yaml.safe_load(PUMA.read_text())
+    change(doc)
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def _joint(k: int, key: str, value: Any) -> Callable[[dict[str, Any]], None]:
+    def change(doc: dict[str, Any]) -> None:
+        target = doc["joints"][k]
+        *path, leaf = key.split(".")
+        for part in path:
+            target = target[part]
+        if value is _DELETE:
+            del target[leaf]
+        else:
+            target[leaf] = value
+    return change
+
+
+def _ur5(path: Path, joint_type: str) -> Path:
+    doc = yaml.safe_load(UR5.read_text())
+    doc["urdf"] = str(UR5.parent / doc["urdf"])
+    doc["joints"][1]["type"] = joint_type
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+ROBOT_CASES: dict[str, tuple[Callable[[Path], Path], str]] = {
+    "nested 5000 deep": (lambda p: (p.write_text("[" * 5000 + "]" * 5000), p)[1], r"nested too deeply"),
+    "mapping nested 5000 deep": (lambda p: (p.write_text("a: " + "{b: " * 5000 + "1" + "}" * 5000), p)[1], r"nested too deeply"),
+    "not YAML": (lambda p: (p.write_text("name: [puma\njoints: {"), p)[1], r"not valid YAML"),
+    "a list, not a mapping": (lambda p: (p.write_text("- a\n- b\n"), p)[1], r"must be a mapping"),
+    "empty": (lambda p: (p.write_text(""), p)[1], r"must be a mapping"),
+    "unknown field": (lambda p: _robot(p, lambda d: d.update(colour="red")), r"colour: unknown field"),
+    "no joints": (lambda p: _robot(p, lambda d: d.update(joints=[])), r"joints: must be a non-empty list"),
+    "gravity of two": (lambda p: _robot(p, lambda d: d.update(gravity=[0, -9.81])), r"gravity: must be a list of 3"),
+    "negative principal moment": (lambda p: _robot(p, _joint(1, "inertial.inertia", [-0.13, 0, 0, 0.524, 0, 0.539])),
+                                  r"joints\[1\]\.inertial\.inertia: not positive semi-definite"),
+    "indefinite inertia": (lambda p: _robot(p, _joint(3, "inertial.inertia", [0.1, 0.5, 0, 0.1, 0, 0.1])),
+                           r"joints\[3\]\.inertial\.inertia: not positive semi-definite"),
+    "negative mass": (lambda p: _robot(p, _joint(2, "inertial.mass", -4.8)), r"joints\[2\]\.inertial\.mass: must not be negative"),
+    "inertial unknown field": (lambda p: _robot(p, _joint(1, "inertial.about", "origin")), r"joints\[1\]\.inertial\.about: unknown field"),
+    "inertia of five": (lambda p: _robot(p, _joint(2, "inertial.inertia", [0.1] * 5)), r"inertia: must be a list of 6"),
+    "position limits reversed": (lambda p: _robot(p, _joint(1, "limits.position", [1.0, -1.0])), r"lower 1.0 must be below"),
+    "negative velocity limit": (lambda p: _robot(p, _joint(1, "limits.velocity", -1.5)), r"velocity: must be positive"),
+    "zero torque constant": (lambda p: _robot(p, _joint(0, "torque_constant", 0)), r"torque_constant: must be positive"),
+    "unknown effect": (lambda p: _robot(p, lambda d: d.update(effects=[{"effect": "magic"}])), r"unknown effect 'magic'"),
+    "effect on joint 9": (lambda p: _robot(p, lambda d: d.update(effects=[{"effect": "viscous_friction", "joint": 9}])),
+                          r"must be a joint number 1\.\.6"),
+    "URDF missing": (lambda p: _robot(p, lambda d: d.update(urdf="nope.urdf")), r"urdf: no such file"),
+    "URDF joint type contradicted": (lambda p: _ur5(p, "prismatic"), r"joints\[1\]\.type: prismatic here, but ur5\.urdf makes "
+                                                                      r"'shoulder_lift_joint' revolute"),
+    "URDF joint type unknown": (lambda p: _ur5(p, "helical"), r"joints\[1\]\.type: must be revolute or prismatic"),
+}
+for _k in range(6):  # every kinematic number of every joint, broken three ways
+    for _key in ("a", "alpha", "d", "theta"):
+        ROBOT_CASES[f"joints[{_k}].{_key} a word"] = (lambda p, k=_k, key=_key: _robot(p, _joint(k, key, "zero")),
+                                                      rf"joints\[{_k}\]\.{_key}: must be a number, got 'zero'")
+        ROBOT_CASES[f"joints[{_k}].{_key} infinite"] = (lambda p, k=_k, key=_key: _robot(p, _joint(k, key, float("inf"))),
+                                                        rf"joints\[{_k}\]\.{_key}: must be finite")
+        ROBOT_CASES[f"joints[{_k}].{_key} missing"] = (lambda p, k=_k, key=_key: _robot(p, _joint(k, key, _DELETE)),
+                                                       rf"joints\[{_k}\]\.{_key}: missing")
+
+
+@pytest.mark.parametrize("case", list(ROBOT_CASES))
+def test_bad_robot(case: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    make, expect = ROBOT_CASES[case]
+    bad = make(tmp_path / "robot.yaml")
+    assert_clean_error(*run(["identify", str(EXAMPLE), "--robot", str(bad)], capsys), expect)
+
+
+def test_urdf_robot_repeating_its_urdf_is_accepted(tmp_path: Path) -> None:
+    from identify.robot_file import load_robot
+
+    same = load_robot(_ur5(tmp_path / "same.yaml", "revolute"))
+    assert [j.type.value for j in same.joints] == ["revolute"] * 6
+
+
+def test_triangle_violating_inertia_is_a_warning(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from identify.errors import ImplausibleDataWarning
+    from identify.robot_file import load_robot
+
+    with pytest.warns(ImplausibleDataWarning, match=r"joints\[2\]\.inertial\.inertia: .* break the triangle inequality"):
+        load_robot(PUMA)  # the published PUMA 560 values (links 1 and 3)
+    flat = _robot(tmp_path / "flat.yaml", _joint(4, "inertial.inertia", [0.01, 0, 0, 0.01, 0, 0.5]))
+    with pytest.warns(ImplausibleDataWarning, match=r"joints\[4\]\.inertial\.inertia: .*0.01 \+ 0.01 < 0.5"):
+        load_robot(flat)
+    # held while the inputs are read: bad input still ends in its one error line alone
+    code, err = run(["identify", str(_recording(tmp_path / "ms.csv", t=T * 1e3)), "--robot", str(flat)], capsys)
+    assert_clean_error(code, err, r"milliseconds")
+
+
+# -- rigs --------------------------------------------------------------------------------
+
+def _rig(path: Path, change: Callable[[dict[str, Any]], None]) -> Path:
+    doc = yaml.safe_load(RIG.read_text())
+    doc["robot"] = str(PUMA)
+    change(doc)
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def _sim(key: str, value: Any) -> Callable[[dict[str, Any]], None]:
+    return lambda d: d["simulation"].update({key: value})
+
+
+RIG_CASES: dict[str, tuple[Callable[[Path], Path], str]] = {
+    "unknown CAN interface": (lambda p: _rig(p, lambda d: d["bus"].update(interface="nosuchcan")),
+                              r"bus\.interface: unknown CAN interface 'nosuchcan'"),
+    "no bus": (lambda p: _rig(p, lambda d: d.pop("bus")), r"bus\.interface: missing"),
+    "bus without interface": (lambda p: _rig(p, lambda d: d["bus"].pop("interface")), r"bus\.interface: missing"),
+    "substeps 0": (lambda p: _rig(p, _sim("substeps", 0)), r"simulation\.substeps: must be in 1\.\.1000, got 0"),
+    "substeps a word": (lambda p: _rig(p, _sim("substeps", "two")), r"simulation\.substeps: must be an integer"),
+    "initial position beyond a limit": (lambda p: _rig(p, _sim("initial_position", [0, 5.0, -0.7854, 0, 0, 0])),
+                                        r"simulation\.initial_position\[1\]: 5 is beyond joint 2's position limits"),
+    "initial position of five": (lambda p: _rig(p, _sim("initial_position", [0.0] * 5)), r"initial_position: must be a list of 6"),
+    "negative current noise": (lambda p: _rig(p, _sim("current_noise_a", -0.1)), r"current_noise_a: must not be negative"),
+    "unknown simulation setting": (lambda p: _rig(p, _sim("wind", 3)), r"simulation\.wind: unknown setting"),
+    "effect on joint 8": (lambda p: _rig(p, _sim("effects", [{"joint": 8, "viscous": 1.0}])), r"effects\[0\]\.joint: must be 1\.\.6"),
+    "simulation a list": (lambda p: _rig(p, lambda d: d.update(simulation=[1, 2])), r"simulation: must be a mapping"),
+    "channel a list": (lambda p: _rig(p, lambda d: d["bus"].update(channel=[1])), r"bus\.channel: must be a name or a number"),
+    "name a list": (lambda p: _rig(p, lambda d: d.update(name=["a"])), r"name: must be a string"),
+    "period negative": (lambda p: _rig(p, lambda d: d.update(period_s=-0.002)), r"period_s: must be positive"),
+    "a drive missing": (lambda p: _rig(p, lambda d: d["drives"].pop()), r"drives: must list one drive per joint \(6\)"),
+    "node id twice": (lambda p: _rig(p, lambda d: d["drives"][1].update(node_id=1)), r"drives\[1\]\.node_id: node id 1 is used twice"),
+    "robot missing": (lambda p: _rig(p, lambda d: d.update(robot="nope.yaml")), r"nope\.yaml: no such file"),
+    "robot not a path": (lambda p: _rig(p, lambda d: d.update(robot=[1, 2])), r"robot: must be the path"),
+    "nested 1500 deep": (lambda p: (p.write_text("[" * 1500 + "]" * 1500), p)[1], r"nested too deeply"),
+    "no such rig": (lambda p: p.with_name("nope.yaml"), r"nope\.yaml: no such file"),
+}
+
+
+def _rig_argv(command: str, rig: Path, out: Path) -> list[str]:
+    if command == "record":
+        return ["record", "--rig", str(rig), "--out", str(out), "--duration", "0.5", "--no-zenoh"]
+    if command == "excite":
+        return ["excite", "--rig", str(rig), "--out", str(out), "--dry-run"]
+    return ["sim", "--rig", str(rig), "--duration", "0.5"]
+
+
+@pytest.mark.parametrize("command", ["record", "excite", "sim"])
+@pytest.mark.parametrize("case", list(RIG_CASES))
+def test_bad_rig(case: str, command: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    make, expect = RIG_CASES[case]
+    bad = make(tmp_path / "rig.yaml")
+    assert_clean_error(*run(_rig_argv(command, bad, tmp_path / "out"), capsys), expect)
+    assert not (tmp_path / "out").exists()  # refused before anything was written
+
+
+@pytest.mark.parametrize("command", ["record", "excite", "sim"])
+def test_unknown_interface_override(command: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    argv = _rig_argv(command, _rig(tmp_path / "rig.yaml", lambda d: None), tmp_path / "out") + ["--interface", "nosuchcan"]
+    assert_clean_error(*run(argv, capsys), r"--interface\)?: unknown CAN interface 'nosuchcan'")
+
+
+def test_unbroken_rig_loads(tmp_path: Path) -> None:
+    from drivers.rig import load_rig
+
+    assert load_rig(_rig(tmp_path / "rig.yaml", lambda d: None)).n_joints == 6
+
+
+# -- trajectories (armid excite --trajectory) --------------------------------------------
+
+def _trajectory(path: Path, change: Callable[[dict[str, Any]], Any]) -> Path:
+    doc = json.loads(json.dumps(TRAJECTORY))
+    doc = change(doc) or doc
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def _fourier(key: str, value: Any) -> Callable[[dict[str, Any]], None]:
+    def change(doc: dict[str, Any]) -> None:
+        if value is _DELETE:
+            del doc["fourier"][key]
+        else:
+            doc["fourier"][key] = value
+    return change
+
+
+TRAJECTORY_CASES: dict[str, tuple[Callable[[Path], Path], str]] = {
+    "bad syntax": (lambda p: (p.write_text('{"fourier": {"q0": [0, '), p)[1], r"line 1 column \d+: not valid JSON"),
+    "q0 missing": (lambda p: _trajectory(p, _fourier("q0", _DELETE)), r"fourier\.q0: missing"),
+    "base frequency missing": (lambda p: _trajectory(p, _fourier("base_frequency_hz", _DELETE)), r"base_frequency_hz: missing"),
+    "five joints": (lambda p: _trajectory(p, _fourier("q0", Q0[:5])), r"fourier\.q0: 5 joints, the rig's robot has 6"),
+    "coefficients for five joints": (lambda p: _trajectory(p, _fourier("a", [[0.1, 0.0]] * 5)), r"fourier\.a: shape \(5, 2\)"),
+    "a and b differ": (lambda p: _trajectory(p, _fourier("b", [[0.0]] * 6)), r"fourier\.b: shape \(6, 1\) differs"),
+    "ragged coefficients": (lambda p: _trajectory(p, _fourier("a", [[0.1, 0.0]] * 5 + [[0.1]])), r"fourier\.a: must be"),
+    "base frequency 0": (lambda p: _trajectory(p, _fourier("base_frequency_hz", 0)), r"base_frequency_hz: must lie in \(0, "),
+    "base frequency negative": (lambda p: _trajectory(p, _fourier("base_frequency_hz", -0.2)), r"base_frequency_hz: must lie in"),
+    "base frequency beyond Nyquist": (lambda p: _trajectory(p, _fourier("base_frequency_hz", 1e6)), r"base_frequency_hz: must lie in"),
+    "base frequency a word": (lambda p: _trajectory(p, _fourier("base_frequency_hz", "fast")), r"must be a finite number"),
+    "base frequency NaN": (lambda p: (p.write_text(json.dumps(TRAJECTORY).replace("0.2}", "NaN}")), p)[1], r"must be a finite number"),
+    "coefficient NaN": (lambda p: (p.write_text(json.dumps(TRAJECTORY).replace("0.05", "NaN", 1)), p)[1], r"finite numbers only"),
+    "a list": (lambda p: (p.write_text("[1, 2, 3]"), p)[1], r"must be a JSON object"),
+    "two designs": (lambda p: _trajectory(p, lambda d: {"link6": d, "whole": d}), r"holds 2 designs \(link6, whole\)"),
+    "moving joint 7": (lambda p: _trajectory(p, lambda d: d.update(moving_joints=[7])), r"moving_joints: must be a list of distinct"),
+    "nested 5000 deep": (lambda p: (p.write_text("[" * 5000 + "]" * 5000), p)[1], r"nested too deeply"),
+    "no such file": (lambda p: p.with_name("nope.json"), r"nope\.json: no such file"),
+}
+
+
+@pytest.mark.parametrize("case", list(TRAJECTORY_CASES))
+def test_bad_trajectory(case: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    make, expect = TRAJECTORY_CASES[case]
+    bad = make(tmp_path / "trajectory.json")
+    argv = ["excite", "--rig", str(RIG), "--trajectory", str(bad), "--dry-run", "--out", str(tmp_path / "out")]
+    assert_clean_error(*run(argv, capsys), expect)
+
+
+def test_unbroken_trajectory_plans_and_writes_strict_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The unbroken file through ``armid excite --dry-run``: checked against every limit, and its
+    design (no condition number for a given trajectory) written with null, not NaN."""
+    out = tmp_path / "out"
+    argv = ["excite", "--rig", str(RIG), "--trajectory", str(_trajectory(tmp_path / "t.json", lambda d: None)), "--dry-run",
+            "--out", str(out)]
+    code, err = run(argv, capsys)
+    assert code == 0 and "checked against every limit" in err, err
+    design = json.loads((out / "designs.json").read_text(), parse_constant=_refuse_constant)["t"]
+    assert design["condition_number"] is None and design["fourier"]["base_frequency_hz"] == 0.2
+
+
+def test_unbroken_trajectory_loads(tmp_path: Path) -> None:
+    traj, moving = load_trajectory(_trajectory(tmp_path / "t.json", lambda d: None), 6, 0.002)
+    assert traj.base_frequency_hz == 0.2 and moving == tuple(range(6))
+    one = _trajectory(tmp_path / "one.json", lambda d: {"whole": {**d, "moving_joints": [2, 3]}})
+    assert load_trajectory(one, 6, 0.002)[1] == (1, 2)
+
+
+# -- options -----------------------------------------------------------------------------
+
+OPTION_CASES: dict[str, tuple[list[str], str]] = {
+    "lowpass negative": (["identify", str(EXAMPLE), "--robot", str(PUMA), "--lowpass", "-5"], r"--lowpass: must be a positive cutoff"),
+    "lowpass zero": (["diagnose", str(EXAMPLE), "--robot", str(PUMA), "--validate", str(EXAMPLE), "--lowpass", "0"],
+                     r"--lowpass: must be a positive"),
+    "lowpass beyond Nyquist": (["identify", str(EXAMPLE), "--robot", str(PUMA), "--lowpass", "1e9"],
+                               r"--lowpass: 1e\+09 Hz is not below the Nyquist frequency .* \(250 Hz"),
+    "lowpass NaN": (["identify", str(EXAMPLE), "--robot", str(PUMA), "--lowpass", "nan"], r"--lowpass: must be finite"),
+    "lowpass a word": (["identify", str(EXAMPLE), "--robot", str(PUMA), "--lowpass", "soft"], r"--lowpass: 'soft' is not a number"),
+    "gap factor 0": (["identify", str(EXAMPLE), "--robot", str(PUMA), "--max-gap-factor", "0"], r"--max-gap-factor: must be at least 2"),
+    "sim duration negative": (["sim", "--rig", str(RIG), "--duration", "-5"], r"--duration: must be positive, got -5"),
+    "sim duration 0": (["sim", "--rig", str(RIG), "--duration", "0"], r"--duration: must be positive"),
+    "sim duration infinite": (["sim", "--rig", str(RIG), "--duration", "inf"], r"--duration: must be finite"),
+    "sim seed negative": (["sim", "--rig", str(RIG), "--seed", "-1"], r"--seed: must be 0 or more"),
+    "record duration negative": (["record", "--rig", str(RIG), "--out", "x", "--duration", "-1"], r"--duration: must be positive"),
+    "watch duration negative": (["watch", "--robot", "puma560", "--duration", "-1"], r"--duration: must be positive"),
+    "excite periods 0": (["excite", "--rig", str(RIG), "--dry-run", "--periods", "0"], r"--periods: must be at least 1"),
+    "excite periods a fraction": (["excite", "--rig", str(RIG), "--dry-run", "--periods", "1.5"], r"--periods: '1.5' is not a whole"),
+    "excite frequency 0": (["excite", "--rig", str(RIG), "--dry-run", "--frequency", "0"], r"--frequency: must be positive"),
+    "excite frequency negative": (["excite", "--rig", str(RIG), "--dry-run", "--frequency", "-0.5"], r"--frequency: must be positive"),
+    "excite frequency beyond Nyquist": (["excite", "--rig", str(RIG), "--dry-run", "--frequency", "1e9"],
+                                        r"--frequency: 1e\+09 Hz is not below the 250 Hz Nyquist"),
+    "excite tracking limit negative": (["excite", "--rig", str(RIG), "--dry-run", "--tracking-limit", "-0.2"],
+                                       r"--tracking-limit: must be positive"),
+    "excite seed negative": (["excite", "--rig", str(RIG), "--dry-run", "--seed", "-3"], r"--seed: must be 0 or more"),
+    "excite link 9": (["excite", "--rig", str(RIG), "--dry-run", "--link", "9"], r"--link: joint 9 does not exist"),
+    "excite link a word": (["excite", "--rig", str(RIG), "--dry-run", "--link", "elbow"], r"--link: 'elbow' is not a joint number"),
+    "demo seed negative": (["demo", "--seed", "-1"], r"--seed: must be 0 or more"),
+    "identify without data": (["identify", "--robot", str(PUMA)], r"the following arguments are required: data"),
+    "identify without robot": (["identify", str(EXAMPLE)], r"the following arguments are required: --robot"),
+    "unknown weighting": (["identify", str(EXAMPLE), "--robot", str(PUMA), "--weighting", "best"], r"--weighting: invalid choice"),
+    "unknown command": (["calibrate"], r"invalid choice: 'calibrate'"),
+    "lab Zenoh file without its certificates": (["watch", "--robot", "puma560", "--duration", "0.1", "--zenoh-config", str(LAB)],
+                                                r"lab\.json5: transport\.link\.tls\.\w+: no such file /etc/armid/tls/"),
+    "Zenoh file missing": (["watch", "--robot", "puma560", "--zenoh-config", "nope.json5"], r"nope\.json5: no such file"),
+    "Zenoh endpoint garbage": (["watch", "--robot", "puma560", "--duration", "0.1", "--zenoh-connect", "nonsense"],
+                               r"--zenoh-listen/--zenoh-connect: Endpoints must be of the form"),
+}
+
+
+@pytest.mark.parametrize("case", list(OPTION_CASES))
+def test_bad_option(case: str, capsys: pytest.CaptureFixture[str]) -> None:
+    argv, expect = OPTION_CASES[case]
+    assert_clean_error(*run(argv, capsys), expect)
+
+
+def test_garbage_zenoh_configuration(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "zenoh.json5"
+    bad.write_text("{ mode: peer, listen: {{{ }")
+    code, err = run(["watch", "--robot", "puma560", "--duration", "0.1", "--zenoh-config", str(bad)], capsys)
+    assert_clean_error(code, err, r"zenoh\.json5: not a usable Zenoh configuration")
+
+
+def test_lowpass_words_pass_the_option_check() -> None:
+    """'off' and 'auto' reach the command as given ('off' also runs end to end above)."""
+    from armid.cli import build_parser
+
+    for word in ("off", "auto", "AUTO"):
+        args = build_parser().parse_args(["identify", str(EXAMPLE), "--robot", str(PUMA), "--lowpass", word])
+        assert args.lowpass == word.lower()
+    assert build_parser().parse_args(["identify", str(EXAMPLE), "--robot", str(PUMA), "--lowpass", "20"]).lowpass == 20.0
+
+
+# -- JSON --------------------------------------------------------------------------------
+
+def _refuse_constant(name: str) -> None:
+    raise ValueError(f"bare {name} in JSON")
+
+
+def test_json_writers_never_write_bare_nan() -> None:
+    doc = {"a": float("nan"), "b": [np.float64("inf"), 1.5, np.int64(3)], "c": {"d": np.array([np.nan, 2.0])}, "e": "NaN"}
+    text = strict_json(doc)
+    assert json.loads(text, parse_constant=_refuse_constant) == {"a": None, "b": [None, 1.5, 3], "c": {"d": [None, 2.0]}, "e": "NaN"}
+
+
+# -- end to end --------------------------------------------------------------------------
+
+def _cli(argv: list[str], debug: bool = False) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    env.pop("ARMID_DEBUG", None)
+    if debug:
+        env["ARMID_DEBUG"] = "1"
+    return subprocess.run([sys.executable, "-m", "armid.cli", *argv], capture_output=True, text=True, env=env, timeout=120, cwd=ROOT)
+
+
+def test_end_to_end_one_line_and_debug_traceback(tmp_path: Path) -> None:
+    ms = _recording(tmp_path / "ms.csv", t=T * 1e3)
+    deep = tmp_path / "deep.yaml"
+    deep.write_text("[" * 5000 + "]" * 5000)
+    traj = TRAJECTORY_CASES["base frequency negative"][0](tmp_path / "t.json")
+    for argv, expect in ((["identify", str(ms), "--robot", str(PUMA)], r"milliseconds"),
+                         (["identify", str(EXAMPLE), "--robot", str(deep)], r"nested too deeply"),
+                         (["excite", "--rig", str(RIG), "--trajectory", str(traj), "--dry-run", "--out", str(tmp_path / "o")],
+                          r"base_frequency_hz: must lie in"),
+                         (["sim", "--rig", str(RIG), "--duration", "-5"], r"--duration: must be positive")):
+        proc = _cli(argv)
+        assert_clean_error(proc.returncode, proc.stderr, expect)
+    debug = _cli(["identify", str(ms), "--robot", str(PUMA)], debug=True)
+    assert debug.returncode == 2 and "Traceback" in debug.stderr and debug.stderr.strip().splitlines()[-1].startswith("armid identify: error:")
+
+
+# -- the plausibility API (identify/plausibility.py) -----------------------------------------
+
+def test_plausibility_api_warns_on_what_may_be_right_and_refuses_garbage() -> None:
+    from identify.errors import RecordingError
+    from identify.plausibility import check_recording, velocity_ratio
+
+    assert check_recording(T, Q, QD, TAU, "ex.csv") == []
+    assert velocity_ratio(T, Q, QD) == pytest.approx(1.0, abs=0.01)
+    assert velocity_ratio(T * 1e3, Q, QD) == pytest.approx(1e-3, rel=0.01)
+    still = Q.copy()
+    still[:, 5] = Q[0, 5]
+    held = TAU.copy()
+    held[:, 5] = 0.25
+    said = check_recording(T, still, None, held, "ex.csv")  # a joint that stays still, its torque held: may be right
+    assert said == ["ex.csv: column tau6: the torque is constant (0.25) over the whole recording"]
+    odd = check_recording(T, Q, QD * 3.0, TAU, "ex.csv")  # neither a time unit nor degrees: said, not refused
+    assert len(odd) == 1 and re.search(r"columns qd: dq/dt is 0.33\d times the velocity columns", odd[0]), odd
+    with pytest.raises(RecordingError, match=r"^ex\.csv: column t: the time stamps look like milliseconds"):
+        check_recording(T * 1e3, Q, QD, TAU, "ex.csv")
+    with pytest.raises(RecordingError, match=r"^ex\.csv: column tau6: the torque is constant \(0.25\) while joint 6 moves"):
+        check_recording(T, Q, QD, held, "ex.csv")
