@@ -93,6 +93,9 @@ class IdentificationResult:
     validation: dict[str, Any] | None = None
     validation_samples: int = 0
     notes: list[str] = field(default_factory=list)
+    # per-joint R factors of [W_j | tau_j] over the base columns: the data's metric for
+    # anything fitted after least squares (identify.feasible), without the data
+    factors: JointFactors | None = None
 
     def predict(self, segment: Segment) -> Array:
         """Torques (n, N) the identified model predicts for a segment's motion."""
@@ -256,7 +259,7 @@ def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     if options.covariance == "batch_means":
         est, block = _robust(system, base.independent, tau - tau_hat, est, factors, options.weighting)
         notes.append(f"standard deviations: batch-means sandwich over blocks of {block} samples (four times the residual's correlation length)")
-    result = IdentificationResult(robot, names, effects, base, est, exc, n, fit, notes=notes)
+    result = IdentificationResult(robot, names, effects, base, est, exc, n, fit, notes=notes, factors=factors)
     if validation:
         segs = [s for p in validation for s in p.segments]
         tau = np.concatenate([s.tau for s in segs])
