@@ -125,22 +125,25 @@ def check_link(phi_link: Array, link: int) -> LinkCheck:
     mass positive semidefinite with its principal moments obeying the triangle inequalities."""
     phi_link = np.asarray(phi_link, dtype=float)
     j = pseudo_inertia(phi_link)
-    eig = float(np.linalg.eigvalsh(j)[0])
+    eigs = np.linalg.eigvalsh(j)
+    eig = float(eigs[0])
+    # rounding: a body on the boundary (a point mass, a rod) computes a few ulps either side
+    tol = 1e-12 * float(np.abs(eigs).max())
     out = []
     m = float(phi_link[0])
     if not m > 0:
         out.append(f"mass {m:.4g} kg is not positive")
-    if eig < 0:
+    if eig < -tol:
         out.append(f"pseudo-inertia not positive semidefinite (smallest eigenvalue {eig:.3g} kg m^2)")
     if m > 0:
         s = phi_link[1:4] / m
         i_link = inertia_matrix(phi_link[4:10])
         i_com = i_link - m * (s @ s * np.eye(3) - np.outer(s, s))
         p = np.linalg.eigvalsh(i_com)
-        if p[0] < 0:
+        if p[0] < -tol:
             out.append(f"inertia about the centre of mass has a negative principal moment {p[0]:.3g} kg m^2")
         gap = float(p[0] + p[1] - p[2])
-        if gap < 0:
+        if gap < -tol:
             out.append(f"principal moments break the triangle inequality: {p[0]:.3g} + {p[1]:.3g} < {p[2]:.3g} kg m^2 (by {-gap:.3g})")
     return LinkCheck(link, m, eig, out)
 
@@ -339,6 +342,7 @@ class FeasibleResult:
     least_squares_checks: list[LinkCheck]
     least_squares_fit: dict[str, Any]
     feasible_fit_error: dict[str, Any]
+    metric: Array  # (p, p) R of the weighted base regressor: ||R (beta - beta_ls)|| is the fit's distance
     least_squares_validation: dict[str, Any] | None = None
     validation: dict[str, Any] | None = None
 
@@ -405,7 +409,7 @@ def feasible_estimate(result: Any, validation: list[Any] | None = None, options:
     fit = feasible_fit(r, beta_ls, projection, prior, n_links, signed, options)
     ls_checks = check_parameters(completed_least_squares(beta_ls, projection, prior), n_links)
     out = FeasibleResult(robot.name, names, result.base.expressions(), labels, n_links, fit, options, ls_checks,
-                         factor_summary(result.factors, beta_ls), factor_summary(result.factors, fit.beta))
+                         factor_summary(result.factors, beta_ls), factor_summary(result.factors, fit.beta), r)
     if validation:
         from .metrics import summary
 
