@@ -150,3 +150,41 @@ def _true_value(name: str, truth: np.ndarray, friction: tuple[np.ndarray, np.nda
         return float(truth[names.index(name)])
     j = int(name[2:]) - 1
     return float(friction[0][j] if name.startswith("fv") else friction[1][j])
+
+
+def _robot_data(robot: Robot, n: int, seed: int) -> Prepared:
+    """The robot's modeled arm (Pinocchio RNEA), its declared friction, 1 % noise."""
+    k = robot.n_joints
+    return _simulate(robot, robot.modeled_parameters(), n, seed, 0.01, (np.full(k, 0.3), np.full(k, 0.2)))
+
+
+@pytest.mark.parametrize("name", ["puma560", "scara_mdh", "ur5", "kuka_lwr4"])
+def test_written_urdf_reproduces_the_feasible_model(name: str, tmp_path: Path) -> None:
+    """The URDF loads in Pinocchio, and pin.rnea on it (plus the declared effects, which a URDF
+    cannot hold: rotor inertia) equals the feasible model's predicted torque to 1e-9. Standard
+    DH (link frames not on the joint axes), modified DH with a prismatic joint, and two
+    URDF files (one with links welded to the identified ones)."""
+    robot = load_robot(ROBOTS / f"{name}.yaml")
+    result = identify(robot, [_robot_data(robot, 600, 1)])
+    fr = feasible_estimate(result)
+    assert fr.consistent
+    path = write_urdf(tmp_path / f"{name}.urdf", robot, fr.phi)
+    model = pin.buildModelFromUrdf(str(path))
+    model.gravity = pin.Motion(np.asarray(robot.gravity, float), np.zeros(3))
+    data = model.createData()
+    seg = _robot_data(robot, 50, 7).segments[0]
+    expected = predict(result, fr.fit.beta, seg)
+    n_links = robot.n_joints
+    extra = effect_columns(result.effects, seg.q, seg.qd, seg.qdd) @ fr.phi[10 * n_links :] if result.effects else 0.0
+    index = [model.idx_vs[model.getJointId(j.name)] for j in robot.joints]
+    assert model.nv == n_links
+    got = np.empty_like(expected)
+    for k in range(seg.n_samples):
+        q = np.zeros(model.nq)
+        v, a = np.zeros(model.nv), np.zeros(model.nv)
+        q[index], v[index], a[index] = seg.q[k], seg.qd[k], seg.qdd[k]
+        got[k] = pin.rnea(model, data, q, v, a)[index]
+    got += extra
+    scale = np.abs(expected).max()
+    print(f"{name}: max |rnea(URDF) - predicted| = {np.abs(got - expected).max() / scale:.2e} of the largest torque")
+    assert np.abs(got - expected).max() <= 1e-9 * scale, np.abs(got - expected).max() / scale
