@@ -90,7 +90,7 @@ def _urdf_path(robot: Robot) -> Path | None:
     return None
 
 
-def urdf_tree(robot: Robot, phi: Array, effects: dict[tuple[str, int], float] | None = None) -> ET.ElementTree:
+def urdf_tree(robot: Robot, phi: Array, effects: dict[tuple[str, int], float] | None = None) -> ET.ElementTree[Any]:
     """The URDF document (see the module docstring); ``phi`` (>= 10 N,) standard parameters,
     ``effects`` maps (effect name, 1-based joint) to a value."""
     effects = effects or {}
@@ -100,7 +100,7 @@ def urdf_tree(robot: Robot, phi: Array, effects: dict[tuple[str, int], float] | 
     return _from_rows(robot, phi, effects)
 
 
-def _from_rows(robot: Robot, phi: Array, effects: dict[tuple[str, int], float]) -> ET.ElementTree:
+def _from_rows(robot: Robot, phi: Array, effects: dict[tuple[str, int], float]) -> ET.ElementTree[Any]:
     root = ET.Element("robot", name=robot.name)
     root.append(ET.Comment(f" armid: identified inertials of {robot.name}; link frames are the robot file's "
                            f"(linkI); gravity in the robot file: {list(map(float, robot.gravity))} "))
@@ -118,7 +118,7 @@ def _from_rows(robot: Robot, phi: Array, effects: dict[tuple[str, int], float]) 
         ET.SubElement(el, "limit", lower=_f(lo), upper=_f(hi), effort=_f(lim.torque or 0.0), velocity=_f(lim.velocity or 0.0))
         dyn = _friction(effects, i + 1)
         if dyn:
-            ET.SubElement(el, "dynamics", **dyn)
+            ET.SubElement(el, "dynamics", attrib=dyn)
         ET.SubElement(root, "link", name=axis_link)
         fixed = ET.SubElement(root, "joint", name=f"{joint.name}_frame", type="fixed")
         ET.SubElement(fixed, "parent", link=axis_link)
@@ -130,22 +130,25 @@ def _from_rows(robot: Robot, phi: Array, effects: dict[tuple[str, int], float]) 
     return ET.ElementTree(root)
 
 
-def _replace_inertials(source: Path, robot: Robot, phi: Array, effects: dict[tuple[str, int], float]) -> ET.ElementTree:
+def _replace_inertials(source: Path, robot: Robot, phi: Array, effects: dict[tuple[str, int], float]) -> ET.ElementTree[Any]:
     try:
         tree = ET.parse(source)
     except (OSError, ET.ParseError) as err:
         raise RobotFileError(str(source), "", f"cannot read the URDF ({err})") from err
     root = tree.getroot()
+    if root is None:
+        raise RobotFileError(str(source), "", "empty URDF")
     links = {el.get("name"): el for el in root.findall("link")}
     joints = {el.get("name"): el for el in root.findall("joint")}
     fixed_children: dict[str, list[str]] = {}
-    for el in joints.values():
-        if el.get("type") == "fixed":
-            fixed_children.setdefault(_attr(el, "parent"), []).append(_attr(el, "child"))
+    for fixed in joints.values():
+        if fixed.get("type") == "fixed":
+            fixed_children.setdefault(_attr(fixed, "parent"), []).append(_attr(fixed, "child"))
     for i, joint in enumerate(robot.joints):
-        el = joints.get(joint.name)
-        if el is None:
+        found = joints.get(joint.name)
+        if found is None:
             raise RobotFileError(str(source), joint.name, "no such joint in the URDF")
+        el = found
         child = _attr(el, "child")
         # every link welded to the child is part of the identified body
         stack = list(fixed_children.get(child, []))
@@ -162,7 +165,7 @@ def _replace_inertials(source: Path, robot: Robot, phi: Array, effects: dict[tup
         if dyn:
             for old in el.findall("dynamics"):
                 el.remove(old)
-            ET.SubElement(el, "dynamics", **dyn)
+            ET.SubElement(el, "dynamics", attrib=dyn)
     root.insert(0, ET.Comment(f" armid: inertials of {', '.join(j.name for j in robot.joints)} identified "
                               f"(physically consistent); rotor inertia is not a URDF field "))
     return tree
