@@ -83,6 +83,9 @@ def _feasible(args: argparse.Namespace, robot: Any, result: Any, validation: lis
         write_urdf(args.urdf, robot, fr.phi, effect_values(doc["feasible"]))
     for note in fr.fit.prior_notes:
         print(f"{robot.source}: {note}", file=sys.stderr)
+    for check in fr.least_squares_checks:
+        for v in check.violations:
+            print(f"least squares, link {check.link}: {v}")
     return f"{robot.name}: {fr.summary_line()}" + (f"; URDF written to {args.urdf}" if args.urdf else "")
 
 

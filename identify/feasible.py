@@ -383,7 +383,7 @@ class FeasibleResult:
 
     def summary_line(self) -> str:
         bad = [c.link for c in self.least_squares_checks if not c.consistent]
-        text = "least squares: " + (f"links {', '.join(map(str, bad))} not physical" if bad else "physically consistent")
+        text = "least squares (completed with the modeled values): " + (f"links {', '.join(map(str, bad))} not physical" if bad else "physically consistent")
         text += f"; feasible: {'consistent' if self.consistent else 'NOT consistent'}, {self.fit.distance:.3g} sigma from least squares"
         if self.validation and self.least_squares_validation:
             text += (f", validation error {self.validation['relative_error']:.4g} "
