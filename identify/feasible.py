@@ -153,13 +153,19 @@ def check_parameters(phi: Array, n_links: int) -> list[LinkCheck]:
     return [check_link(phi[10 * i : 10 * i + 10], i + 1) for i in range(n_links)]
 
 
-def feasible_prior(phi0_link: Array, floor: float = PRIOR_FLOOR) -> tuple[Array, str | None]:
-    """The modeled pseudo-inertia, made positive definite if it is not (and why)."""
+def feasible_prior(phi0_link: Array, floor: float = PRIOR_FLOOR, fallback: Array | None = None) -> tuple[Array, str | None]:
+    """The modeled pseudo-inertia, made positive definite if it is not (and why). A link
+    modeled as nothing at all (a URDF link without ``<inertial>``) takes ``fallback``
+    (default: 1 kg spread over a 0.1 m sphere at the link origin): a vanishing prior would
+    make the divergence, which measures ratios, pin the link to nothing."""
     j0 = pseudo_inertia(phi0_link)
     w, v = np.linalg.eigh(j0)
     if w[-1] > 0 and w[0] > 1e-6 * w[-1]:
         return j0, None
-    scale = max(float(w[-1]), 1e-6)
+    if w[-1] <= 1e-12:
+        default = np.diag([0.004, 0.004, 0.004, 1.0]) if fallback is None else fallback
+        return default, "modeled as massless; the prior is " + ("the other links' mean" if fallback is not None else "1 kg in a 0.1 m sphere")
+    scale = float(w[-1])
     w2 = np.maximum(w, floor * scale)
     note = (f"modeled values are not a physical body (pseudo-inertia eigenvalue {w[0]:.3g} kg m^2); "
             f"the prior is the nearest one with eigenvalues >= {floor:g} of the largest")
@@ -239,8 +245,11 @@ def feasible_fit(r: Array, beta_ls: Array, projection: Array, phi_prior: Array, 
         bad = int(np.flatnonzero(~np.isfinite(phi_prior[:n_inertial]))[0]) // 10 + 1
         raise IdentificationError(f"link {bad} has no modeled inertial values: the physically consistent fit needs them as its prior")
     priors, notes = [], []
+    solid = [pseudo_inertia(phi_prior[10 * i : 10 * i + 10]) for i in range(n_links)]
+    solid = [j for j in solid if np.linalg.eigvalsh(j)[-1] > 1e-12]
+    fallback = feasible_prior(link_from_pseudo_inertia(np.mean(solid, axis=0)))[0] if solid else None
     for i in range(n_links):
-        j0, note = feasible_prior(phi_prior[10 * i : 10 * i + 10])
+        j0, note = feasible_prior(phi_prior[10 * i : 10 * i + 10], fallback=fallback)
         if note:
             notes.append(f"link {i + 1}: {note}")
         priors.append(j0)

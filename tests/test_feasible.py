@@ -273,3 +273,29 @@ def test_bad_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert code == 2
     assert err[-1] == "armid identify: error: link 2 has no modeled inertial values: the physically consistent fit needs them as its prior"
     assert "Traceback" not in "\n".join(err)
+
+
+def test_diagnose_feasible_takes_linear_findings(tmp_path: Path) -> None:
+    """``diagnose --feasible``: friction the robot file does not declare is found, joins the
+    feasible model as a signed effect, and the feasible model is physical; its held-out
+    error is that of a model with the friction, not the declared one's."""
+    from identify.recordings import write_csv
+
+    robot = load_robot(ROBOTS / "planar2.yaml")
+    paths = []
+    for seed in (1, 2):
+        seg = _simulate(robot, robot.modeled_parameters(), 3000, seed, 0.005, (np.array([0.8, 0.4]), np.array([0.5, 0.3]))).segments[0]
+        paths.append(tmp_path / f"run{seed}.csv")
+        write_csv(paths[-1], seg.t, {"q": seg.q, "qd": seg.qd, "qdd": seg.qdd, "tau": seg.tau})
+    out = tmp_path / "diag.json"
+    code = main(["diagnose", str(paths[0]), "--robot", str(ROBOTS / "planar2.yaml"), "--validate", str(paths[1]), "--feasible",
+                 "--json", str(out), "--urdf", str(tmp_path / "planar2.urdf")])
+    assert code == 0
+    doc = json.loads(out.read_text())
+    feasible = doc["feasible"]
+    assert feasible["model"]["added_findings"] and feasible["feasible"]["consistent"]
+    assert {e["effect"] for e in feasible["effects"]} >= {"viscous_friction"}
+    assert all(e["value"] >= 0 for e in feasible["effects"] if e["effect"] in ("viscous_friction", "coulomb_friction"))
+    assert feasible["feasible"]["validation"]["relative_error"] <= 1.10 * feasible["least_squares"]["validation"]["relative_error"]
+    assert feasible["feasible"]["validation"]["relative_error"] < 0.5 * doc["before"]["relative_error"]
+    assert pin.buildModelFromUrdf(str(tmp_path / "planar2.urdf")).nv == 2
