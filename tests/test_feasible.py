@@ -115,6 +115,7 @@ def _feasible_arm(seed: int) -> tuple[Robot, np.ndarray, Robot]:
     return truth_robot, truth_robot.modeled_parameters(), replace(truth_robot, joints=tuple(model_joints))
 
 
+@pytest.mark.filterwarnings("ignore::identify.errors.PoorExcitationWarning")
 def test_feasible_is_at_least_as_close_to_the_truth() -> None:
     """On short, noisy data from a known feasible arm (6 seeds) the least-squares base
     estimate is often not physical; the feasible one is at least as close to the true base
@@ -136,9 +137,18 @@ def test_feasible_is_at_least_as_close_to_the_truth() -> None:
         for i in range(6):  # independently of the solver's own report
             assert fr.phi[10 * i] > 0 and np.linalg.eigvalsh(pseudo_inertia(fr.phi[10 * i : 10 * i + 10]))[0] >= 0
         assert err_f <= err_ls * (1 + 1e-6), (seed, err_f, err_ls)
-        infeasible += not all(c.consistent for c in fr.least_squares_checks)
-        print(seed, err_ls, err_f, fr.fit.distance, [c.link for c in fr.least_squares_checks if not c.consistent])
-    assert infeasible >= 3  # the constraint was active: the claim is not vacuous
+        # and per base parameter, in units of its standard deviation (measured: 0.49-0.83
+        # against 0.93-1.25 rms on these seeds)
+        std = result.estimate.std
+        rms_ls = np.sqrt(np.mean(((result.estimate.beta - beta_true) / std) ** 2))
+        rms_f = np.sqrt(np.mean(((fr.fit.beta - beta_true) / std) ** 2))
+        assert rms_f <= rms_ls, (seed, rms_f, rms_ls)
+        # the constraint was active (the least-squares estimate is no physical arm: the
+        # closest physical one is over a sigma away), so the claim is not vacuous
+        infeasible += fr.fit.distance > 1.0
+        print(f"seed {seed}: data metric least squares {err_ls:.2f}, feasible {err_f:.2f}; rms in sigma {rms_ls:.2f}, {rms_f:.2f}; "
+              f"the feasible fit {fr.fit.distance:.2f} sigma from least squares")
+    assert infeasible >= 5
 
 
 def _true_value(name: str, truth: np.ndarray, friction: tuple[np.ndarray, np.ndarray]) -> float:
