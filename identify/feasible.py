@@ -62,7 +62,6 @@ PRIOR_FLOOR = 1e-2
 by the nearest one with every eigenvalue at least this fraction of its largest."""
 
 
-
 # ---------------------------------------------------------------------------------------
 # pseudo-inertia <-> Khosla's ten parameters
 
@@ -280,7 +279,7 @@ def feasible_fit(r: Array, beta_ls: Array, projection: Array, phi_prior: Array, 
     if problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or phi.value is None:
         raise IdentificationError(f"the physically consistent fit found no solution (solver status {problem.status})")
     value = np.asarray(phi.value, dtype=float)
-    value = _strictly_feasible(value, phi_prior, priors, n_links)
+    value = _strictly_feasible(value, priors)
     if n_eff:
         value[n_inertial:][signed] = np.maximum(value[n_inertial:][signed], 0.0)
     beta = projection @ value
@@ -290,7 +289,7 @@ def feasible_fit(r: Array, beta_ls: Array, projection: Array, phi_prior: Array, 
                        int(stats.num_iters or 0), time.perf_counter() - start, problem.status == cp.OPTIMAL, str(problem.status))
 
 
-def _strictly_feasible(phi: Array, phi_prior: Array, priors: list[Array], n_links: int) -> Array:
+def _strictly_feasible(phi: Array, priors: list[Array]) -> Array:
     """An interior-point solution may leave a pseudo-inertia a rounding error below the cone;
     the convex combination ``(1 - e) J + e J0`` with the (positive definite) prior lifts it
     back with the least ``e`` (linear in phi, so the base projection moves by as little)."""
@@ -301,7 +300,8 @@ def _strictly_feasible(phi: Array, phi_prior: Array, priors: list[Array], n_link
         floor = 1e-12 * float(np.linalg.eigvalsh(j0)[-1])
         if low >= floor:
             continue
-        e = min(1.0, 2 * (floor - low) / (float(np.linalg.eigvalsh(j0)[0]) + floor - low))
+        # (1 - e) low + e min(eig J0) >= floor, with a factor 2 to spare
+        e = min(1.0, 2 * (floor - low) / (float(np.linalg.eigvalsh(j0)[0]) - low))
         out[10 * i : 10 * i + 10] = link_from_pseudo_inertia((1 - e) * j + e * j0)
     return out
 
