@@ -337,3 +337,36 @@ def test_demo_rig_data_feasible_within_ten_percent() -> None:
         assert phi[10 * i] > 0 and np.linalg.eigvalsh(pseudo_inertia(phi[10 * i : 10 * i + 10]))[0] >= 0
     print(f"demo rig data: validation error feasible {feasible:.5f}, least squares {least_squares:.5f}, ratio {feasible / least_squares:.4f}")
     assert feasible <= 1.10 * least_squares
+
+
+@pytest.mark.filterwarnings("ignore::identify.errors.PoorExcitationWarning")
+def test_solution_is_optimal_along_feasible_directions() -> None:
+    """Independently of the solver: the objective (data term plus entropic divergence) does
+    not fall along any segment toward another physical parameter set (the feasible set is
+    convex, so such segments stay in it), for random directions and step lengths."""
+    from identify.feasible import divergence, feasible_prior
+
+    truth_robot, truth, model_robot = _feasible_arm(3)
+    rng = np.random.default_rng(3)
+    friction = (rng.uniform(0.1, 1.0, 6), rng.uniform(0.1, 1.0, 6))
+    result = identify(model_robot, [_simulate(truth_robot, truth, 300, 3, 0.05, friction)])
+    fr = feasible_estimate(result)
+    from identify.feasible import base_projection
+
+    p = base_projection(result.base, len(result.names))
+    priors = [feasible_prior(model_robot.modeled_parameters()[10 * i : 10 * i + 10])[0] for i in range(6)]
+
+    def objective(phi: np.ndarray) -> float:
+        data = float(np.sum((fr.metric @ (p @ phi - result.estimate.beta)) ** 2))
+        return data + sum(divergence(pseudo_inertia(phi[10 * i : 10 * i + 10]), priors[i]) for i in range(6))
+
+    best = objective(fr.phi)
+    for k in range(200):
+        other = fr.phi.copy()
+        for i in range(6):  # another physical body per link: the prior, scaled and shifted
+            j = priors[i] * rng.uniform(0.5, 2.0)
+            v = rng.normal(size=4) * 0.05
+            other[10 * i : 10 * i + 10] = link_from_pseudo_inertia(j + np.outer(v, v))
+        other[60:] = np.abs(fr.phi[60:] + rng.normal(size=12) * 0.1)
+        t = 10.0 ** rng.uniform(-6, -1)
+        assert objective((1 - t) * fr.phi + t * other) >= best - 1e-7 * abs(best), k
