@@ -370,3 +370,17 @@ def test_solution_is_optimal_along_feasible_directions() -> None:
         other[60:] = np.abs(fr.phi[60:] + rng.normal(size=12) * 0.1)
         t = 10.0 ** rng.uniform(-6, -1)
         assert objective((1 - t) * fr.phi + t * other) >= best - 1e-7 * abs(best), k
+
+
+def test_interior_lift_and_massless_prior() -> None:
+    """A solver's answer a rounding error outside the cone is lifted inside by the least
+    convex combination with the prior; a link modeled as massless gets a usable prior."""
+    from identify.feasible import _strictly_feasible
+
+    j0 = pseudo_inertia(_body(2.0, (0.0, 0.1, 0.0), (0.02, 0.03, 0.04)))
+    point = link_from_pseudo_inertia(np.diag([0.01, 0.02, 0.0, 1.0]) - 1e-10 * np.eye(4))
+    lifted = _strictly_feasible(point, [j0])
+    assert np.linalg.eigvalsh(pseudo_inertia(lifted))[0] >= 0
+    assert np.abs(lifted - point).max() < 1e-8
+    j, note = feasible_prior(np.zeros(10))
+    assert note and "massless" in note and np.linalg.eigvalsh(j)[0] > 0
