@@ -381,6 +381,6 @@ def test_interior_lift_and_massless_prior() -> None:
     point = link_from_pseudo_inertia(np.diag([0.01, 0.02, 0.0, 1.0]) - 1e-10 * np.eye(4))
     lifted = _strictly_feasible(point, [j0])
     assert np.linalg.eigvalsh(pseudo_inertia(lifted))[0] >= 0
-    assert np.abs(lifted - point).max() < 1e-8
+    assert np.abs(lifted - point).max() < 1e-6  # e = 2 * 1e-10 / min eig(J0), about 4e-8
     j, note = feasible_prior(np.zeros(10))
     assert note and "massless" in note and np.linalg.eigvalsh(j)[0] > 0
