@@ -172,6 +172,7 @@ def _identify(args: argparse.Namespace) -> int:
     for w in caught:
         print(f"warning: {w.message}", file=sys.stderr)
     doc = result.to_json()
+    feasible_line = _feasible(args, robot, result, validation, doc)
     for path, prep in zip(list(args.data) + list(args.validate or []), experiments + validation):
         for note in prep.notes:
             print(f"{path}: {note}", file=sys.stderr)
@@ -196,7 +197,30 @@ def _identify(args: argparse.Namespace) -> int:
         f"condition number {doc['condition_number']:.3g}, fit error {doc['fit']['relative_error']:.4g}"
         + (f", validation error {v['relative_error']:.4g}" if v else "")
     )
+    if feasible_line:
+        print(feasible_line)
     return 0
+
+
+def _feasible(args: argparse.Namespace, robot: Any, result: Any, validation: list[Any], doc: dict[str, Any]) -> str | None:
+    """``--feasible`` / ``--urdf``: the physically consistent estimate into ``doc["feasible"]``
+    and, with ``--urdf OUT``, the identified inertials written back as a URDF."""
+    if not (args.feasible or args.urdf):
+        return None
+    from identify.feasible import feasible_estimate
+
+    from .urdf_export import effect_values, write_urdf
+
+    fr = feasible_estimate(result, validation or None)
+    doc["feasible"] = fr.to_json()
+    if args.urdf:
+        write_urdf(args.urdf, robot, fr.phi, effect_values(doc["feasible"]))
+    for note in fr.fit.prior_notes:
+        print(f"{robot.source}: {note}", file=sys.stderr)
+    for check in fr.least_squares_checks:
+        for v in check.violations:
+            print(f"least squares, link {check.link}: {v}")
+    return f"{robot.name}: {fr.summary_line()}" + (f"; URDF written to {args.urdf}" if args.urdf else "")
 
 
 def _diagnose(args: argparse.Namespace) -> int:
@@ -218,6 +242,9 @@ def _diagnose(args: argparse.Namespace) -> int:
             print(f"{path}: {note}", file=sys.stderr)
     diag = diagnose(robot, experiments, validation)
     doc = diag.to_json()
+    feasible_line = None
+    if args.feasible or args.urdf:
+        feasible_line = _diagnosed_feasible(args, robot, diag, experiments, validation, doc)
     for out in (args.json, args.predictions):
         if out:
             Path(out).parent.mkdir(parents=True, exist_ok=True)
@@ -237,7 +264,31 @@ def _diagnose(args: argparse.Namespace) -> int:
     for a in diag.absorbed:
         print(f"absorbed (not a finding): {a['effect']} on joint {a['joint']} joins {a['into']}")
     print(f"{robot.name}: validation error {100 * doc['before']['relative_error']:.3g} % -> {100 * doc['after']['relative_error']:.3g} %")
+    if feasible_line:
+        print(feasible_line)
     return 0
+
+
+def _diagnosed_feasible(args: argparse.Namespace, robot: Any, diag: Any, experiments: list[Any], validation: list[Any], doc: dict[str, Any]) -> str | None:
+    """The feasible estimate of the declared model plus every finding that is a declarable
+    (linear) effect; findings that are not (delay, gain, cogging, tilt, ...) are named as
+    left out."""
+    from dataclasses import replace
+
+    from identify.effects import LINEAR_EFFECTS
+    from identify.identification import IdentifyOptions, identify
+    from identify.robot import DeclaredEffect
+
+    added = [f for f in diag.found if f.effect in LINEAR_EFFECTS and f.joint is not None]
+    left_out = [f"{f.effect}@{'arm' if f.joint is None else f.joint + 1}" for f in diag.found if f not in added]
+    model = replace(robot, effects=tuple(robot.effects) + tuple(DeclaredEffect(f.effect, f.joint + 1) for f in added))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PoorExcitationWarning)
+        result = identify(model, experiments, validation, IdentifyOptions())
+    line = _feasible(args, model, result, validation, doc)
+    doc["feasible"]["model"] = {"declared": doc.get("declared", []), "added_findings": [f"{f.effect}@{f.joint + 1}" for f in added],
+                                "left_out_findings": left_out}
+    return line
 
 
 def _record(args: argparse.Namespace) -> int:
@@ -688,6 +739,12 @@ def _zenoh_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--zenoh-config", metavar="JSON5", help="a Zenoh configuration file (config/zenoh/lab.json5)")
 
 
+def _feasible_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--feasible", action="store_true",
+                   help="also the physically consistent estimate (pseudo-inertia PSD, friction >= 0) and a consistency report in the JSON")
+    p.add_argument("--urdf", metavar="OUT", help="write the physically consistent model as a URDF (implies --feasible)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="armid", description="Robot dynamics identification (Khosla 1987) from servo data.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -699,6 +756,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--report", metavar="DIR", help="write a markdown report with PNG plots")
     p.add_argument("--predictions", metavar="CSV", help="write predicted validation torques (t, tau_hat1..n)")
     p.add_argument("--weighting", choices=("wls", "ols"), default="wls", help="per-joint weighted (default) or ordinary LS")
+    _feasible_arguments(p)
     p.add_argument("--lowpass", type=_lowpass, default="auto", metavar="HZ|auto|off",
                    help="zero-phase low-pass of the kinematics, the regressor and the torque alike (default auto: chosen from each recording's spectrum)")
     p.add_argument("--max-gap-factor", type=_gap_factor, default=20.0, help="split where a step exceeds this many median steps")
@@ -713,6 +771,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--predictions", metavar="CSV", help="write the final model's predicted validation torques (t, tau_hat1..n)")
     p.add_argument("--lowpass", type=_lowpass, default="auto", metavar="HZ|auto|off",
                    help="zero-phase low-pass of the kinematics, the regressor and the torque alike (default auto: chosen from each recording's spectrum)")
+    _feasible_arguments(p)
     p.add_argument("--torque-hold", action="store_true", help="torques were held over the period before each sample (drive currents between SYNCs)")
     p.add_argument("--max-gap-factor", type=_gap_factor, default=20.0, help="split where a step exceeds this many median steps")
     p.set_defaults(run=_diagnose)

@@ -105,6 +105,9 @@ class IdentificationResult:
     validation_samples: int = 0
     notes: list[str] = field(default_factory=list)
     filtering: list[dict[str, Any]] = field(default_factory=list)
+    # per-joint R factors of [W_j | tau_j] over the base columns: the data's metric for
+    # anything fitted after least squares (identify.feasible), without the data
+    factors: JointFactors | None = None
 
     def predict(self, segment: Segment) -> Array:
         """Torques (n, N) the identified model predicts for a segment's motion (its grid)."""
@@ -368,7 +371,7 @@ def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     if options.covariance == "batch_means":
         est, block = _robust(system, base.independent, tau - tau_hat, est, factors, options.weighting)
         notes.append(f"standard deviations: batch-means sandwich over blocks of {block} samples (four times the residual's correlation length)")
-    result = IdentificationResult(robot, names, effects, base, est, exc, sum(p.n_stamps for p in experiments), fit, notes=notes)
+    result = IdentificationResult(robot, names, effects, base, est, exc, sum(p.n_stamps for p in experiments), fit, notes=notes, factors=factors)
     # the errors anyone can check: the model at each input sample against the raw torque
     _, tau_raw, tau_hat_raw = result.predict_stamps(segments)
     result.fit = summary(tau_raw, tau_hat_raw)
