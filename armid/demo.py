@@ -172,7 +172,15 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0) -> int:
                      "estimated on-line from the live Zenoh stream")
         payload = run_payload(rig, whole, experiments[-2].design, out, console)
         phases.start("report", "writing the report and its plots")
-        doc = {"rig": rig.name, "single_link": seq.to_json(), "whole_arm": whole.to_json(), "comparison": comparison, "truth_check": truth,
+        from identify.feasible import feasible_estimate
+
+        from .urdf_export import effect_values, write_urdf
+
+        feasible = feasible_estimate(whole, [prepared["whole_b"]])
+        whole_doc = whole.to_json()
+        whole_doc["feasible"] = feasible.to_json()
+        write_urdf(out / "identified.urdf", robot, feasible.phi, effect_values(whole_doc["feasible"]))
+        doc = {"rig": rig.name, "single_link": seq.to_json(), "whole_arm": whole_doc, "comparison": comparison, "truth_check": truth,
                "diagnosis": diagnosis.to_json(), "payload": payload, "runs": [r.to_json() for r in reports]}
         write_json(out / "demo.json", doc)
         _write_report(out, rig, experiments, reports, seq, whole, comparison, truth, diagnosis, prepared, payload)
@@ -180,6 +188,7 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0) -> int:
     console.print(f"single-link sequence: {s['within_3_sigma']} of {s['combinations']} combinations within 3 sigma of the truth "
                   f"(max |z| {s['max_abs_z']:.2f}); whole arm: {w['within_3_sigma']} of {w['combinations']} (max |z| {w['max_abs_z']:.2f}); "
                   f"validation error {100 * whole.validation['relative_error']:.2f} %")  # type: ignore[index]
+    console.print(f"physically consistent whole-arm model: {feasible.summary_line()} (identified.urdf)")
     console.print(f"diagnosis: {len(diagnosis.found)} finding(s); validation error {100 * diagnosis.before['relative_error']:.2f} % -> "
                   f"{100 * diagnosis.after['relative_error']:.2f} %")
     p2 = payload["after_attach_2s"]
