@@ -252,7 +252,8 @@ def _choose_band(source: str, t: Array, q: Array, qd: Array | None, pieces: list
     if lowpass_hz is None or lowpass_hz == "off":
         return None
     a, b = max(pieces, key=lambda p: p[1] - p[0])
-    grid = t[a] + period * np.arange(int(np.floor((t[b - 1] - t[a]) / period + 1e-9)) + 1)
+    t = t - t[a]  # relative: epoch stamps lose digits
+    grid = period * np.arange(int(np.floor(t[b - 1] / period + 1e-9)) + 1)
     q_grid = np.column_stack([np.interp(grid, t[a:b], c) for c in q[a:b].T])
     if lowpass_hz == "auto":
         band = choose_filter(q_grid, period)
@@ -297,10 +298,12 @@ def _uniform(source: str, t: Array, q: Array, tau: Array, qd: Array | None, qdd:
              options: PrepareOptions, notes: list[str]) -> Segment:
     from scipy.interpolate import CubicSpline
 
+    raw_t, raw_tau = t, tau
+    t0 = float(t[0])
+    t = t - t0  # epoch stamps (1.5e9 s) would cost the splines their last digits
     dt = np.diff(t)
     period = float(np.median(dt))
     jitter = float(np.max(np.abs(dt - period)) / period)
-    raw_t, raw_tau = t, tau
     resampled = jitter > options.jitter_tolerance
     if resampled:
         grid = t[0] + period * np.arange(int(np.floor((t[-1] - t[0]) / period + 1e-9)) + 1)
@@ -333,9 +336,10 @@ def _uniform(source: str, t: Array, q: Array, tau: Array, qd: Array | None, qdd:
     qdd = _derivative(qd, period, 2 if from_positions else 1, q if from_positions else None) if qdd is None else filt.smooth(qdd)
     stamps = None
     if resampled:
-        inside = (raw_t >= t[0]) & (raw_t <= t[-1] + period)
-        ts = raw_t[inside]
-        stamps = Stamps(ts, CubicSpline(t, q, axis=0)(ts), CubicSpline(t, qd, axis=0)(ts), CubicSpline(t, qdd, axis=0)(ts), raw_tau[inside])
-    elif options.torque_hold:
-        stamps = Stamps(t, q, qd, qdd, raw_tau)
-    return Segment(source, t, q, qd, qdd, tau, filt, stamps)
+        rel = raw_t - t0
+        inside = (rel >= t[0]) & (rel <= t[-1] + period)
+        ts = rel[inside]
+        stamps = Stamps(raw_t[inside], CubicSpline(t, q, axis=0)(ts), CubicSpline(t, qd, axis=0)(ts), CubicSpline(t, qdd, axis=0)(ts), raw_tau[inside])
+    elif options.torque_hold or t0 != 0.0:
+        stamps = Stamps(raw_t, q, qd, qdd, raw_tau)
+    return Segment(source, t + t0, q, qd, qdd, tau, filt, stamps)
