@@ -611,6 +611,10 @@ def distinct_fraction(arm: Arm, traj, t: np.ndarray, effects: list[Effect], base
     return float(np.linalg.norm(residual) / max(np.linalg.norm(d), 1e-300))
 
 
+MAX_SNR_SIZE = 1.0
+"""An snr-sized effect stays within its joint's own rigid-body torque RMS (a weak joint caps its visibility)."""
+
+
 def _size_for_snr(arm: Arm, traj, t: np.ndarray, name: str, joints: list[int], overrides: dict[str, Any] | None,
                   extras: list[Effect], snr: float, level: float, draws: int, size: float) -> tuple[Effect, float]:
     """The effect sized so its torque, over all joints, is ``snr`` times the whole arm's torque noise.
@@ -624,10 +628,10 @@ def _size_for_snr(arm: Arm, traj, t: np.ndarray, name: str, joints: list[int], o
     for _ in range(3):
         eff = size_effect(np.random.default_rng(draws), arm, traj, t, name, joints, size, overrides)
         norm = float(np.linalg.norm(recorded_torque(arm, traj, t, [eff, *extras])[0] - base))
-        if norm <= 0 or abs(norm / target - 1) < 1e-3:
+        if norm <= 0 or abs(norm / target - 1) < 1e-3 or size >= MAX_SNR_SIZE:
             break
-        size *= target / norm
-    return eff, size
+        size = min(MAX_SNR_SIZE, size * target / norm)
+    return size_effect(np.random.default_rng(draws), arm, traj, t, name, joints, size, overrides), size
 
 
 def _resolve_joints(name: str, joint: int | str | None, n: int, u: float) -> list[int]:

@@ -465,3 +465,10 @@ def test_load_case_reads_back_what_make_case_returned(kw, tmp_path):
 
     case = make_case(91, tmp_path, n_joints=3, rate_hz=100, duration_s=2.0, valid_duration_s=2.0, **kw)
     assert load_case(tmp_path) == case
+
+
+def test_snr_size_is_capped_at_the_joint_torque(tmp_path):
+    """A huge snr cannot make an effect larger than its joint's own rigid-body torque RMS."""
+    case = make_case(62, tmp_path, n_joints=3, rate_hz=100, noise="low", effect="coulomb_friction", effect_joint=3, effect_snr=1e4,
+                     duration_s=4.0, valid_duration_s=2.0)
+    assert case.effect_size == 1.0 and case.effect_visible < 1e4 / 10
