@@ -249,9 +249,12 @@ class ArmModel:
 
 def slope_on_times(t: Array, x: Array) -> Array:
     """Least-squares slope of ``x`` (k, ...) on its times ``t`` (k,): the 5-point filter of
-    Khosla 5.1 when the steps are equal, and right when they are not."""
-    dt = t - t.mean()
-    return np.tensordot(dt, x, axes=(0, 0)) / float(dt @ dt)
+    Khosla 5.1 when the steps are equal, and right when they are not. Both are centred
+    first: time stamps are often seconds since 1970 (ulp 0.24 us), and ``sum(dt x)`` with
+    an uncentred ``x`` turns that rounding into velocity errors of percent."""
+    tr = t - t[0]
+    dt = tr - tr.mean()
+    return np.tensordot(dt, x - x.mean(axis=0), axes=(0, 0)) / float(dt @ dt)
 
 
 def derivatives_on_times(t: Array, x: Array) -> tuple[Array, Array]:
@@ -261,14 +264,17 @@ def derivatives_on_times(t: Array, x: Array) -> tuple[Array, Array]:
     qd, qdd = np.full(x.shape, np.nan), np.full(x.shape, np.nan)
     if n < 9:
         return qd, qdd
+    t = t - t[0]  # centred windows below: see slope_on_times
     idx = np.arange(2, n - 2)[:, None] + np.arange(-2, 3)[None, :]
     tw = t[idx]
     dt = tw - tw.mean(axis=1, keepdims=True)
     den = (dt * dt).sum(axis=1)
-    qd[2:-2] = np.einsum("kw,kwj->kj", dt, x[idx]) / den[:, None]
+    xw = x[idx]
+    qd[2:-2] = np.einsum("kw,kwj->kj", dt, xw - xw.mean(axis=1, keepdims=True)) / den[:, None]
     idx2 = np.arange(4, n - 4)[:, None] + np.arange(-2, 3)[None, :]
     dt2 = t[idx2] - t[idx2].mean(axis=1, keepdims=True)
-    qdd[4:-4] = np.einsum("kw,kwj->kj", dt2, qd[idx2]) / (dt2 * dt2).sum(axis=1)[:, None]
+    vw = qd[idx2]
+    qdd[4:-4] = np.einsum("kw,kwj->kj", dt2, vw - vw.mean(axis=1, keepdims=True)) / (dt2 * dt2).sum(axis=1)[:, None]
     return qd, qdd
 
 
@@ -503,8 +509,7 @@ class PayloadRLS:
             h, y, rj = h_all[i][use], residual[i][use], r[use]
             innovation = y - h @ theta
             ph = p @ h.T
-            hph = h @ ph
-            s = hph + np.diag(rj)
+            s = h @ ph + np.diag(rj)
             s_inv = np.linalg.inv(s)
             dof = int(use.sum())
             nis = float(innovation @ s_inv @ innovation)
@@ -523,16 +528,18 @@ class PayloadRLS:
             a = eye - gain @ h
             p = a @ p @ a.T + (gain * rj) @ gain.T
             p = 0.5 * (p + p.T)
+            # the noise this estimator sees: E[e^2] = r - (h P+ h^T) for the residual e after
+            # the update (unbiased whatever P is; innovation^2 - h P h^T is not when P is large)
+            post = innovation - h @ (gain @ innovation)
+            seen = np.minimum(post**2 + np.einsum("ij,jk,ik->i", h, p, h), 9.0 * rj)
             if moving[i]:
                 p = p / self.forgetting ** (dts[i] / FORGETTING_STEP_S)
                 d = np.diag(p)
                 if (d > prior_var).any():  # never past the prior: no wind-up
                     sc = np.sqrt(np.minimum(1.0, prior_var / d))
                     p = p * np.outer(sc, sc)
-            # the noise this estimator sees: innovation squared less what P explains, outliers clipped
             rate = dts[i] / self.noise_time_constant_s
-            seen = np.clip(innovation**2 - np.diag(hph), 0.0, 9.0 * rj)
-            r[use] = rj + rate * (seen - rj)
+            r[use] = rj + rate * (seen - rj)  # outliers clipped at 3 sigma
             self._window.append((float(ts[i]), nis, dof, 0))
             self.n_updates_ += 1
             self.innovation_ = innovation
