@@ -271,8 +271,10 @@ def derivatives_on_times(t: Array, x: Array) -> tuple[Array, Array]:
     den = (dt * dt).sum(axis=1)
     xw = x[idx]
     qd[2:-2] = np.einsum("kw,kwj->kj", dt, xw - xw.mean(axis=1, keepdims=True)) / den[:, None]
+    tm = np.full(n, np.nan)
+    tm[2:-2] = tw.mean(axis=1)  # each velocity belongs to its window's mean time (as in _Filter)
     idx2 = np.arange(4, n - 4)[:, None] + np.arange(-2, 3)[None, :]
-    dt2 = t[idx2] - t[idx2].mean(axis=1, keepdims=True)
+    dt2 = tm[idx2] - tm[idx2].mean(axis=1, keepdims=True)
     vw = qd[idx2]
     qdd[4:-4] = np.einsum("kw,kwj->kj", dt2, vw - vw.mean(axis=1, keepdims=True)) / (dt2 * dt2).sum(axis=1)[:, None]
     return qd, qdd

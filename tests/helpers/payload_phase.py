@@ -22,15 +22,11 @@ def main() -> None:
     out = Path(sys.argv[2])
     rig = load_rig(DEFAULT_RIG).with_bus(channel=f"armid-phase-{uuid.uuid4().hex[:8]}")
     result = run_payload(rig, arm, trajectory, out, None, warm=sys.argv[3] == "warm")
-    import numba.core.registry
-
-    compiled = sorted({d.py_func.__qualname__ for d in numba.core.registry.cpu_target.target_context._defns} if False else [])
     from identify import _regressor_lanes
 
     result["regressor_kernel_compiled"] = bool(_regressor_lanes.regressor_kernel.signatures)
     result.pop("report", None)
     print(json.dumps(result))
-    del compiled
 
 
 if __name__ == "__main__":
