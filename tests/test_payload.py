@@ -306,6 +306,15 @@ def test_the_same_run_at_1_2_and_10_ms_replayed_without_a_period_agrees(tmp_path
     for d in finals.values():  # and they are right
         assert abs(d["mass"] - PAYLOAD.mass) <= 0.05 * PAYLOAD.mass and d["converged"], d
     assert finals[1]["rate_changes"] == 0 and finals[10]["rate_changes"] == 0
+    # a recording whose rate changes half way (2 ms, then 10 ms): handled, and said
+    half = run.t.size // 2
+    keep = np.concatenate([np.arange(0, half, 2), np.arange(half - half % 10 + 10, run.t.size, 10)])
+    data = _write_csv(tmp_path / "changing.csv", run.t[keep], run.position[keep], run.torque[keep])
+    out = tmp_path / "changing.jsonl"
+    assert main(["estimate", "--robot", str(ROOT / "config/robots/puma560.yaml"), "--params", str(ident), "--replay", str(data),
+                 "--out", str(out)]) == 0
+    d = _strict_json(out.read_text().splitlines()[-1])
+    assert d["rate_changes"] == 1 and abs(d["mass"] - finals[10]["mass"]) <= d["mass_std"] + finals[10]["mass_std"], d
 
 
 @pytest.mark.parametrize("extra, message", [
