@@ -112,8 +112,11 @@ class EstimateStream:
 
 
 def _from_record(r: JointStateRecord) -> tuple[int, float, Array, Array, Array]:
+    """The record's time as the recording keeps it (whole nanoseconds, ``sec + 1e-9 nsec``):
+    the estimator differentiates on time stamps, so live and replay see the same floats."""
     s = r.sample
-    return r.sequence, s.time_s, s.valid, s.position, s.measured_current
+    ns = int(round(s.time_s * 1e9))
+    return r.sequence, ns // 1_000_000_000 + 1e-9 * (ns % 1_000_000_000), s.valid, s.position, s.measured_current
 
 
 class PayloadService:
