@@ -414,7 +414,7 @@ class PayloadRLS:
     uses the records' time stamps.
     """
 
-    def __init__(self, arm: ArmModel, forgetting: float = 0.998, moving_rad_s: float = 0.05, change_window: int = 25,
+    def __init__(self, arm: ArmModel, *, forgetting: float = 0.998, moving_rad_s: float = 0.05, change_window: int = 25,
                  change_threshold: float = 8.0, prior_std: Array | None = None, noise_time_constant_s: float = 2.0,
                  reference: ReferenceRun | None = None) -> None:
         self.arm = arm
@@ -463,7 +463,7 @@ class PayloadRLS:
     def warm(self) -> None:
         """Run every code path once on a copy (imports, first-call costs) before the arm moves."""
         robot = self.arm.robot
-        clone = PayloadRLS(self.arm, self.forgetting, prior_std=self.prior_std)
+        clone = PayloadRLS(self.arm, forgetting=self.forgetting, prior_std=self.prior_std)
         t = np.arange(12) * 0.002
         q = 0.1 * np.sin(np.outer(t, np.arange(1, robot.n_joints + 1)))
         clone.fit(t, q, np.zeros_like(q)).estimate()
