@@ -544,54 +544,138 @@ def load_trajectory(path: str | Path, n_joints: int, period_s: float) -> tuple[A
     return FourierTrajectory(q0, a, b, float(hz)), tuple(j - 1 for j in moving_doc)
 
 
+def _replay_records(path: Path, robot: Any, kt: np.ndarray, period_s: float | None) -> tuple[list[tuple[Any, ...]], list[str]]:
+    """(sequence, time, valid, position, current) of a recording (MCAP or CSV), in order, on
+    the recording's own time stamps; time must increase (a CSV names its line)."""
+    from identify.recordings import read_mcap_arrays, read_recording
+
+    if path.suffix.lower() == ".mcap":
+        if not path.exists():
+            raise RecordingError(str(path), "no such file")
+        a, _, notes = read_mcap_arrays(path)
+        if not a:
+            raise RecordingError(str(path), "no joint_state record could be read" + (f": {notes[0]}" if notes else ""))
+        if a["position"].shape[1] != robot.n_joints:
+            raise RecordingError(str(path), f"{a['position'].shape[1]} joints recorded, robot {robot.name} has {robot.n_joints}")
+        t = np.asarray(a["t"], float)
+        records = list(zip(a["sequence"].tolist(), t.tolist(), a["valid"], a["position"], a["measured_current"]))
+    else:
+        rec = read_recording(path, robot)
+        notes, t = list(rec.notes), np.asarray(rec.t, float)
+        back = np.flatnonzero(~(np.diff(t) > 0))
+        if back.size:
+            k = int(back[0]) + 1
+            raise RecordingError(str(path), f"line {k + 2}: time {t[k]:.6g} s is not after the line before ({t[k - 1]:.6g} s): "
+                                            "time must increase (a reversed or shuffled log?)")
+        ones = np.ones(robot.n_joints, bool)
+        records = [(k, float(t[k]), ones, rec.q[k], rec.tau[k] / kt) for k in range(rec.n_samples)]
+    if t.size >= 2 and period_s is not None:
+        step = float(np.median(np.diff(t)))
+        if abs(step - period_s) > 0.1 * period_s:
+            raise RecordingError(str(path), f"its time stamps say a {1000 * step:.4g} ms period, --period says {1000 * period_s:.4g} ms "
+                                            "(the estimator always uses the time stamps; leave --period out)")
+    return records, notes
+
+
+def _identification_document(path: str, robot: Any) -> dict[str, Any]:
+    """The ``armid identify --json`` document, checked for what the estimator reads."""
+    try:
+        doc = json.loads(Path(path).read_text())
+    except json.JSONDecodeError as err:
+        raise RecordingError(path, f"not JSON: line {err.lineno}: {err.msg}") from None
+    except UnicodeDecodeError as err:
+        raise RecordingError(path, f"not a text file ({err.reason})") from None
+    if not isinstance(doc, dict):
+        raise RecordingError(path, f"must be a JSON object (the output of armid identify --json), got a JSON {type(doc).__name__}")
+    base = doc.get("base_parameters")
+    if not isinstance(base, list):
+        raise RecordingError(path, "base_parameters: missing or not a list")
+    for k, b in enumerate(base):
+        if not isinstance(b, dict) or not isinstance(b.get("expression"), str):
+            raise RecordingError(path, f"base_parameters[{k}]: must be an object with an 'expression' string and a 'value'")
+        v = b.get("value")
+        if isinstance(v, bool) or not isinstance(v, int | float) or not np.isfinite(v):
+            raise RecordingError(path, f"base_parameters[{k}].value: must be a finite number, got {v!r}")
+    sigma = doc.get("joint_noise_sigma")
+    if sigma is not None:
+        ok = isinstance(sigma, list) and len(sigma) == robot.n_joints and all(
+            isinstance(x, int | float) and not isinstance(x, bool) and np.isfinite(x) and x > 0 for x in sigma)
+        if not ok:
+            raise RecordingError(path, f"joint_noise_sigma: must be {robot.n_joints} positive numbers, got {sigma!r}")
+    return doc
+
+
+def _estimate_summary(n: int, docs: list[dict[str, Any]], seconds: float, stream: Any) -> str:
+    est = stream.estimator
+    head = f"armid estimate: {n} updates, {len(docs)} estimates in {seconds:.2f} s"
+    extra = [f"{v} {k.replace('_', ' ')}" for k, v in (("rate_changes", est.rate_changes_), ("rejected", est.rejected_),
+                                                       ("lost", stream.lost), ("invalid", stream.invalid)) if v]
+    if not docs:
+        return head + "; no estimate (too few records to differentiate)"
+    last = docs[-1]
+    if last["mass"] is None:
+        what = "mass not excited: the motion does not determine it (no estimate)"
+    else:
+        com = "" if last["com"] is None else ", centre of mass [" + ", ".join(f"{100 * c:.1f}" for c in last["com"]) + "] cm"
+        what = f"mass {last['mass']:.3f} +- {last['mass_std']:.3f} kg{com}, {last['status']}"
+    return head + f"; last: {what}" + (f" ({', '.join(extra)})" if extra else "")
+
+
 def _estimate(args: argparse.Namespace) -> int:
+    """On-line payload estimation, live or on a recording; always on the records' time stamps."""
     import time
 
     from daq.payload_service import EstimateStream
-    from identify.payload import PayloadRLS, arm_model_from_identification
-    from identify.recordings import read_mcap_arrays, read_recording
+    from identify.payload import PayloadRLS, ReferenceRun, arm_model_from_identification
     from identify.robot_file import load_robot
 
     if not args.replay and args.mode != "live":
         raise UsageError("say what to run on: 'live' (the Zenoh stream) or --replay DATA")
+    if args.period is not None and not (np.isfinite(args.period) and args.period > 0):
+        raise UsageError(f"--period must be a positive number of seconds, got {args.period:g}")
+    if args.publish_every < 1:
+        raise UsageError(f"--publish-every must be a whole number of records >= 1, got {args.publish_every}")
+    if not (np.isfinite(args.forgetting) and 0 < args.forgetting <= 1):
+        raise UsageError(f"--forgetting must be in (0, 1] (a factor per 2 ms of the arm's time; 0.998: about 1 s), got {args.forgetting:g}")
+    if args.duration is not None and not (np.isfinite(args.duration) and args.duration > 0):
+        raise UsageError(f"--duration must be a positive number of seconds, got {args.duration:g}")
     robot = load_robot(args.robot)
-    try:
-        doc = json.loads(Path(args.params).read_text())
-    except json.JSONDecodeError as err:
-        raise RecordingError(args.params, f"not JSON: line {err.lineno}: {err.msg}") from None
+    doc = _identification_document(args.params, robot)
     arm = arm_model_from_identification(robot, doc)
     kt = np.array([j.torque_constant for j in robot.joints])
-    period = args.period
-    stream = EstimateStream(PayloadRLS(arm, period, forgetting=args.forgetting), kt, publish_every=args.publish_every)
+    reference = None
+    if args.reference:
+        ref_records, ref_notes = _replay_records(Path(args.reference), robot, kt, args.period)
+        for note in ref_notes:
+            print(f"{args.reference}: {note}", file=sys.stderr)
+        keep = [r for r in ref_records if np.all(r[2])]
+        try:
+            reference = ReferenceRun(arm, np.array([r[1] for r in keep]), np.array([r[3] for r in keep]),
+                                     np.array([r[4] for r in keep]) * kt)
+        except ValueError as err:
+            raise RecordingError(args.reference, str(err)) from None
+    estimator = PayloadRLS(arm, forgetting=args.forgetting, reference=reference)
+    stream = EstimateStream(estimator, kt, publish_every=args.publish_every, strict_time=bool(args.replay),
+                            source=str(args.replay or "stream"))
+    if args.replay:
+        records, notes = _replay_records(Path(args.replay), robot, kt, args.period)
+        for note in notes:
+            print(f"{args.replay}: {note}", file=sys.stderr)
     out = open(args.out, "w") if args.out else sys.stdout  # noqa: SIM115 - closed below
     try:
         if args.replay:
-            path = Path(args.replay)
-            if path.suffix.lower() == ".mcap":
-                a, _, notes = read_mcap_arrays(path)
-                if not a:
-                    raise RecordingError(str(path), "no joint_state record could be read" + (f": {notes[0]}" if notes else ""))
-                records = zip(a["sequence"].tolist(), a["t"].tolist(), a["valid"], a["position"], a["measured_current"])
-            else:
-                rec = read_recording(path, robot)
-                notes = rec.notes
-                ones = np.ones(robot.n_joints, bool)
-                records = ((k, float(rec.t[k]), ones, rec.q[k], rec.tau[k] / kt) for k in range(rec.n_samples))
-            for note in notes:
-                print(f"{path}: {note}", file=sys.stderr)
             start = time.perf_counter()
             docs = stream.feed(records)
             for d in docs:
-                out.write(json.dumps(d) + "\n")
+                out.write(json.dumps(d, allow_nan=False) + "\n")
             seconds = time.perf_counter() - start
-            n = stream.estimator.n_updates_ if hasattr(stream.estimator, "n_updates_") else 0
-            print(f"armid estimate: {n} updates, {len(docs)} estimates in {seconds:.2f} s"
-                  + (f"; last: mass {docs[-1]['mass']:.3f} kg" if docs else ""), file=sys.stderr)
+            print(_estimate_summary(estimator.n_updates_ if hasattr(estimator, "n_updates_") else 0, docs, seconds, stream), file=sys.stderr)
             return 0
         from daq.payload_service import PayloadService
 
+        estimator.warm()  # nothing left to run for the first time once records arrive
         session = open_zenoh(args)
-        service = PayloadService(session, robot.name, stream, on_estimate=lambda d: out.write(json.dumps(d) + "\n"))
+        service = PayloadService(session, robot.name, stream, on_estimate=lambda d: out.write(json.dumps(d, allow_nan=False) + "\n"))
         print(f"armid estimate: listening on armid/{robot.name}/joint_state (Ctrl-C stops)", file=sys.stderr, flush=True)
         try:
             deadline = time.monotonic() + args.duration if args.duration else None
@@ -817,8 +901,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--params", required=True, metavar="IDENT.json", help="the arm's identification (armid identify --json)")
     p.add_argument("--replay", metavar="DATA", help="run on a recording (MCAP or CSV) and write what would have been published")
     p.add_argument("--out", metavar="JSONL", help="write the estimates as JSON lines (default: standard output)")
-    p.add_argument("--period", type=float, default=0.002, help="sample period in s (default 0.002)")
-    p.add_argument("--forgetting", type=float, default=0.998, help="forgetting factor while the arm moves (default 0.998: about 1 s)")
+    p.add_argument("--reference", metavar="UNLOADED",
+                   help="a run of the same trajectory without the payload (MCAP or CSV): estimate from the torque difference at the "
+                        "same positions, so that arm-model and friction errors cancel")
+    p.add_argument("--period", type=float, default=None,
+                   help="expected sample period in s: only checked against the time stamps, which the estimator always uses")
+    p.add_argument("--forgetting", type=float, default=0.998,
+                   help="forgetting factor per 2 ms of the arm's time while it moves, in (0, 1] (default 0.998: about 1 s)")
     p.add_argument("--publish-every", type=int, default=10, help="publish on every Nth record (default 10: 50 Hz at 2 ms)")
     p.add_argument("--duration", type=float, help="live: stop after this many seconds")
     _zenoh_arguments(p)

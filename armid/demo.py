@@ -27,8 +27,6 @@ from .experiments import (
     design_experiments,
     prepared_runs,
     run_experiments,
-    warm_in_background,
-    warm_payload_estimator,
     write_json,
 )
 
@@ -100,7 +98,7 @@ class Phases:
         self.console.print(f"  {text} [dim](about {self.left_s():.0f} s left)[/]")
 
 
-PHASE_ESTIMATES_S = {"design": 12.0, "warm": 2.0, "runs": 75.0, "identify": 8.0, "payload": 16.0, "report": 4.0}
+PHASE_ESTIMATES_S = {"design": 12.0, "runs": 75.0, "identify": 8.0, "payload": 16.0, "report": 4.0}
 """First guesses for :class:`Phases`, from runs on a 2-core machine with a warm numba cache."""
 
 
@@ -111,7 +109,6 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0) -> int:
     console = Console(stderr=True)
     started = time.monotonic()
     rig_path = rig_path or DEFAULT_RIG
-    warming = warm_in_background(rig_path)  # compiles the payload estimator on the other core while this one designs
     rig = load_rig(rig_path)
     rig = rig.with_bus(channel=f"armid-demo-{uuid.uuid4().hex[:8]}") if rig.bus.interface == "virtual" else rig
     robot = rig.robot
@@ -140,14 +137,6 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0) -> int:
         runs_s = sum(e.plan.duration_s + 0.5 for e in experiments)
         phases.estimates.update(design=time.monotonic() - phases.phase_started, runs=runs_s,
                                 payload=ex.plan(experiments[-2].design, start, ex.Limits.of(robot), periods=2).duration_s + 3.0)
-        phases.start("warm", "compiling and warming the on-line payload estimator, so that nothing compiles while the arm moves")
-        warm_error = warming.finish()
-        if warm_error:
-            console.print(f"  [dim]the background compilation failed ({warm_error}); compiling here[/]")
-        try:
-            warm_payload_estimator(robot, rig.period_s, experiments[-2].plan)
-        except Exception as err:  # noqa: BLE001  a failed warm-up only costs time later
-            console.print(f"  [yellow]could not warm the payload estimator ({type(err).__name__}: {err}); it will compile on first use[/]")
         motion_s = sum(e.plan.duration_s for e in experiments)
         phases.start("runs", f"running the {len(experiments)} experiments on the drives in real time ({motion_s:.0f} s of motion, "
                      "2 ms SYNC over the virtual CAN bus), each recorded as MCAP")
@@ -192,8 +181,8 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0) -> int:
     console.print(f"diagnosis: {len(diagnosis.found)} finding(s); validation error {100 * diagnosis.before['relative_error']:.2f} % -> "
                   f"{100 * diagnosis.after['relative_error']:.2f} %")
     p2 = payload["after_attach_2s"]
-    console.print(f"payload: 2 s after the attach {p2['mass']:.3f} kg (true {payload['true_mass']} kg), centre of mass off by "
-                  f"{1000 * p2['com_error_m']:.1f} mm; 2 s after the removal {payload['after_removal_2s']['mass']:.3f} kg; "
+    console.print(f"payload: 2 s after the attach {_num(p2['mass'], 1, 3)} kg (true {payload['true_mass']} kg), centre of mass off by "
+                  f"{_num(p2['com_error_m'], 1000, 1)} mm; 2 s after the removal {_num(payload['after_removal_2s']['mass'], 1, 3)} kg; "
                   f"{payload['estimates']} estimates at 50 Hz")
     console.print(f"[bold]report:[/] {out / 'report.md'} ({time.monotonic() - started:.0f} s)")
     return 0
@@ -203,10 +192,17 @@ DEMO_PAYLOAD = (2.0, (0.02, -0.03, 0.08), (0.004, 0.0, 0.0, 0.004, 0.0, 0.002))
 """Mass (kg), centre of mass in the last link's frame (m), inertia about it (kg m^2)."""
 
 
-def run_payload(rig: Rig, whole: IdentificationResult, design: Any, out: Path, console: Any) -> dict[str, Any]:
+def run_payload(rig: Rig, whole: Any, design: Any, out: Path, console: Any, warm: bool = True) -> dict[str, Any]:
     """Khosla's on-line strategy: the identified arm works through a whole-arm trajectory; a
     payload is attached 3 s in and removed 4 s later; the estimator listens to the live
-    Zenoh stream (a local session) and publishes its estimates; they are compared with the truth."""
+    Zenoh stream (a local session) and publishes its estimates; they are compared with the truth.
+
+    Everything runs on the arm's clock: the attach and the removal are scheduled in the
+    simulated arm at times of its own clock (not when a polling thread gets to them), and
+    each "N s after" read-out is the first estimate whose record time is N s after the
+    record on which the event took effect. ``whole`` is the identification (or an
+    :class:`~identify.payload.ArmModel`); ``warm`` runs the estimator once before the arm moves.
+    """
     import threading
 
     import zenoh
@@ -215,53 +211,84 @@ def run_payload(rig: Rig, whole: IdentificationResult, design: Any, out: Path, c
     from daq.stream import Stream, session_config
     from identify import excitation as ex
     from identify.payload import ArmModel, PayloadRLS
+    from identify.recordings import read_mcap_arrays
     from sim_bus.physics import Payload
 
     robot = rig.robot
     truth = Payload(*DEMO_PAYLOAD)  # type: ignore[arg-type]
-    arm = ArmModel(robot, tuple(whole.effects), whole.base.independent, whole.estimate.beta, whole.estimate.joint_sigma)
+    if isinstance(whole, ArmModel):
+        arm = whole
+    else:
+        arm = ArmModel(robot, tuple(whole.effects), whole.base.independent, whole.estimate.beta, whole.estimate.joint_sigma)
     kt = np.array([j.torque_constant for j in robot.joints])
     estimates: list[dict[str, Any]] = []
+    estimator = PayloadRLS(arm)
+    if warm:
+        estimator.warm()
     session = zenoh.open(session_config(listen=[], connect=[]))
-    service = PayloadService(session, robot.name, EstimateStream(PayloadRLS(arm, rig.period_s), kt), on_estimate=estimates.append)
+    service = PayloadService(session, robot.name, EstimateStream(estimator, kt), on_estimate=estimates.append)
     stream = Stream(session, robot.name, "demo", lambda: {"component": "demo"})
-    marks: dict[str, int] = {}
+    run_dir = out / "runs" / "payload"
     try:
         with ExcitationSession(rig, simulate=True, stream=stream) as s:
             assert s.arm is not None
+            physics = s.arm.physics
             plan = ex.plan(design, s.position, s.limits, periods=2)
             box: dict[str, Any] = {}
-            runner = threading.Thread(target=lambda: box.update(report=s.run(plan, out / "runs" / "payload", "payload")))
+            runner = threading.Thread(target=lambda: box.update(report=s.run(plan, run_dir, "payload")))
             runner.start()
-            on, off = plan.lead_in_s + 3.0, plan.lead_in_s + 7.0
-            while runner.is_alive():
-                if "on" not in marks and s.control.plan_time >= on:
-                    s.arm.physics.attach_payload(truth)
-                    marks["on"] = s.control.last_record.sequence  # type: ignore[union-attr]
-                if "on" in marks and "off" not in marks and s.control.plan_time >= off:
-                    s.arm.physics.attach_payload(None)
-                    marks["off"] = s.control.last_record.sequence  # type: ignore[union-attr]
-                time.sleep(0.002)
+            active = None
+            while runner.is_alive() and (active is None or active.first_cycle is None):
+                active = s.control.active
+                time.sleep(0.001)
+            if active is not None and active.first_cycle is not None:
+                # the plan's cycle k is the arm's step k (one step per SYNC, from time 0)
+                start_s = (active.first_cycle - 1) * rig.period_s
+                physics.attach_payload(truth, at_time_s=start_s + plan.lead_in_s + 3.0)
+                physics.attach_payload(None, at_time_s=start_s + plan.lead_in_s + 7.0)
             runner.join()
+        deadline = time.monotonic() + 10.0
+        while service.backlog and time.monotonic() < deadline:
+            time.sleep(0.05)
         time.sleep(0.5)
     finally:
         service.close()
         stream.close()
         session.close()
-    seq = np.array([e["sequence"] for e in estimates])
+    report = box["report"]
+    if len(physics.payload_events) != 2 or not estimates:
+        raise RuntimeError(f"payload phase: {len(physics.payload_events)} payload events took effect, {len(estimates)} estimates "
+                           f"(run {'completed' if report.completed else 'stopped: ' + str(report.stop_reason)})")
+    # the record on which each event took effect: the step that started at time (k - 1) T is SYNC k
+    a, _, _ = read_mcap_arrays(run_dir / "run.mcap")
+    cycle, rec_t = np.asarray(a["cycle"]), np.asarray(a["t"], float)
+    events = []
+    for when, _ in physics.payload_events:
+        k = int(np.searchsorted(cycle, int(round(when / rig.period_s)) + 1))
+        events.append(float(rec_t[min(k, rec_t.size - 1)]))
+    t_on, t_off = events
     t = np.array([e["record_time"] for e in estimates])
 
-    def at(sequence: int, seconds: float) -> dict[str, Any]:
-        k = min(int(np.searchsorted(seq, sequence + int(round(seconds / rig.period_s)))), len(estimates) - 1)
+    def at(t_event: float, seconds: float) -> dict[str, Any]:
+        k = min(int(np.searchsorted(t, t_event + seconds)), len(estimates) - 1)
         e = estimates[k]
-        com_err = float(np.linalg.norm(np.array(e["com"]) - truth.com)) if np.all(np.isfinite(e["com"])) else float("nan")
-        return {"mass": e["mass"], "mass_std": e["mass_std"], "com": e["com"], "com_error_m": com_err, "converged": e["converged"]}
+        com_err = float(np.linalg.norm(np.array(e["com"]) - truth.com)) if e["com"] is not None else None
+        return {"record_time": e["record_time"], "mass": e["mass"], "mass_std": e["mass_std"], "com": e["com"], "com_error_m": com_err,
+                "converged": e["converged"], "status": e["status"]}
 
-    _plot_payload(out, t - t[0], estimates, truth, t[np.searchsorted(seq, marks["on"])] - t[0], t[np.searchsorted(seq, marks["off"])] - t[0])
+    _plot_payload(out, t - t[0], estimates, truth, t_on - t[0], t_off - t[0])
     write_json(out / "payload_estimates.json", estimates)
-    return {"true_mass": truth.mass, "true_com": list(truth.com), "estimates": len(estimates), "skipped": service.stream.skipped,
-            "after_attach_1s": at(marks["on"], 1.0), "after_attach_2s": at(marks["on"], 2.0), "after_removal_2s": at(marks["off"], 2.0),
-            "report": box["report"].to_json()}
+    st = service.stream
+    return {"true_mass": truth.mass, "true_com": list(truth.com), "estimates": len(estimates), "skipped": st.skipped, "lost": st.lost,
+            "attach_record_time": t_on, "removal_record_time": t_off, "on_for_s": t_off - t_on,
+            "negative_mass_published": int(sum(1 for e in estimates if e["mass"] is not None and e["mass"] < 0)),
+            "after_attach_1s": at(t_on, 1.0), "after_attach_2s": at(t_on, 2.0), "after_removal_2s": at(t_off, 2.0),
+            "report": report.to_json()}
+
+
+def _num(x: float | None, scale: float, digits: int) -> str:
+    """A read-out for the console and the report: "not excited" when the estimate has none."""
+    return "not excited" if x is None else f"{scale * x:.{digits}f}"
 
 
 def _plot_payload(out: Path, t: np.ndarray, estimates: list[dict[str, Any]], truth: Any, t_on: float, t_off: float) -> None:
@@ -270,9 +297,9 @@ def _plot_payload(out: Path, t: np.ndarray, estimates: list[dict[str, Any]], tru
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    mass = np.array([e["mass"] for e in estimates])
-    com = np.array([e["com"] for e in estimates], float)
-    com[np.abs(mass) < 0.2] = np.nan  # no centre of mass without a mass
+    mass = np.array([np.nan if e["mass"] is None else e["mass"] for e in estimates], float)
+    com = np.array([[np.nan] * 3 if e["com"] is None else e["com"] for e in estimates], float)
+    com[~(mass >= 0.2)] = np.nan  # no centre of mass without a mass
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(9, 5), sharex=True)
     a1.plot(t, mass, lw=1)
     a1.step([0, t_on, t_off, t[-1]], [0, truth.mass, 0, 0], where="post", color="k", lw=0.8, ls="--", label="true")
@@ -332,9 +359,9 @@ def _write_report(out: Path, rig: Rig, experiments: list[Any], reports: list[Any
               f"removed 4 s later. The estimator listened to the live Zenoh stream and published {payload['estimates']} estimates "
               f"(50 Hz; skipped records: {payload['skipped']}).", "",
               "| when | mass kg | std | centre of mass error mm |", "|---|---|---|---|",
-              f"| 1 s after the attach | {p1['mass']:.3f} | {p1['mass_std']:.3f} | {1000 * p1['com_error_m']:.1f} |",
-              f"| 2 s after the attach | {p2['mass']:.3f} | {p2['mass_std']:.3f} | {1000 * p2['com_error_m']:.1f} |",
-              f"| 2 s after the removal | {p3['mass']:.3f} | {p3['mass_std']:.3f} | — |", "", "![payload](payload.png)"]
+              f"| 1 s after the attach | {_num(p1['mass'], 1, 3)} | {p1['mass_std']:.3f} | {_num(p1['com_error_m'], 1000, 1)} |",
+              f"| 2 s after the attach | {_num(p2['mass'], 1, 3)} | {p2['mass_std']:.3f} | {_num(p2['com_error_m'], 1000, 1)} |",
+              f"| 2 s after the removal | {_num(p3['mass'], 1, 3)} | {p3['mass_std']:.3f} | — |", "", "![payload](payload.png)"]
     lines += ["", "Details: [whole_arm/report.md](whole_arm/report.md), [diagnosis/diagnosis.md](diagnosis/diagnosis.md), `demo.json`, `designs.json`, "
               "recordings in `runs/*/run.mcap` (Foxglove, PlotJuggler, `armid identify`)."]
     (out / "report.md").write_text("\n".join(lines) + "\n")

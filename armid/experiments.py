@@ -8,9 +8,6 @@ first violation), then run back to back, each starting where the previous one en
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
-import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -87,74 +84,6 @@ def design_experiments(robot: Robot, start: np.ndarray, links: list[int], whole:
             log(f"designed {name} in {took:.1f} s: rank {d.rank}, condition number {d.condition_number:.3g}, "
                 f"{len(d.unidentifiable)} parameters unidentifiable")
     return out
-
-
-def warm_payload_estimator(robot: Robot, period_s: float, plan: ex.Plan) -> None:
-    """Run the on-line payload estimator once on a second of ``plan``'s motion with the
-    modeled torques, so that what it compiles (numba, on a fresh machine) is compiled before
-    the arm moves and not in its first cycles, while the drives wait on the estimator."""
-    from threadpoolctl import threadpool_limits
-
-    from identify.identification import declared_effects, structural_base
-    from identify.payload import ArmModel, PayloadRLS
-
-    with threadpool_limits(1, "blas"):
-        effects = declared_effects(robot)
-        base = structural_base(robot, effects)
-        phi = np.concatenate([robot.modeled_parameters(), np.zeros(len(base.names) - robot.n_parameters)])
-        arm = ArmModel(robot, tuple(effects), base.independent, base.base_values(phi), np.full(robot.n_joints, 0.01))
-        t = np.arange(0.0, 0.1, period_s) + plan.lead_in_s
-        q, qd, qdd = plan.evaluate(t)
-        PayloadRLS(arm, period_s).fit(t, q, arm.torque(q, qd, qdd))
-
-
-_WARM_PAYLOAD = """
-import sys, numpy as np
-import identify.dynamics, identify.identification, identify.payload
-from drivers.rig import load_rig
-from identify import excitation as ex
-from identify.trajectories import random_fourier_trajectory
-from armid.experiments import warm_payload_estimator
-
-def blocks(robot, q, qd, qdd, out=None):
-    return identify.dynamics.regressor_blocks(robot, q, qd, qdd)
-
-identify.identification.regressor = identify.payload.regressor = blocks  # this process compiles the estimator only
-rig = load_rig(sys.argv[1])
-traj = random_fourier_trajectory(rig.robot, seed=1)
-warm_payload_estimator(rig.robot, rig.period_s, ex.plan(traj, traj.evaluate(np.zeros(1))[0][0], ex.Limits.of(rig.robot)))
-"""
-
-
-@dataclass
-class Warming:
-    """:func:`warm_in_background`'s process and the file its errors go to (not a pipe: a
-    full pipe would stall the compilation until read)."""
-
-    process: subprocess.Popen[bytes]
-    errors: Any
-
-    def finish(self) -> str | None:
-        """Wait for the process; one line on why it failed, None when it did not."""
-        self.process.wait()
-        self.errors.seek(0)
-        lines = self.errors.read().decode(errors="replace").strip().splitlines()
-        self.errors.close()
-        return f"exit {self.process.returncode}: {lines[-1] if lines else ''}" if self.process.returncode else None
-
-
-def warm_in_background(rig_path: Path) -> Warming:
-    """Start a process that compiles the payload estimator's numba kernel into numba's cache
-    on disk, on the other core while this one compiles the regressor kernel and designs. On
-    a fresh machine the two compilations took 15-40 s and 20-47 s on this 2-core machine
-    under load, one after the other in one process (numba compiles under one lock); the
-    estimator's, loaded from the cache later, takes well under a second. That process
-    computes the regressor with the plain numpy recursion
-    (:func:`~identify.dynamics.regressor_blocks`, same numbers) so as not to compile its
-    kernel a second time."""
-    errors = tempfile.TemporaryFile()
-    process = subprocess.Popen([sys.executable, "-c", _WARM_PAYLOAD, str(rig_path)], stdout=subprocess.DEVNULL, stderr=errors)
-    return Warming(process, errors)
 
 
 def run_experiments(session: ExcitationSession, experiments: list[Experiment], out: Path, console: Any = None) -> list[RunReport]:

@@ -80,8 +80,9 @@ def render(state: WatchState, robot: str) -> Any:
     if state.payload:
         p = state.payload
         com = p.get("com") or [float("nan")] * 3
-        parts.append(Text(f"payload: {p['mass']:.3f} +- {p['mass_std']:.3f} kg, centre of mass "
-                          f"[{', '.join(f'{100 * c:.1f}' for c in com)}] cm, {'converged' if p.get('converged') else 'settling'}"))
+        mass = "not excited" if p.get("mass") is None else f"{p['mass']:.3f} +- {p['mass_std']:.3f} kg"  # null: not determined yet
+        parts.append(Text(f"payload: {mass}, centre of mass "
+                          f"[{', '.join('-' if c is None else f'{100 * c:.1f}' for c in com)}] cm, {p.get('status') or ('converged' if p.get('converged') else 'settling')}"))
     if state.events:
         parts.append(Text("events:\n" + "\n".join(state.events)))
     return Group(*parts)

@@ -1,8 +1,9 @@
 """The on-line payload estimator as a service: Zenoh stream in, estimates out.
 
 It subscribes to ``armid/<robot>/joint_state``, folds every record into a
-:class:`~identify.payload.PayloadRLS`, and publishes ``armid/<robot>/estimate/payload``
-(JSON) on every record whose sequence number is a multiple of ``publish_every`` (10: 50 Hz
+:class:`~identify.payload.PayloadRLS` on the record's own time stamp (no configured period),
+and publishes ``armid/<robot>/estimate/payload`` (JSON, ``null`` for what is unknown, never
+``NaN``) on every record whose sequence number is a multiple of ``publish_every`` (10: 50 Hz
 at 2 ms). It holds the liveliness token ``armid/<robot>/alive/payload_estimator`` and
 answers ``armid/<robot>/status``. The subscriber callback only queues bytes; a worker
 thread does the estimation, so the stream is never held up. When the worker falls more
@@ -25,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from identify.errors import RecordingError
 from identify.payload import PayloadRLS
 from identify.spatial import Array
 
@@ -35,14 +37,24 @@ from .stream import key
 class EstimateStream:
     """Records in sequence order -> the documents to publish (pure, no I/O)."""
 
-    def __init__(self, estimator: PayloadRLS, torque_constants: Array, publish_every: int = 10) -> None:
+    def __init__(self, estimator: PayloadRLS, torque_constants: Array, publish_every: int = 10, strict_time: bool = False,
+                 source: str = "stream") -> None:
+        """``strict_time``: a record whose time is not after the previous one is refused
+        (:class:`RecordingError`, for a recording); otherwise it is dropped, counted in
+        ``time_faults`` and the derivatives restart (a live stream whose clock stepped)."""
+        if publish_every < 1:
+            raise ValueError(f"publish_every must be at least 1, got {publish_every}")
         self.estimator = estimator
         self.kt = np.asarray(torque_constants, float)
         self.publish_every = publish_every
+        self.strict_time = strict_time
+        self.source = source
         self.last_sequence: int | None = None
+        self.last_time: float | None = None
         self.skipped = 0
         self.lost = 0
         self.invalid = 0
+        self.time_faults = 0
 
     def skip(self, count: int) -> None:
         """``count`` records will not be seen: the derivatives start again after them."""
@@ -64,7 +76,8 @@ class EstimateStream:
 
             def publish(k: int) -> None:
                 doc = self.estimator.estimate()
-                doc.update({"sequence": int(seqs[k]), "record_time": float(run[k][1]), "skipped": self.skipped, "lost": self.lost})
+                doc.update({"sequence": int(seqs[k]), "record_time": float(run[k][1]), "skipped": self.skipped, "lost": self.lost,
+                            "invalid": self.invalid, "time_faults": self.time_faults})
                 out.append(doc)
 
             self.estimator.partial_fit(np.array([x[1] for x in run]), np.array([x[2] for x in run]), np.array([x[3] for x in run]),
@@ -72,6 +85,17 @@ class EstimateStream:
             run.clear()
 
         for seq, t, valid, q, current in records:
+            if self.last_time is not None and not t > self.last_time:
+                if self.strict_time:
+                    flush()
+                    raise RecordingError(self.source, f"record {seq}: time {t:.6g} s is not after the previous record's "
+                                                      f"{self.last_time:.6g} s (time going backwards or repeated); refused")
+                flush()
+                self.time_faults += 1  # the clock stepped: go on from its new time
+                self.estimator.restart_filter()
+                self.last_sequence, self.last_time = seq, t
+                continue
+            self.last_time = t
             if self.last_sequence is not None and seq != self.last_sequence + 1:
                 flush()
                 self.lost += max(0, seq - self.last_sequence - 1)
@@ -88,8 +112,11 @@ class EstimateStream:
 
 
 def _from_record(r: JointStateRecord) -> tuple[int, float, Array, Array, Array]:
+    """The record's time as the recording keeps it (whole nanoseconds, ``sec + 1e-9 nsec``):
+    the estimator differentiates on time stamps, so live and replay see the same floats."""
     s = r.sample
-    return r.sequence, s.time_s, s.valid, s.position, s.measured_current
+    ns = int(round(s.time_s * 1e9))
+    return r.sequence, ns // 1_000_000_000 + 1e-9 * (ns % 1_000_000_000), s.valid, s.position, s.measured_current
 
 
 class PayloadService:

@@ -30,7 +30,7 @@ from identify.robot import Robot
 from identify.spatial import Array
 
 EFFECT_FIELDS = ("coulomb", "viscous", "stribeck", "stribeck_velocity", "rotor_inertia", "torque_gain", "cogging",
-                 "cogging_period", "cogging_phase", "spring", "spring_rest", "offset", "delay_s")
+                 "cogging_period", "cogging_phase", "spring", "spring_rest", "offset", "delay_s", "load_friction")
 
 
 @dataclass(frozen=True)
@@ -42,7 +42,9 @@ class JointEffects:
     cogging_period + cogging_phase)``. The spring pulls with ``spring (q - spring_rest)``.
     ``offset`` is a constant torque on the joint that the motor current does not show (a
     cable, a counterbalance): the current then reads ``offset / kt`` low. ``delay_s`` delays the
-    position and velocity the drive reports relative to its current.
+    position and velocity the drive reports relative to its current. ``load_friction`` adds
+    Coulomb friction in proportion to the torque the motor transmits (a gear under load:
+    ``load_friction |tau_motor| sign(qd)``; applied in :meth:`ArmPhysics.step`).
     """
 
     coulomb: float = 0.0
@@ -58,6 +60,7 @@ class JointEffects:
     spring_rest: float = 0.0
     offset: float = 0.0
     delay_s: float = 0.0
+    load_friction: float = 0.0
 
     def friction_slope(self, qd: float) -> float:
         """d(friction)/d(qd) >= 0: integrated implicitly, so that stiff friction stays stable."""
@@ -197,7 +200,8 @@ class ArmPhysics:
         self._state = _State(q0.copy(), np.zeros(self.n), np.zeros(self.n))
         self._last_acc = np.zeros(self.n)
         self._lock = threading.Lock()
-        self._pending_payload: list[Payload | None] = []
+        self._pending_payload: list[tuple[float, Payload | None]] = []
+        self.payload_events: list[tuple[float, Payload | None]] = []
         fx = [config.effects(j) for j in range(self.n)]
         self._fc = np.array([e.coulomb for e in fx])
         self._fv = np.array([e.viscous for e in fx])
@@ -208,12 +212,16 @@ class ArmPhysics:
         self._cog_phase = np.array([e.cogging_phase for e in fx])
         self._spring = np.array([e.spring for e in fx])
         self._rest = np.array([e.spring_rest for e in fx])
+        self._fl = np.array([e.load_friction for e in fx])
         self.payload: Payload | None = None
 
-    # --- payload, settable from any thread; applied at the next step ---
-    def attach_payload(self, payload: Payload | None) -> None:
+    # --- payload, settable from any thread; applied at the next step, or at a time of the arm's clock ---
+    def attach_payload(self, payload: Payload | None, at_time_s: float | None = None) -> None:
+        """Attach ``payload`` (None removes it) at the next step, or at the first step that
+        starts at ``at_time_s`` or later: events on the arm's own clock, whatever the thread
+        that asks. ``payload_events`` logs (time the step started, payload)."""
         with self._lock:
-            self._pending_payload.append(payload)
+            self._pending_payload.append((-np.inf if at_time_s is None else at_time_s, payload))
 
     def _apply_payload(self, payload: Payload | None) -> None:
         pin = self._pin
@@ -254,7 +262,7 @@ class ArmPhysics:
         stribeck = self._fs * np.exp(-(x**2)) * (s / 1e-3 - 2.0 * (qd / self._vs) / self._vs * th)
         return np.maximum(0.0, self._fv + self._fc * s / 1e-3 + stribeck)
 
-    def _acceleration(self, q: Array, qd: Array, tau: Array, braked: Array | None) -> Array:
+    def _acceleration(self, q: Array, qd: Array, tau: Array, braked: Array | None, extra_slope: Array | float = 0.0) -> Array:
         """Solve ``(M + dt D) a = tau - b(q, qd)``; D is the friction slope (linearly implicit
         Euler for friction, stable however stiff); braked joints have ``a = 0``."""
         pin = self._pin
@@ -263,7 +271,7 @@ class ArmPhysics:
         mass = pin.crba(self.model, self._data, q)
         mass = np.triu(mass) + np.triu(mass, 1).T
         bias = pin.rnea(self.model, self._data, q, qd, np.zeros(self.n))
-        slope = self.friction_slope(qd)
+        slope = self.friction_slope(qd) + extra_slope
         acc = np.zeros(self.n)
         if free.any():
             lhs = mass[np.ix_(free, free)] + self.dt * np.diag(slope[free])
@@ -277,8 +285,11 @@ class ArmPhysics:
         are zero and the others move with the constrained dynamics ``M_ff a_f = tau_f - b_f``.
         """
         with self._lock:
-            while self._pending_payload:
-                self._apply_payload(self._pending_payload.pop(0))
+            due = [e for e in self._pending_payload if e[0] <= self._state.time_s + 1e-9]
+            self._pending_payload = [e for e in self._pending_payload if e[0] > self._state.time_s + 1e-9]
+            for _, payload in sorted(due, key=lambda e: e[0]):
+                self._apply_payload(payload)
+                self.payload_events.append((self._state.time_s, payload))
         s = self._state
         cmd = np.asarray(current_command, float)
         tau_c = self.config.current_time_constant_s
@@ -287,8 +298,14 @@ class ArmPhysics:
         max_delay = int(self.delay_steps.max()) if self.n else 0
         for _ in range(self.config.substeps):
             s.current = s.current + alpha * (cmd - s.current)
-            tau = self.gain * self.kt * s.current + self.offset - self.effect_torque(s.q, s.qd)
-            acc = self._acceleration(s.q, s.qd, tau, braked)
+            tau_motor = self.gain * self.kt * s.current
+            tau = tau_motor + self.offset - self.effect_torque(s.q, s.qd)
+            extra: Array | float = 0.0
+            if self._fl.any():  # friction that grows with the load the gear carries
+                th = np.tanh(s.qd / 1e-3)
+                tau = tau - self._fl * np.abs(tau_motor) * th
+                extra = self._fl * np.abs(tau_motor) * (1.0 - th**2) / 1e-3
+            acc = self._acceleration(s.q, s.qd, tau, braked, extra)
             s.qd = s.qd + acc * self.dt
             if braked is not None:
                 s.qd = np.where(braked, 0.0, s.qd)

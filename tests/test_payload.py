@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 import signal
@@ -25,8 +26,18 @@ from daq.stream import Stream, session_config
 from drivers.rig import load_rig
 from identify import excitation as ex
 from identify.differentiation import five_point_derivative
-from identify.identification import declared_effects, structural_base
-from identify.payload import ArmModel, PayloadRLS, rls_update
+from identify.identification import declared_effects, stacked_regressor, structural_base
+from identify.payload import (
+    ArmModel,
+    PayloadRLS,
+    ReferenceRun,
+    _phi_of_pseudo,
+    derivatives_on_times,
+    project_feasible,
+    pseudo_inertia,
+    rls_update,
+    slope_on_times,
+)
 from identify.recordings import read_mcap_arrays
 from sim_bus.offline import simulate
 from sim_bus.physics import Payload, simulation_config
@@ -38,8 +49,9 @@ ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 PAYLOAD = Payload(2.0, (0.02, -0.03, 0.08), (0.004, 0.0, 0.0, 0.004, 0.0, 0.002))  # 2 kg, 8.8 cm from the flange
 
 
+@functools.cache
 def _arm_and_design(seed: int = 3) -> tuple[ArmModel, ex.Plan, object]:
-    """The arm with its parameters known (the simulator's), its noise level measured on a
+    """(Computed once per seed: the design takes a while.) The arm with its parameters known (the simulator's), its noise level measured on a
     payload-free run of the same motion, and a whole-arm excitation plan."""
     rig = load_rig(RIG)
     robot = rig.robot
@@ -87,35 +99,69 @@ def test_rls_update_equals_batch_least_squares() -> None:
     assert np.allclose(theta, batch, atol=1e-6)
 
 
-def test_compiled_fold_equals_rls_update_step_by_step() -> None:
-    from identify.payload import _fold_kernel
+def test_arm_model_and_payload_columns_equal_the_regressor() -> None:
+    """The estimator's own (uncompiled) backward pass against the tested regressor kernel."""
+    robot = load_rig(RIG).robot
+    effects = declared_effects(robot)
+    base = structural_base(robot, effects)
+    rng = np.random.default_rng(0)
+    beta = rng.normal(size=base.independent.size)
+    arm = ArmModel(robot, tuple(effects), base.independent, beta, np.ones(6))
+    q, qd, qdd = rng.normal(size=(3, 40, 6))
+    tau, cols = arm.torque_and_payload_columns(q, qd, qdd)
+    w = stacked_regressor(robot, effects, q, qd, qdd).reshape(40, 6, -1)
+    assert np.allclose(tau, w[:, :, base.independent] @ beta, rtol=1e-9, atol=1e-9 * np.abs(tau).max())
+    assert np.allclose(cols, w[:, :, 50:60], rtol=1e-9, atol=1e-9 * np.abs(cols).max())
 
-    rng = np.random.default_rng(1)
-    n = 60
-    h = rng.normal(size=(n, 6, 10))
-    y = rng.normal(size=(n, 6))
-    use = rng.random((n, 6)) > 0.3
-    moving = rng.random(n) > 0.5
-    r = rng.uniform(0.1, 1.0, 6)
-    prior = np.full(10, 4.0)
-    theta, p = np.zeros(10), np.diag(prior)
-    for k in range(n):
-        if use[k].any():
-            theta, p, _, _ = rls_update(theta, p, h[k][use[k]], y[k][use[k]], r[use[k]], 0.99 if moving[k] else 1.0)
-            if moving[k]:
-                scale = np.sqrt(np.where(p.diagonal() > prior, prior / p.diagonal(), 1.0))
-                p = p * np.outer(scale, scale)
-    state = np.zeros(4, np.int64)
-    theta_k, p_k = _fold_kernel(h, y, use, moving, r, np.zeros(10), np.diag(prior), prior, 0.99, np.zeros(10**6), state, 1e300, 0, n)
-    assert np.allclose(theta_k, theta, rtol=1e-9, atol=1e-12) and np.allclose(p_k, p, rtol=1e-9, atol=1e-12)
-    assert state[3] == int(use.any(axis=1).sum()) and state[2] == 0
+
+def test_projection_is_physical_and_the_nearest_in_the_covariance_metric() -> None:
+    rng = np.random.default_rng(2)
+    scale = np.array([1, 0.1, 0.1, 0.1, 0.01, 0.01, 0.01, 0.01, 0.01, 0.01])
+    for _ in range(40):
+        a = rng.normal(size=(10, 10))
+        cov = a @ a.T * 10 ** rng.uniform(-6, 0) + np.diag(10 ** rng.uniform(-8, 0, 10))
+        theta = rng.normal(size=10) * scale
+        x = project_feasible(theta, cov)
+        assert np.linalg.eigvalsh(pseudo_inertia(x)).min() >= 0 and x[0] >= 0
+        if np.linalg.eigvalsh(pseudo_inertia(theta)).min() >= 0:
+            assert np.array_equal(x, theta)
+            continue
+        # the projection onto a convex set: (y - x)^T W (theta - x) <= 0 for every feasible y
+        w = np.linalg.inv(cov)
+        for _ in range(100):
+            low = np.tril(rng.normal(size=(4, 4)))
+            y = x + rng.uniform(0.01, 1) * (_phi_of_pseudo(low @ low.T) - x)
+            cos = (y - x) @ w @ (theta - x) / np.sqrt(((y - x) @ w @ (y - x)) * ((theta - x) @ w @ (theta - x)))
+            assert cos <= 1e-3, cos
+    # a point mass at c has the pseudo-inertia m [c; 1][c; 1]^T: on the boundary, kept
+    c = np.array([0.02, -0.03, 0.08])
+    point = _phi_of_pseudo(2.0 * np.outer(np.append(c, 1), np.append(c, 1)))
+    assert np.allclose(project_feasible(point, np.eye(10)), point)
+
+
+def test_derivatives_on_time_stamps() -> None:
+    """The 5-point filter on equal steps; the least-squares line of each window on uneven
+    steps; seconds since 1970 as time stamps lose no more than their own rounding."""
+    rng = np.random.default_rng(3)
+    t = np.arange(40) * 0.002
+    x = rng.normal(size=(40, 3))
+    assert np.allclose(derivatives_on_times(t, x)[0][2:-2], five_point_derivative(x, 0.002)[2:-2], rtol=1e-9, atol=1e-9)
+    tj = np.cumsum(rng.uniform(0.0019, 0.0021, 40))  # 5 % jitter
+    for offset in (0.0, 1.8e9):
+        qd, qdd = derivatives_on_times(tj + offset, 3.0 * tj[:, None] ** 2 - tj[:, None])
+        fits = np.array([np.polyfit(tj[k - 2 : k + 3], 3.0 * tj[k - 2 : k + 3] ** 2 - tj[k - 2 : k + 3], 1)[0] for k in range(2, 38)])
+        # the least-squares line of each window of five; stamps near 1.8e9 s are themselves
+        # rounded to 0.24 us (1e-4 of a step), and uncentred sums made that 2e-2 here
+        assert np.allclose(qd[2:-2, 0], fits, atol=1e-6 if offset == 0 else 1e-4), offset
+        assert np.allclose(qdd[4:-4, 0], 6.0, rtol=0.02), offset
+        assert np.isclose(slope_on_times(tj[:5] + offset, 3.0 * tj[:5] ** 2), np.polyfit(tj[:5], 3.0 * tj[:5] ** 2, 1)[0], rtol=1e-4)
 
 
 def test_payload_attached_and_removed_is_tracked_within_2_s_offline() -> None:
     arm, plan, cfg = _arm_and_design()
     t_on, t_off = plan.lead_in_s + 3.0, plan.lead_in_s + 7.0
     run = simulate(arm.robot, cfg, plan.evaluate, plan.duration_s, payloads=[(t_on, PAYLOAD), (t_off, None)], seed=9)
-    est = PayloadRLS(arm, 0.002)
+    est = PayloadRLS(arm)
     stream = EstimateStream(est, np.ones(6), publish_every=10)
     docs = stream.feed((k, float(run.t[k]), np.ones(6, bool), run.position[k], run.torque[k]) for k in range(run.t.size))
     times = np.array([d["record_time"] for d in docs])
@@ -123,6 +169,8 @@ def test_payload_attached_and_removed_is_tracked_within_2_s_offline() -> None:
     _check_tracking(times, docs, t_on, t_off)
     assert 2 <= est.resets_ <= 4  # the attach and the removal, not the noise
     assert docs[-1]["excited"][0] and docs[-1]["converged"]
+    assert all(d["mass"] is None or d["mass"] >= 0 for d in docs)
+    assert not docs[0]["converged"] and docs[0]["mass"] is None and docs[0]["status"] == "not excited"
 
 
 def _free_port() -> int:
@@ -144,7 +192,7 @@ def test_live_estimates_over_zenoh_reach_another_process_and_agree_with_replay(t
     publisher = zenoh.open(session_config(listen=[stream_endpoint]))
     estimator = zenoh.open(session_config(connect=[stream_endpoint, estimates_endpoint]))
     kt = np.array([j.torque_constant for j in arm.robot.joints])
-    service = PayloadService(estimator, rig.robot.name, EstimateStream(PayloadRLS(arm, 0.002), kt), max_backlog=10**9)
+    service = PayloadService(estimator, rig.robot.name, EstimateStream(PayloadRLS(arm), kt), max_backlog=10**9)
     stream = Stream(publisher, rig.robot.name, "excite", lambda: {})
     cycles: dict[str, int] = {}
     try:
@@ -201,7 +249,11 @@ def test_live_estimates_over_zenoh_reach_another_process_and_agree_with_replay(t
     assert len(both) >= 0.95 * len(mine)
     for d in both:
         r = replay[d["sequence"]]
-        assert abs(d["mass"] - r["mass"]) <= 1e-6 * max(1.0, abs(r["mass"])), (d["sequence"], d["mass"], r["mass"])
+        assert (d["mass"] is None) == (r["mass"] is None), (d["sequence"], d["mass"], r["mass"])  # null: not excited yet
+        # the estimator's state to 1e-6 (the published mass also goes through the projection,
+        # an iterative solution warm-started from the last one: equal to its own accuracy)
+        du, ru = d["unconstrained"]["mass"], r["unconstrained"]["mass"]
+        assert abs(du - ru) <= 1e-6 * max(1.0, abs(ru)), (d["sequence"], du, ru)
 
 
 def test_estimate_refuses_an_identification_of_another_model(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -213,3 +265,208 @@ def test_estimate_refuses_an_identification_of_another_model(tmp_path: Path, cap
     err = capsys.readouterr().err
     assert code == 2 and "do not match" in err and "first difference at #1" in err, err
     assert main(["estimate", "--robot", str(ROOT / "config/robots/puma560.yaml"), "--params", str(bad)]) == 2
+
+
+def _ident_doc(arm: ArmModel, path: Path) -> Path:
+    path.write_text(json.dumps({"base_parameters": [{"expression": e, "value": float(v)} for e, v in
+                                                    zip(structural_base(arm.robot).expressions(), arm.beta)],
+                                "joint_noise_sigma": [float(x) for x in arm.joint_sigma]}))
+    return path
+
+
+def _write_csv(path: Path, t: np.ndarray, q: np.ndarray, tau: np.ndarray) -> Path:
+    n = q.shape[1]
+    header = ["t"] + [f"q{j + 1}" for j in range(n)] + [f"tau{j + 1}" for j in range(n)]
+    np.savetxt(path, np.column_stack([t, q, tau]), delimiter=",", header=",".join(header), comments="", fmt="%.10g")
+    return path
+
+
+def _strict_json(line: str) -> dict:
+    def refuse(name: str) -> None:
+        raise AssertionError(f"not JSON: {name}")
+
+    return json.loads(line, parse_constant=refuse)
+
+
+@functools.cache
+def _run_at_1_ms() -> object:
+    arm, plan, cfg = _arm_and_design()
+    return simulate(arm.robot, cfg, plan.evaluate, plan.duration_s, period_s=0.001, payloads=[(0.0, PAYLOAD)], seed=4)  # type: ignore[arg-type]
+
+
+@pytest.mark.xfail(strict=True, reason="known: at 10 ms the twice-applied 5-point filter spans 80 ms and biases the mass "
+                                       "+1 % (2.015 +- 0.006 kg against 1.994 +- 0.005 at 1 ms); not yet within the std")
+def test_the_same_run_at_10_ms_agrees_with_1_ms_within_the_std(tmp_path: Path) -> None:
+    arm, _, _ = _arm_and_design()
+    ident = _ident_doc(arm, tmp_path / "ident.json")
+    run = _run_at_1_ms()
+    finals = {}
+    for every in (1, 10):
+        data = _write_csv(tmp_path / f"run_{every}.csv", run.t[::every], run.position[::every], run.torque[::every])  # type: ignore[attr-defined]
+        out = tmp_path / f"est_{every}.jsonl"
+        assert main(["estimate", "--robot", str(ROOT / "config/robots/puma560.yaml"), "--params", str(ident), "--replay", str(data),
+                     "--out", str(out)]) == 0
+        finals[every] = _strict_json(out.read_text().splitlines()[-1])
+    assert abs(finals[1]["mass"] - finals[10]["mass"]) <= finals[1]["mass_std"] + finals[10]["mass_std"]
+
+
+def test_the_same_run_at_1_2_and_10_ms_replayed_without_a_period_agrees(tmp_path: Path) -> None:
+    """One simulated run with the payload on, recorded at 1 ms, and the same run kept every
+    2nd and 10th record: ``armid estimate --replay`` with no period option. 1 ms and 2 ms
+    agree within their standard deviations; 10 ms within 2 % and 1 cm (see the xfail above);
+    all three right within 5 %."""
+    arm, plan, cfg = _arm_and_design()
+    ident = _ident_doc(arm, tmp_path / "ident.json")
+    run = _run_at_1_ms()
+    finals = {}
+    for every in (1, 2, 10):
+        data = _write_csv(tmp_path / f"run_{every}.csv", run.t[::every], run.position[::every], run.torque[::every])  # type: ignore[attr-defined]
+        out = tmp_path / f"est_{every}.jsonl"
+        assert main(["estimate", "--robot", str(ROOT / "config/robots/puma560.yaml"), "--params", str(ident), "--replay", str(data),
+                     "--out", str(out)]) == 0
+        finals[every] = _strict_json(out.read_text().splitlines()[-1])
+    da, db = finals[1], finals[2]
+    assert abs(da["mass"] - db["mass"]) <= da["mass_std"] + db["mass_std"], (da["mass"], db["mass"])
+    gap = np.abs(np.array(da["com"]) - np.array(db["com"]))
+    assert np.all(gap <= np.array(da["com_std"]) + np.array(db["com_std"])), (da["com"], db["com"])
+    assert abs(finals[10]["mass"] - da["mass"]) <= 0.02 * PAYLOAD.mass
+    assert np.linalg.norm(np.array(finals[10]["com"]) - np.array(da["com"])) <= 0.01
+    for d in finals.values():  # and they are right
+        assert abs(d["mass"] - PAYLOAD.mass) <= 0.05 * PAYLOAD.mass and d["converged"], d
+    assert finals[1]["rate_changes"] == 0 and finals[10]["rate_changes"] == 0
+    # a recording whose rate changes half way (2 ms, then 10 ms): handled, and said
+    half = run.t.size // 2
+    keep = np.concatenate([np.arange(0, half, 2), np.arange(half - half % 10 + 10, run.t.size, 10)])
+    data = _write_csv(tmp_path / "changing.csv", run.t[keep], run.position[keep], run.torque[keep])
+    out = tmp_path / "changing.jsonl"
+    assert main(["estimate", "--robot", str(ROOT / "config/robots/puma560.yaml"), "--params", str(ident), "--replay", str(data),
+                 "--out", str(out)]) == 0
+    d = _strict_json(out.read_text().splitlines()[-1])
+    assert d["rate_changes"] == 1 and abs(d["mass"] - finals[10]["mass"]) <= d["mass_std"] + finals[10]["mass_std"], d
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--period", "0"], "--period must be a positive number of seconds"),
+    (["--publish-every", "0"], "--publish-every must be a whole number of records >= 1"),
+    (["--forgetting", "2"], "--forgetting must be in (0, 1]"),
+    (["--period", "0.002"], "its time stamps say a 10 ms period, --period says 2 ms"),
+])
+def test_estimate_refuses_bad_options_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str], extra: list[str], message: str) -> None:
+    arm, _, _ = _arm_and_design()
+    ident = _ident_doc(arm, tmp_path / "ident.json")
+    t = np.arange(50) * 0.01
+    data = _write_csv(tmp_path / "x.csv", t, np.zeros((50, 6)), np.zeros((50, 6)))
+    code = main(["estimate", "--robot", str(ROOT / "config/robots/puma560.yaml"), "--params", str(ident), "--replay", str(data), *extra])
+    err = capsys.readouterr().err
+    assert code == 2 and message in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+
+
+def test_estimate_refuses_bad_identification_and_reversed_time(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    arm, _, _ = _arm_and_design()
+    robot = str(ROOT / "config/robots/puma560.yaml")
+    t = np.arange(50) * 0.002
+    data = _write_csv(tmp_path / "x.csv", t, np.zeros((50, 6)), np.zeros((50, 6)))
+    listed = tmp_path / "list.json"
+    listed.write_text("[1, 2, 3]")
+    assert main(["estimate", "--robot", robot, "--params", str(listed), "--replay", str(data)]) == 2
+    err = capsys.readouterr().err
+    assert "must be a JSON object" in err and "got a JSON list" in err and len(err.strip().splitlines()) == 1, err
+    ident = _ident_doc(arm, tmp_path / "ident.json")
+    reversed_csv = _write_csv(tmp_path / "rev.csv", t[::-1], np.zeros((50, 6)), np.zeros((50, 6)))
+    assert main(["estimate", "--robot", robot, "--params", str(ident), "--replay", str(reversed_csv)]) == 2
+    err = capsys.readouterr().err
+    assert "line 3: time" in err and "time must increase" in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_a_replay_without_motion_says_not_excited_in_valid_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    arm, _, _ = _arm_and_design()
+    ident = _ident_doc(arm, tmp_path / "ident.json")
+    t = np.arange(2000) * 0.002
+    q = np.tile(np.asarray(load_rig(RIG).simulation["initial_position"], float), (2000, 1))
+    rng = np.random.default_rng(5)
+    tau = arm.torque(q, np.zeros_like(q), np.zeros_like(q)) + 0.05 * rng.normal(size=q.shape)
+    data = _write_csv(tmp_path / "still.csv", t, q, tau)
+    out = tmp_path / "est.jsonl"
+    assert main(["estimate", "--robot", str(ROOT / "config/robots/puma560.yaml"), "--params", str(ident), "--replay", str(data),
+                 "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "mass not excited" in err and "0.000 kg" not in err, err
+    docs = [_strict_json(line) for line in out.read_text().splitlines()]
+    assert docs and all(d["mass"] is None and d["com"] is None and not d["converged"] and d["status"] == "not excited" for d in docs)
+
+
+def _with_errors(cfg: object, gain: bool = True, offset: bool = True, load: bool = True) -> object:
+    """The errors a real arm has and its model lacks: torque constants 2-4 % off, an unmodeled
+    torque offset (a cable, a counterbalance) and Coulomb friction growing 2 % of the
+    transmitted torque (a loaded gear)."""
+    gains, offsets = [1.03, 0.97, 1.04, 0.98, 1.02, 0.96], [0.3, 1.0, -0.6, 0.1, -0.1, 0.05]
+    joints = tuple(dataclasses.replace(e, torque_gain=gains[k] if gain else 1.0, offset=offsets[k] if offset else 0.0,
+                                       load_friction=0.02 if load else 0.0) for k, e in enumerate(cfg.joints))  # type: ignore[attr-defined]
+    return dataclasses.replace(cfg, joints=joints)  # type: ignore[type-var]
+
+
+def robustness_runs(gain: bool = True, offset: bool = True, load: bool = True) -> dict[str, list[dict]]:
+    """The arm identified (``identify``, declared friction) on an unloaded run of the simulated
+    arm with the model errors; then the same trajectory with 2 kg attached 3 s in, estimated
+    alone and against an unloaded run of it (reference mode). Returns the published documents
+    and the attach time."""
+    from identify.identification import IdentifyOptions, identify
+    from identify.preprocess import prepare
+
+    arm0, plan, cfg0 = _arm_and_design()
+    cfg = _with_errors(cfg0, gain, offset, load)
+    robot = arm0.robot
+    unloaded_id = simulate(robot, cfg, plan.evaluate, plan.duration_s, seed=11)  # type: ignore[arg-type]
+    res = identify(robot, [prepare(unloaded_id.recording(), robot)], None, IdentifyOptions(exclude_reversals=True))
+    arm = ArmModel(robot, tuple(res.effects), res.base.independent, res.estimate.beta, res.estimate.joint_sigma)
+    t_on = plan.lead_in_s + 3.0
+    loaded = simulate(robot, cfg, plan.evaluate, plan.duration_s, payloads=[(t_on, PAYLOAD)], seed=9)  # type: ignore[arg-type]
+    unloaded = simulate(robot, cfg, plan.evaluate, plan.duration_s, seed=10)  # type: ignore[arg-type]
+    out: dict[str, list[dict]] = {}
+    for name, ref in (("alone", None), ("reference", ReferenceRun(arm, unloaded.t, unloaded.position, unloaded.torque))):
+        stream = EstimateStream(PayloadRLS(arm, reference=ref), np.ones(6))
+        out[name] = stream.feed((k, float(loaded.t[k]), np.ones(6, bool), loaded.position[k], loaded.torque[k]) for k in range(loaded.t.size))
+    out["t_on"] = [{"t": t_on}]
+    return out
+
+
+def test_payload_with_the_model_errors_of_a_real_arm_alone_and_against_a_reference() -> None:
+    """Issue 22: with those errors, 2 kg attached: never a negative mass; not converged while
+    the motion does not excite it; 2 s after the attach the mass within 10 % and the centre
+    of mass within 2 cm, and with a reference run within 5 % and 1 cm."""
+    runs = robustness_runs()
+    t_on = runs["t_on"][0]["t"]
+    for name, mass_tol, com_tol in (("alone", 0.10, 0.02), ("reference", 0.05, 0.01)):
+        docs = runs[name]
+        assert all(d["mass"] is None or d["mass"] >= 0 for d in docs), name
+        assert all(d["unconstrained"]["mass"] is not None for d in docs)
+        unexcited = [d for d in docs if not d["excited"][0]]
+        assert unexcited and not any(d["converged"] for d in unexcited), name  # at rest in the lead-in
+        times = np.array([d["record_time"] for d in docs])
+        for dt in (2.0, 2.5, 3.0):
+            d = docs[int(np.searchsorted(times, t_on + dt))]
+            assert abs(d["mass"] - PAYLOAD.mass) <= mass_tol * PAYLOAD.mass, (name, dt, d["mass"])
+            assert np.linalg.norm(np.array(d["com"]) - PAYLOAD.com) <= com_tol, (name, dt, d["com"])
+
+
+def test_the_demo_payload_phase_from_a_cold_start(tmp_path: Path) -> None:
+    """Issue 19: the demo's payload phase in a fresh process with an empty numba cache
+    (nothing compiled before it starts, and the estimator compiles nothing). Events on the
+    arm's clock: the payload is on for 4 s of record time; 2 s after the attach the mass
+    within 5 % and the centre of mass within 1 cm; 2 s after the removal within 0.1 kg."""
+    import pickle
+
+    arm, plan, _ = _arm_and_design()
+    pkl = tmp_path / "arm.pkl"
+    pkl.write_bytes(pickle.dumps((arm, plan.trajectory)))
+    env = {**ENV, "NUMBA_CACHE_DIR": str(tmp_path / "numba_cache")}
+    done = subprocess.run([sys.executable, str(HELPERS / "payload_phase.py"), str(pkl), str(tmp_path / "out"), "warm"], env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    r = _strict_json(done.stdout.strip().splitlines()[-1])
+    assert abs(r["on_for_s"] - 4.0) <= 0.005, r["on_for_s"]
+    assert r["negative_mass_published"] == 0 and r["skipped"] == 0
+    a2, off = r["after_attach_2s"], r["after_removal_2s"]
+    assert abs(a2["mass"] - 2.0) <= 0.1 and a2["com_error_m"] <= 0.01, a2
+    assert off["mass"] is not None and abs(off["mass"]) <= 0.1, off
+    assert not r["regressor_kernel_compiled"]
