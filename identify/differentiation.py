@@ -41,20 +41,3 @@ def five_point_derivative(x: Array, period_s: float, causal: bool = False) -> Ar
     else:
         out[2:-2] = d
     return out
-
-
-def lowpass(x: Array, period_s: float, cutoff_hz: float, order: int = 4) -> Array:
-    """Zero-phase Butterworth low-pass along axis 0 (forward-backward, no delay).
-
-    For noisy data before differentiating; zero phase keeps torque and motion aligned.
-    """
-    from scipy.signal import butter, sosfiltfilt
-
-    nyquist = 0.5 / period_s
-    if not 0.0 < cutoff_hz < nyquist:
-        raise ValueError(f"low-pass cutoff {cutoff_hz} Hz must lie in (0, {nyquist:g}) Hz")
-    sos = butter(order, cutoff_hz / nyquist, output="sos")
-    x = np.asarray(x, dtype=float)
-    if x.shape[0] <= 3 * (2 * len(sos) + 1):
-        return x.copy()
-    return sosfiltfilt(sos, x, axis=0)

@@ -85,7 +85,7 @@ class Segment:
 
     @property
     def parallel(self) -> ParallelFilter:
-        """The parallel filter (identity with a 2-sample trim when none was chosen)."""
+        """The parallel filter (identity, with the differentiators' edges trimmed, when none was chosen)."""
         if self.filter is not None:
             return self.filter
         period = float(np.median(np.diff(self.t))) if self.t.size > 1 else 1.0
