@@ -262,6 +262,17 @@ def _candidates(robot: Robot, data: _Data, present: set[tuple[str, int | None]],
             out.append(Candidate("torque_gain", j, (), ("c",), block=lambda d, j=j: ctx["predict"](d)[:, j : j + 1]))  # type: ignore[misc]
         if ("time_delay", j) not in present:
             out.append(Candidate("time_delay", j, (), ("delay_s",), full=lambda d, j=j: ((ctx["predict_smooth"](d.shifted(j, 1)) - ctx["predict_smooth"](d.shifted(j, -1))) / (2 * d.period)).reshape(-1, 1)))  # type: ignore[misc]
+    # friction on every joint (what a real arm's residual mostly is) as one arm-wide candidate:
+    # judged against the whole arm, not N separate one-joint gains
+    bare = [j for j in range(nj) if not {("coulomb_friction", j), ("viscous_friction", j), ("torque_offset", j)} & present]
+    if len(bare) >= 2 and ("coulomb_friction", None) not in present:
+        def friction(d: _Data, joints: list[int] = bare) -> Array:
+            cols = np.zeros((d.q.shape[0] * nj, 3 * len(joints)))
+            for k, j in enumerate(joints):
+                cols[j::nj, 3 * k : 3 * k + 3] = np.column_stack([np.sign(d.qd[:, j]), d.qd[:, j], np.ones(d.q.shape[0])])
+            return cols
+        labels = tuple(f"{name}{j + 1}" for j in bare for name in ("fc", "fv", "offset"))
+        out.append(Candidate("coulomb_friction", None, (), labels, full=friction))
     if ("gravity_tilt", None) not in present:
         def tilt(d: _Data) -> Array:
             g = np.asarray(robot.gravity, float)
@@ -393,7 +404,7 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
                 gamma = np.linalg.solve(schur, ctr)
             except np.linalg.LinAlgError:
                 continue
-            if c.effect in DISSIPATIVE and float(gamma[-1]) <= 0.0:
+            if c.effect in DISSIPATIVE and (float(gamma[-1]) <= 0.0 if c.joint is not None else float(np.median(gamma[0::3])) <= 0.0):
                 continue  # friction that pushes the joint along, or a negative inertia: not physical
             if c.effect == "time_delay" and abs(float(gamma[0])) < 0.5 * ident.period:
                 # shorter than half a sample period: within the timing uncertainty of the
@@ -436,6 +447,9 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
         found.append(finding)
         chosen.append(best)
         present.add((best.effect, best.joint))
+        if best.joint is None and best.effect == "coulomb_friction":  # friction on every joint it covers
+            present |= {(e, int(label[len(p) :]) - 1) for label in best.labels
+                        for e, p in (("coulomb_friction", "fc"), ("viscous_friction", "fv"), ("torque_offset", "offset")) if label.startswith(p)}
         extra_i = np.column_stack([extra_i, ci])
         extra_v = np.column_stack([extra_v, cv])
         extra_s = np.column_stack([extra_s, best.columns(stamps)])
