@@ -267,13 +267,11 @@ def _search_settings(system: Array, names: list[str], effects: list[LinearEffect
     sweep of coordinate descent; only the joint's own triangle is refactored per try)."""
     nj = system.shape[0]
     keep = np.append(columns, system.shape[1] - 1)
-    r = [_r_factor_of(system[j][keep]) for j in range(nj)]
+    r = [_triangle(system[j][keep]) for j in range(nj)]
     notes = []
 
     def rss(rs: list[Array]) -> float:
-        combined = np.vstack(rs)
-        r_all = np.asarray(np.linalg.qr(combined, mode="r"))
-        return float(r_all[-1, -1] ** 2)
+        return float(JointFactors(rs, np.ones(nj)).combined()[-1, -1] ** 2)
 
     effects = list(effects)
     for k, e in enumerate(effects):
@@ -288,7 +286,7 @@ def _search_settings(system: Array, names: list[str], effects: list[LinearEffect
         for value in grid:
             trial = e.with_setting(**{key: value})
             system[j][col] = _equation_column(segments, trial)
-            rj = _r_factor_of(system[j][keep])
+            rj = _triangle(system[j][keep])
             score = rss(r[:j] + [rj] + r[j + 1 :])
             if score < best_rss * (1 - 1e-9):
                 best, best_rss, best_r = trial, score, rj
@@ -299,9 +297,9 @@ def _search_settings(system: Array, names: list[str], effects: list[LinearEffect
     return effects, notes
 
 
-def _r_factor_of(a: Array) -> Array:
-    """R of the (columns, samples) block ``a`` transposed: (k, k) upper triangular."""
-    return np.asarray(np.linalg.qr(a.T, mode="r"))
+def _triangle(columns: Array) -> Array:
+    """The R factor of one joint's ``[W_j | tau_j]`` stored column by column (a copy)."""
+    return factor_columns([np.array(columns)]).r[0]
 
 
 def _factors(system: Array, columns: Array) -> JointFactors:
