@@ -133,6 +133,16 @@ def _stack(prepared: list[Prepared]) -> _Data:
     return _Data(q, qd, qdd, tau, period, t)
 
 
+def _as_measured(prepared: list[Prepared], tau_model: Array) -> Array:
+    """:meth:`Stamps.as_measured` segment by segment over stacked stamps ((n N,) or (n, N))."""
+    st = [s.at_stamps for p in prepared for s in p.segments]
+    nj = st[0].q.shape[1]
+    flat = tau_model.reshape(-1, nj)
+    bounds = np.cumsum([0] + [s.t.size for s in st])
+    out = np.concatenate([s.as_measured(flat[a:b]) for s, a, b in zip(st, bounds[:-1], bounds[1:])])
+    return out.reshape(tau_model.shape)
+
+
 def _stack_stamps(prepared: list[Prepared]) -> _Data:
     """Every input sample the segments cover, at its own stamp, with the raw torque."""
     st = [s.at_stamps for p in prepared for s in p.segments]
@@ -478,9 +488,9 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     wv = base_columns(valid)
     used_v = _moving(valid, opts)
     before_pred = wv @ beta0
-    before_stamps = ws @ beta0
+    before_stamps = _as_measured(validation, ws @ beta0)
     after_pred = np.column_stack([wv] + [c.columns(valid) for c in chosen]) @ beta if found else before_pred
-    after_stamps = np.column_stack([ws, extra_s]) @ beta if found else before_stamps
+    after_stamps = _as_measured(validation, np.column_stack([ws, extra_s]) @ beta) if found else before_stamps
     # before and after as anyone can check them: the model at every validation sample, against the raw torque
     before = summary(stamps.tau, before_stamps.reshape(-1, nj))
     after = summary(stamps.tau, after_stamps.reshape(-1, nj))

@@ -124,7 +124,7 @@ class IdentificationResult:
         st = [s.at_stamps for s in segments]
         t = np.concatenate([s.t for s in st])
         tau = np.concatenate([s.tau for s in st])
-        tau_hat = np.concatenate([self.predict_motion(s.q, s.qd, s.qdd) for s in st])
+        tau_hat = np.concatenate([s.as_measured(self.predict_motion(s.q, s.qd, s.qdd)) for s in st])
         return t, tau, tau_hat
 
     def parameter_values(self) -> tuple[Array, Array]:

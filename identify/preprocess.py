@@ -58,6 +58,17 @@ class Stamps:
     qd: Array
     qdd: Array
     tau: Array
+    held: bool = False  # the torque of a sample was held over the period before its stamp
+
+    def as_measured(self, tau_model: Array) -> Array:
+        """The model's torque (n, N) as the sensor reports it: a torque held over the period
+        before each stamp (a drive's current between SYNCs) is the mean of the model at the
+        two ends of that period."""
+        if not self.held or tau_model.shape[0] < 2:
+            return tau_model
+        out = tau_model.copy()
+        out[1:] = 0.5 * (tau_model[1:] + tau_model[:-1])
+        return out
 
 
 @dataclass
@@ -339,7 +350,8 @@ def _uniform(source: str, t: Array, q: Array, tau: Array, qd: Array | None, qdd:
         rel = raw_t - t0
         inside = (rel >= t[0]) & (rel <= t[-1] + period)
         ts = rel[inside]
-        stamps = Stamps(raw_t[inside], CubicSpline(t, q, axis=0)(ts), CubicSpline(t, qd, axis=0)(ts), CubicSpline(t, qdd, axis=0)(ts), raw_tau[inside])
+        stamps = Stamps(raw_t[inside], CubicSpline(t, q, axis=0)(ts), CubicSpline(t, qd, axis=0)(ts), CubicSpline(t, qdd, axis=0)(ts), raw_tau[inside],
+                        options.torque_hold)
     elif options.torque_hold or t0 != 0.0:
-        stamps = Stamps(raw_t, q, qd, qdd, raw_tau)
+        stamps = Stamps(raw_t, q, qd, qdd, raw_tau, options.torque_hold)
     return Segment(source, t + t0, q, qd, qdd, tau, filt, stamps)
