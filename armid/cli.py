@@ -275,18 +275,30 @@ def _diagnosed_feasible(args: argparse.Namespace, robot: Any, diag: Any, experim
     left out."""
     from dataclasses import replace
 
-    from identify.effects import LINEAR_EFFECTS
+    from identify.effects import LINEAR_EFFECTS, SETTINGS
     from identify.identification import IdentifyOptions, identify
     from identify.robot import DeclaredEffect
 
-    added = [f for f in diag.found if f.effect in LINEAR_EFFECTS and f.joint is not None]
-    left_out = [f"{f.effect}@{'arm' if f.joint is None else f.joint + 1}" for f in diag.found if f not in added]
-    model = replace(robot, effects=tuple(robot.effects) + tuple(DeclaredEffect(f.effect, f.joint + 1) for f in added))
+    def where(f: Any) -> str:
+        return f"{f.effect}@{'arm' if f.joint is None else f.joint + 1}"
+
+    declarable = set(LINEAR_EFFECTS) | set(SETTINGS)
+    added, declared = [], []
+    for f in diag.found:
+        if f.effect in declarable and f.joint is not None:
+            added.append(f)
+            declared.append(DeclaredEffect(f.effect, f.joint + 1))
+        elif f.effect == "coulomb_friction" and f.joint is None:  # friction on every joint it covers
+            added.append(f)
+            joints = sorted({int(k[2:]) for k in f.parameters if k.startswith("fc")})
+            declared += [DeclaredEffect(e, j) for j in joints for e in ("coulomb_friction", "viscous_friction", "torque_offset")]
+    left_out = [where(f) for f in diag.found if f not in added]
+    model = replace(robot, effects=tuple(robot.effects) + tuple(declared))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PoorExcitationWarning)
         result = identify(model, experiments, validation, IdentifyOptions())
     line = _feasible(args, model, result, validation, doc)
-    doc["feasible"]["model"] = {"declared": doc.get("declared", []), "added_findings": [f"{f.effect}@{f.joint + 1}" for f in added],
+    doc["feasible"]["model"] = {"declared": doc.get("declared", []), "added_findings": [where(f) for f in added],
                                 "left_out_findings": left_out}
     return line
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -52,6 +53,14 @@ def smooth_sign(qd: Array, velocity: float) -> Array:
     """``sign(qd)`` (velocity 0) or ``tanh(qd / velocity)``: Coulomb friction that builds up
     over a velocity band instead of jumping (pre-sliding; the published Panda model's form)."""
     return np.sign(qd) if velocity <= 0.0 else np.tanh(qd / velocity)
+
+
+def _coulomb(q: Array, qd: Array, qdd: Array, velocity: float) -> Array:
+    return smooth_sign(qd, velocity)[:, None]
+
+
+def _stribeck(q: Array, qd: Array, qdd: Array, velocity: float) -> Array:
+    return (smooth_sign(qd, 0.01) * np.exp(-((qd / velocity) ** 2)))[:, None]
 
 
 def _offset(q: Array, qd: Array, qdd: Array) -> Array:
@@ -100,11 +109,10 @@ def linear_effect(name: str, joint: int, **setting: float) -> LinearEffect:
     """
     if name == "coulomb_friction":
         v = float(setting.get("velocity", 0.0))
-        return LinearEffect(name, joint, ("fc",), lambda q, qd, qdd: smooth_sign(qd, v)[:, None], (("velocity", v),))
+        return LinearEffect(name, joint, ("fc",), partial(_coulomb, velocity=v), (("velocity", v),))
     if name == "stribeck_friction":
         vs = float(setting.get("velocity", 0.1))
-        return LinearEffect(name, joint, ("fs",), lambda q, qd, qdd: (smooth_sign(qd, 0.01) * np.exp(-((qd / vs) ** 2)))[:, None],
-                            (("velocity", vs),))
+        return LinearEffect(name, joint, ("fs",), partial(_stribeck, velocity=vs), (("velocity", vs),))
     params, fn = LINEAR_EFFECTS[name]
     return LinearEffect(name, joint, params, fn)
 
