@@ -3,13 +3,13 @@
 One tree, so that a caller can catch everything armid raises, or one branch::
 
     ArmidError
-     +-- RobotFileError(ArmidError, ValueError)     malformed robot description
      +-- RecordingError(ArmidError, ValueError)     unusable recording (file, column, row)
      +-- IdentificationError(ArmidError)            the data cannot give an estimate
      +-- UsageError(ArmidError, ValueError)         arguments that do not fit together
      +-- TrajectoryLimitError(ArmidError, ValueError)   (identify.excitation) a plan beyond a limit
-     +-- InputFileError(ArmidError, ValueError)     another input file (trajectory JSON, Zenoh
-     |                                              configuration): file, field, problem
+     +-- InputFileError(ArmidError, ValueError)     an input file (trajectory JSON, Zenoh
+     |    |                                         configuration): file, field, problem
+     |    +-- RobotFileError(InputFileError)        malformed robot description
      +-- OptionError(UsageError)                    one option outside its meaningful range
     ImplausibleDataWarning(UserWarning)             a recording looks odd but may be right
     PoorExcitationWarning(UserWarning)              trajectory not persistently exciting (5.2)
@@ -23,17 +23,6 @@ from __future__ import annotations
 
 class ArmidError(Exception):
     """Root of every error armid raises on purpose."""
-
-
-class RobotFileError(ArmidError, ValueError):
-    """A robot description is malformed: the message names the file, the field, the problem."""
-
-    def __init__(self, source: str, field: str, problem: str) -> None:
-        self.source = source
-        self.field = field
-        self.problem = problem
-        where = f"{source}: {field}" if field else source
-        super().__init__(f"{where}: {problem}")
 
 
 class RecordingError(ArmidError, ValueError):
@@ -67,7 +56,7 @@ class OptionError(UsageError):
 
 
 class InputFileError(ArmidError, ValueError):
-    """An input file other than a robot or a recording (a trajectory, a Zenoh configuration)
+    """An input file other than a recording (a trajectory, a Zenoh configuration, a robot)
     cannot be used: names the file, the field or line, and the problem."""
 
     def __init__(self, source: str, field: str, problem: str) -> None:
@@ -76,6 +65,10 @@ class InputFileError(ArmidError, ValueError):
         self.problem = problem
         where = f"{source}: {field}" if field else source
         super().__init__(f"{where}: {problem}")
+
+
+class RobotFileError(InputFileError):
+    """A robot description is malformed: the message names the file, the field, the problem."""
 
 
 class ImplausibleDataWarning(UserWarning):
