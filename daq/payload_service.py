@@ -101,14 +101,18 @@ class EstimateStream:
             if b <= a:
                 return
             marks = np.flatnonzero(seq[a:b] % self.publish_every == 0)
+            snaps: list[dict[str, Any]] = []
+            extra: list[dict[str, Any]] = []
 
-            def publish(k: int) -> None:
-                doc = self.estimator.estimate()
-                doc.update({"sequence": int(seq[a + k]), "record_time": float(t[a + k]), "skipped": self.skipped, "lost": self.lost,
-                            "invalid": self.invalid, "time_faults": self.time_faults})
-                out.append(doc)
+            def publish(k: int) -> None:  # the state now; the documents (and their projections) after the batch
+                snaps.append(self.estimator.snapshot())
+                extra.append({"sequence": int(seq[a + k]), "record_time": float(t[a + k]), "skipped": self.skipped, "lost": self.lost,
+                              "invalid": self.invalid, "time_faults": self.time_faults})
 
             self.estimator.partial_fit(t[a:b], q[a:b], torque[a:b], marks.tolist(), publish)
+            for doc, more in zip(self.estimator.estimates(snaps), extra):
+                doc.update(more)
+                out.append(doc)
 
         start = 0
         for k in np.flatnonzero(fault | gap | bad).tolist():

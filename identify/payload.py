@@ -44,6 +44,7 @@ folds them in one sample at a time (:func:`rls_update`).
 
 from __future__ import annotations
 
+import json
 from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -214,6 +215,106 @@ def project_feasible(theta: Array, cov: Array, gap: float = 1e-5, start: Array |
             break
         mu /= 50.0
     return x
+
+
+def project_feasible_many(thetas: Array, covs: Array, gap: float = 1e-5, atol: float = 0.0) -> Array:
+    """:func:`project_feasible` of many estimates at once (K, 10) with their covariances
+    (K, 10, 10): the same barrier method from the same cold start, each Newton step taken by
+    every unfinished problem in one batch of numpy calls. The answers do not depend on which
+    others share the batch (each problem's iterates are its own)."""
+    thetas = np.atleast_2d(np.asarray(thetas, float))
+    covs = np.asarray(covs, float).reshape(-1, 10, 10)
+    out = thetas.copy()
+    w, v = np.linalg.eigh(np.einsum("ka,aij->kij", thetas, _BASIS))
+    todo = np.flatnonzero(w.min(axis=1) < 0.0)
+    if todo.size == 0:
+        return out
+    th = thetas[todo]
+    cov = 0.5 * (covs[todo] + covs[todo].transpose(0, 2, 1))
+    tr = np.trace(cov, axis1=1, axis2=2)
+    weight = np.linalg.inv(cov + 1e-15 * tr[:, None, None] * np.eye(10))
+    weight = 0.5 * (weight + weight.transpose(0, 2, 1))
+    d = 1.0 / np.sqrt(np.maximum(np.diagonal(weight, axis1=1, axis2=2), 1e-300))
+    scale = np.maximum(np.abs(w[todo]).max(axis=1), 1e-12)
+    wc = np.maximum(w[todo], 1e-3 * scale[:, None])
+    vt = v[todo]
+    j0 = (vt * wc[:, None, :]) @ vt.transpose(0, 2, 1)
+    sigma = j0[:, :3, :3]
+    i3 = np.trace(sigma, axis1=1, axis2=2)[:, None, None] * np.eye(3) - sigma
+    x = np.concatenate([j0[:, 3, 3][:, None], j0[:, :3, 3], i3[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]]], axis=1)
+
+    def pseudo(y: Array) -> Array:
+        return (y @ _BASIS_FLAT).reshape(-1, 4, 4)
+
+    def f_of(y: Array) -> Array:
+        e = y - th[idx]
+        return 0.5 * np.einsum("ka,kab,kb->k", e, weight[idx], e)
+
+    idx = np.arange(th.shape[0])
+    fx = f_of(x)
+    mu = np.maximum(fx, 1e-300) / 4.0
+    chol = np.linalg.cholesky(pseudo(x))
+    active = np.ones(th.shape[0], bool)  # problems not yet done
+    centring = np.ones(th.shape[0], bool)  # problems still centring at their mu
+    for _ in range(40 * 30):
+        if not active.any():
+            break
+        k = np.flatnonzero(active & centring)
+        if k.size:
+            idx = k
+            ci = np.linalg.inv(chol[k])
+            jinv = ci.transpose(0, 2, 1) @ ci
+            b = jinv[:, None] @ _BASIS[None]  # (k, 10, 4, 4)
+            e = x[k] - th[k]
+            grad = np.einsum("kab,kb->ka", weight[k], e) - mu[k, None] * np.trace(b, axis1=2, axis2=3)
+            bf = b.reshape(k.size, 10, 16)
+            bt = b.transpose(0, 1, 3, 2).reshape(k.size, 10, 16)
+            hess = weight[k] + mu[k, None, None] * (bf @ bt.transpose(0, 2, 1))
+            dk = d[k]
+            step = -dk * np.linalg.solve(hess * dk[:, :, None] * dk[:, None, :], (dk * grad)[..., None])[..., 0]
+            dec = -np.einsum("ka,ka->k", grad, step)
+            bad = ~np.isfinite(dec)
+            active[k[bad]] = False
+            small = ~bad & (dec <= np.maximum(1e-10 * (fx[k] + mu[k]), 0.5 * atol))
+            centring[k[small]] = False
+            go = ~bad & ~small
+            if go.any():
+                kg, sg, cg, dg = k[go], step[go], ci[go], dec[go]
+                lam = np.linalg.eigvalsh(cg @ pseudo(sg) @ cg.transpose(0, 2, 1)).min(axis=1)
+                t = np.where(lam >= -1.0, 1.0, np.minimum(1.0, -0.99 / np.where(lam < 0, lam, -1.0)))
+                phi0 = fx[kg] - 2.0 * mu[kg] * np.log(np.diagonal(chol[kg], axis1=1, axis2=2)).sum(axis=1)
+                pending = np.ones(kg.size, bool)
+                while pending.any():
+                    p = np.flatnonzero(pending)
+                    trial = x[kg[p]] + t[p, None] * sg[p]
+                    jt = pseudo(trial)
+                    ok_pd = np.linalg.eigvalsh(jt).min(axis=1) > 0
+                    accept = np.zeros(p.size, bool)
+                    if ok_pd.any():
+                        q = p[ok_pd]
+                        ch = np.linalg.cholesky(jt[ok_pd])
+                        idx = kg[q]
+                        ft = f_of(trial[ok_pd])
+                        phi = ft - 2.0 * mu[kg[q]] * np.log(np.diagonal(ch, axis1=1, axis2=2)).sum(axis=1)
+                        good = phi <= phi0[q] - 0.25 * t[q] * dg[q]
+                        g = q[good]
+                        x[kg[g]], fx[kg[g]], chol[kg[g]] = trial[ok_pd][good], ft[good], ch[good]
+                        accept[np.flatnonzero(ok_pd)[good]] = True
+                    pending[p[accept]] = False
+                    t[p[~accept]] *= 0.5
+                    stuck = pending & (t <= 1e-12)
+                    centring[kg[stuck]] = False  # no progress at this mu: as good as it gets
+                    pending &= ~stuck
+        # problems done centring: stop, or a smaller mu
+        k = np.flatnonzero(active & ~centring)
+        if k.size:
+            done = 4.0 * mu[k] <= np.maximum(np.maximum(gap * fx[k], atol), 1e-300)
+            active[k[done]] = False
+            more = k[~done]
+            mu[more] /= 50.0
+            centring[more] = True
+    out[todo] = x
+    return out
 
 
 # --- the arm model, evaluated without compiled code (nothing to compile on a cold start) ---
@@ -550,7 +651,7 @@ class PayloadRLS:
         self.correlation_time_ = np.full(nj, INITIAL_CORRELATION_S)
         self._pending: dict[str, Array] | None = None
         self._folded = 0
-        self._change: deque[tuple[float, float, int]] = deque()  # (time, nis, dof) per equation row
+        self._change: deque[tuple[float, float, float, int]] = deque()  # per block: (first time, last time, nis, dof)
         self._window: deque[tuple[float, float, float, int, int]] = deque()  # per block: (time, nis, dof, rejected, rows), weighted
         self._innovations: deque[tuple[Array, Array]] = deque()  # per block: (times, whitened innovations, NaN if unused)
         self._next_correlation_t: float | None = None
@@ -678,23 +779,24 @@ class PayloadRLS:
         live = dof > 0
         if not live.any():
             return
-        use, dof = use[live], dof[live]
-        ts = rows["t"][a:b][live]
-        dts = rows["dt"][a:b][live]
-        moving = rows["moving"][a:b][live]
-        h = rows["h"][a:b][live] * use[..., None]
+        if live.all():
+            ts, dts, moving, h, y = rows["t"][a:b], rows["dt"][a:b], rows["moving"][a:b], rows["h"][a:b], rows["y"][a:b]
+        else:
+            ts, dts, moving, h, y = (rows[key][a:b][live] for key in ("t", "dt", "moving", "h", "y"))
+            use, dof = use[live], dof[live]
+        h = h * use[..., None]
         theta, p, r = self.theta_, self.P_, self.noise_var_
         prior_var = self.prior_std**2
-        nu = (rows["y"][a:b][live] - h @ theta) * use
+        nu = (y - h @ theta) * use
         nis = self._nis(h, nu, p, r)
-        # a new payload: the equations' innovations over CHANGE_WINDOW_S of the arm's time
-        for row in zip(ts.tolist(), nis.tolist(), dof.tolist()):
-            self._change.append(row)
-        while self._change and self._change[0][0] < ts[-1] - self.change_window_s:
+        # a new payload: the equations' innovations over CHANGE_WINDOW_S of the arm's time (whole blocks)
+        now = float(ts[-1])
+        self._change.append((float(ts[0]), now, float(nis.sum()), int(dof.sum())))
+        while self._change[0][1] < now - self.change_window_s:
             self._change.popleft()
-        if self._change[-1][0] - self._change[0][0] >= 0.8 * self.change_window_s:
-            window_nis = sum(c[1] for c in self._change)
-            window_dof = sum(c[2] for c in self._change)
+        if now - self._change[0][0] >= 0.8 * self.change_window_s:
+            window_nis = sum(c[2] for c in self._change)
+            window_dof = sum(c[3] for c in self._change)
             if window_nis > self.change_threshold * window_dof:
                 p = np.diag(prior_var)  # start over from the prior, keep the estimate
                 self._change.clear()
@@ -826,16 +928,44 @@ class PayloadRLS:
             self._projected = (key, project_feasible(self.theta_, self.P_, start=last, atol=PUBLISH_ATOL))
         return self._projected[1]
 
+    def snapshot(self) -> dict[str, Any]:
+        """What :meth:`document` needs of the estimator's state now (copies)."""
+        if not hasattr(self, "theta_"):
+            self._start()
+        return {"theta": self.theta_.copy(), "P": self.P_.copy(), "time": self.time_s_, "consistency": self.consistency(),
+                "updates": self.n_updates_, "resets": self.resets_, "rejected": self.rejected_, "rate_changes": self.rate_changes_}
+
     def estimate(self) -> dict[str, Any]:
         """Mass (kg), centre of mass (m) and inertia about it (kg m^2, xx xy xz yy yz zz) in
         the last link's frame, physically possible, with standard deviations (delta method for
         the centre of mass); ``null`` for what the motion so far does not determine."""
         if not hasattr(self, "theta_"):
             self._start()
-        th_u, p = self.theta_, self.P_
-        th = self.feasible_()
-        std = self.std_
-        excited = self.excited_
+        return self.document(self.snapshot(), self.feasible_())
+
+    def estimates(self, snapshots: list[dict[str, Any]]) -> list[dict[str, Any]]:
+        """The documents of many snapshots, their projections in one batch
+        (:func:`project_feasible_many`): what a replay publishes, at a fraction of the cost."""
+        if not snapshots:
+            return []
+        if len(snapshots) < 4:  # a live batch: the last projection is a good start
+            out = []
+            for s in snapshots:
+                key = (s["updates"] + s["resets"] + s["rejected"], s["theta"].tobytes())
+                if self._projected is None or self._projected[0] != key:
+                    last = self._projected[1] if self._projected is not None else None
+                    self._projected = (key, project_feasible(s["theta"], s["P"], start=last, atol=PUBLISH_ATOL))
+                out.append(self.document(s, self._projected[1]))
+            return out
+        feasible = project_feasible_many(np.array([s["theta"] for s in snapshots]), np.array([s["P"] for s in snapshots]),
+                                         atol=PUBLISH_ATOL)
+        return [self.document(s, f) for s, f in zip(snapshots, feasible)]
+
+    def document(self, snap: dict[str, Any], th: Array) -> dict[str, Any]:
+        """The published document of a :meth:`snapshot` whose physically possible parameters are ``th``."""
+        th_u, p = snap["theta"], snap["P"]
+        std = np.sqrt(np.maximum(np.diag(p), 0.0))
+        excited = std < 0.5 * self.prior_std
         m = float(th[0])
         mass_known = bool(excited[0])
         com = com_std = inertia = None
@@ -847,7 +977,7 @@ class PayloadRLS:
             cs = np.sqrt(np.maximum(np.diag(jac @ p @ jac.T), 0.0))
             com, com_std = c.tolist(), cs.tolist()
             inertia = list(inertial_from_parameters(th).inertia_kgm2)
-        cons = self.consistency()
+        cons = snap["consistency"]
         mass_ok = mass_known and std[0] <= MASS_STD_KG + MASS_STD_REL * m
         com_ok = m < MIN_MASS_FOR_COM_KG or (com_std is not None and bool(excited[1:4].all()) and max(com_std) <= COM_STD_M)
         converged = bool(mass_ok and com_ok and cons["consistent"])
@@ -859,12 +989,12 @@ class PayloadRLS:
             status = "inconsistent"
         else:
             status = "converging"
-        doc = {"time": self.time_s_, "mass": m if mass_known else None, "mass_std": float(std[0]), "com": com, "com_std": com_std,
+        doc = {"time": snap["time"], "mass": m if mass_known else None, "mass_std": float(std[0]), "com": com, "com_std": com_std,
                "inertia": inertia, "inertia_std": std[4:].tolist(), "parameters": th.tolist(), "parameters_std": std.tolist(),
                "excited": excited.tolist(), "excited_parameters": [n for n, e in zip(PARAMETER_NAMES, excited) if e],
                "converged": converged, "status": status, "consistency": cons,
                "unconstrained": {"mass": float(th_u[0]), "parameters": th_u.tolist(), "feasible": bool(np.allclose(th, th_u))},
-               "updates": self.n_updates_, "resets": self.resets_, "rejected": self.rejected_, "rate_changes": self.rate_changes_}
+               "updates": snap["updates"], "resets": snap["resets"], "rejected": snap["rejected"], "rate_changes": snap["rate_changes"]}
         return json_safe(doc)
 
 
@@ -878,9 +1008,19 @@ def _chi2_upper(k: float, z: float = 3.0902) -> float:
 def json_safe(x: Any) -> Any:
     """``x`` with every non-finite float replaced by None: valid JSON (``null``, never ``NaN``)."""
     if isinstance(x, dict):
-        return {k: json_safe(v) for k, v in x.items()}
+        try:  # the usual case, checked by the C encoder: nothing to replace
+            json.dumps(x, allow_nan=False)
+            return x
+        except (ValueError, TypeError):
+            pass
+    return _json_safe(x)
+
+
+def _json_safe(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _json_safe(v) for k, v in x.items()}
     if isinstance(x, list | tuple):
-        return [json_safe(v) for v in x]
+        return [_json_safe(v) for v in x]
     if isinstance(x, float | np.floating):
         return float(x) if np.isfinite(x) else None
     if isinstance(x, np.integer):
