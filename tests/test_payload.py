@@ -525,6 +525,52 @@ def test_payload_with_the_model_errors_of_a_real_arm_alone_and_against_a_referen
             assert np.linalg.norm(np.array(d["com"]) - PAYLOAD.com) <= com_tol, (name, dt, d["com"])
 
 
+def _jittered_100_hz_csv(run: object, path: Path, seed: int) -> Path:
+    """A 1 ms run as a real arm's log: every 10th record moved by up to 4 records (stamps
+    10 ms +- 4 ms apart), seconds since 1970 rounded to the microsecond, motor currents."""
+    rng = np.random.default_rng(seed)
+    t = run.t  # type: ignore[attr-defined]
+    idx = np.arange(0, t.size - 5, 10)
+    idx = np.unique(np.clip(idx + np.clip(np.round(rng.normal(0, 2.0, idx.size)), -4, 4).astype(int), 0, t.size - 1))
+    cols = ["t"] + [f"q{j + 1}" for j in range(6)] + [f"i{j + 1}" for j in range(6)]
+    data = np.column_stack([np.round(t[idx] + 1.7e9, 6), run.position[idx], run.current[idx]])  # type: ignore[attr-defined]
+    np.savetxt(path, data, delimiter=",", header=",".join(cols), comments="", fmt=["%.6f"] + ["%.10g"] * 12)
+    return path
+
+
+def test_the_users_command_line_on_100_hz_logs_with_jittered_stamps(tmp_path: Path) -> None:
+    """What the project will run on real logs, with no option but the files: motor currents at
+    100 Hz with jittered stamps, the arm (with the model errors of a real one) identified by
+    ``armid identify`` on an unloaded run, then ``armid estimate --replay`` alone and with
+    ``--reference``: issue 22's lines hold (2 s after the attach mass within 10 % / 5 %,
+    centre of mass within 2 cm / 1 cm; never negative; not converged before the motion
+    excites the mass), and the jitter is taken for neither a gap nor a rate change."""
+    arm0, plan, cfg0 = _arm_and_design()
+    cfg = _with_errors(cfg0)
+    robot_file = str(ROOT / "config/robots/puma560.yaml")
+    t_on = plan.lead_in_s + 3.0
+    runs = {"ident": simulate(arm0.robot, cfg, plan.evaluate, plan.duration_s, period_s=0.001, seed=21),  # type: ignore[arg-type]
+            "loaded": simulate(arm0.robot, cfg, plan.evaluate, plan.duration_s, period_s=0.001, payloads=[(t_on, PAYLOAD)],  # type: ignore[arg-type]
+                               seed=22),
+            "unloaded": simulate(arm0.robot, cfg, plan.evaluate, plan.duration_s, period_s=0.001, seed=23)}  # type: ignore[arg-type]
+    csv = {name: _jittered_100_hz_csv(run, tmp_path / f"{name}.csv", seed) for seed, (name, run) in enumerate(runs.items())}
+    ident = tmp_path / "ident.json"
+    assert main(["identify", str(csv["ident"]), "--robot", robot_file, "--json", str(ident)]) == 0
+    for extra, mass_tol, com_tol in (([], 0.10, 0.02), (["--reference", str(csv["unloaded"])], 0.05, 0.01)):
+        out = tmp_path / "est.jsonl"
+        assert main(["estimate", "--robot", robot_file, "--params", str(ident), "--replay", str(csv["loaded"]), "--out", str(out),
+                     *extra]) == 0
+        docs = [_strict_json(line) for line in out.read_text().splitlines()]
+        assert all(d["mass"] is None or d["mass"] >= 0 for d in docs)
+        assert not any(d["converged"] for d in docs if not d["excited"][0])
+        assert docs[-1]["rate_changes"] == 0
+        times = np.array([d["record_time"] for d in docs]) - 1.7e9
+        for dt in (2.0, 2.5, 3.0):
+            d = docs[int(np.searchsorted(times, t_on + dt))]
+            assert abs(d["mass"] - PAYLOAD.mass) <= mass_tol * PAYLOAD.mass, (extra, dt, d["mass"])
+            assert np.linalg.norm(np.array(d["com"]) - PAYLOAD.com) <= com_tol, (extra, dt, d["com"])
+
+
 def test_the_demo_payload_phase_from_a_cold_start(tmp_path: Path) -> None:
     """Issue 19: the demo's payload phase in a fresh process with an empty numba cache
     (nothing compiled before it starts, and the estimator compiles nothing). Events on the
