@@ -6,25 +6,34 @@ the last link only adds to that link's ten parameters, so (eq. 18)
 .. math:: \\tau - M(q, \\dot q, \\ddot q)\\,\\phi_{arm} = M_{:,N}(q, \\dot q, \\ddot q)\\,\\phi_p
 
 with ``M_{:,N}`` the regressor columns of link N (every joint's row) and ``phi_p`` the
-payload's ``m, m s, I`` about the last link's frame. Each sample gives N equations; RLS
-folds them in one sample at a time (:func:`rls_update`).
+payload's ``m, m s, I`` about the last link's frame. Each sample gives N equations; the
+equations of each ``BLOCK_S`` (10 ms) of the arm's time are folded in together, in
+information form (:func:`rls_update` is the one-sample form of the same update).
 
-- **The record's own clock.** Velocity and acceleration come from positions by the 5-point
-  least-squares slope (Khosla 5.1) applied twice, computed on the records' time stamps
-  (``sum((t - tbar) x) / sum((t - tbar)^2)``, which is the 5-point filter when the steps are
-  equal): no configured period enters. Above 500 Hz the windows take every k-th record
-  (points at least 2 ms apart). Each equation refers to the sample 4 k records back, so the
-  estimator runs live. A step more than 1.5 times longer or shorter than the
-  one before (a rate change, a gap) restarts the derivatives, counted in ``rate_changes_``.
+- **The record's own clock.** Position, velocity and acceleration are the degree-4
+  least-squares polynomial through the records within ``HALF_WINDOW_S`` (50 ms) of each
+  record, on their time stamps (:func:`local_polynomial`): a window of fixed *time*, so the
+  filter's bias does not grow with the sample period (the 5-point filter applied twice
+  spanned 80 ms at 10 ms and biased the mass by 1 %). The torque is filtered alike. Each
+  equation is made once every record of its window has come (50 ms late), the same however
+  the records are batched. A step ``GAP_RATIO`` times the typical one is a gap (the
+  derivatives restart); the typical step moving by ``RATE_CHANGE_RATIO`` is a rate change,
+  counted in ``rate_changes_``; jitter is neither. No configured period enters.
+- **Honest covariance.** RLS takes its equations as independent; records 1 ms apart are
+  not. Each joint's innovations' correlation time ``tau`` is measured from their
+  autocorrelation (``correlation_time_``), and each equation counts for its share
+  ``dt / tau`` of it: the effective sample size of a correlated series. The covariance is
+  then that of the independent samples the motion gave, at any record rate, and the
+  chi-square test below counts its degrees of freedom the same way.
 - **Forgetting** is a factor per 2 ms of the arm's time (``forgetting ** (dt / 2 ms)``),
   and applies only while the arm moves: at rest the equations carry no new information
   about most directions and forgetting would inflate the covariance (wind-up). The
   covariance is never let grow past its prior.
-- **Gross errors and payload changes.** Before an update the normalized innovation squared
-  per equation is tested: beyond ``GROSS_NIS`` (5 sigma rms) the update is not taken (a
-  stalled first cycle, a glitch). A change of payload shows as a window of
-  ``change_window`` samples averaging over ``change_threshold``: the covariance is reset to
-  the prior and the estimate moves to the new payload at once.
+- **Gross errors and payload changes.** Before an update each equation's normalized
+  innovation squared is tested: beyond ``GROSS_NIS`` (5 sigma rms) it is not taken (a
+  stalled first cycle, a glitch). A change of payload shows as the innovations of the last
+  ``change_window_s`` averaging over ``change_threshold``: the covariance is reset to the
+  prior and the estimate moves to the new payload at once.
 - **Noise** of each joint's equation is tracked from the innovations (time constant
   ``noise_time_constant_s`` of the arm's time, outliers clipped at 3 sigma), starting from
   the identification's per-joint sigma.
@@ -32,7 +41,8 @@ folds them in one sample at a time (:func:`rls_update`).
   onto the payloads that can exist (mass >= 0 and the pseudo-inertia
   ``[[tr(I)/2 1 - I, m s], [m s^T, m]]`` positive semidefinite; Wensing et al. 2017), in the
   metric of the estimate's covariance: directions the data pin down move least. The
-  unconstrained estimate is kept beside it.
+  unconstrained estimate is kept beside it. A replay projects all its estimates in one
+  batch (:func:`project_feasible_many`).
 - **Converged** means: the mass (and, with a mass, the centre of mass) excited, their
   standard deviations below ``MASS_STD_KG + MASS_STD_REL m`` and ``COM_STD_M``, and the
   whitened innovations of the last ``CONSISTENCY_WINDOW_S`` no larger than their covariance

@@ -373,17 +373,25 @@ def _run_at_1_ms() -> object:
 
 
 def test_the_same_run_at_10_ms_agrees_with_1_ms_within_the_std(tmp_path: Path) -> None:
+    """Issue 22: the same run at 1, 2 and 10 ms, replayed with no period option: every pair of
+    final estimates agrees within the sum of their standard deviations, the mass and each
+    axis of the centre of mass (the 5-point filter twice gave 2.015 +- 0.006 kg at 10 ms
+    against 1.994 +- 0.005 kg at 1 ms)."""
     arm, _, _ = _arm_and_design()
     ident = _ident_doc(arm, tmp_path / "ident.json")
     run = _run_at_1_ms()
     finals = {}
-    for every in (1, 10):
+    for every in (1, 2, 10):
         data = _write_csv(tmp_path / f"run_{every}.csv", run.t[::every], run.position[::every], run.torque[::every])  # type: ignore[attr-defined]
         out = tmp_path / f"est_{every}.jsonl"
         assert main(["estimate", "--robot", str(ROOT / "config/robots/puma560.yaml"), "--params", str(ident), "--replay", str(data),
                      "--out", str(out)]) == 0
         finals[every] = _strict_json(out.read_text().splitlines()[-1])
-    assert abs(finals[1]["mass"] - finals[10]["mass"]) <= finals[1]["mass_std"] + finals[10]["mass_std"]
+    for a, b in ((1, 2), (1, 10), (2, 10)):
+        da, db = finals[a], finals[b]
+        assert abs(da["mass"] - db["mass"]) <= da["mass_std"] + db["mass_std"], (a, b, da["mass"], db["mass"])
+        gap = np.abs(np.array(da["com"]) - np.array(db["com"]))
+        assert np.all(gap <= np.array(da["com_std"]) + np.array(db["com_std"])), (a, b, da["com"], db["com"])
 
 
 def test_the_same_run_at_1_2_and_10_ms_replayed_without_a_period_agrees(tmp_path: Path) -> None:
