@@ -556,7 +556,7 @@ def load_trajectory(path: str | Path, n_joints: int, period_s: float) -> tuple[A
     return FourierTrajectory(q0, a, b, float(hz)), tuple(j - 1 for j in moving_doc)
 
 
-def _replay_records(path: Path, robot: Any, kt: np.ndarray, period_s: float | None) -> tuple[list[tuple[Any, ...]], list[str]]:
+def _replay_records(path: Path, robot: Any, kt: np.ndarray, period_s: float | None) -> tuple[tuple[np.ndarray, ...], list[str]]:
     """(sequence, time, valid, position, current) of a recording (MCAP or CSV), in order, on
     the recording's own time stamps; time must increase (a CSV names its line)."""
     from identify.recordings import read_mcap_arrays, read_recording
@@ -570,7 +570,8 @@ def _replay_records(path: Path, robot: Any, kt: np.ndarray, period_s: float | No
         if a["position"].shape[1] != robot.n_joints:
             raise RecordingError(str(path), f"{a['position'].shape[1]} joints recorded, robot {robot.name} has {robot.n_joints}")
         t = np.asarray(a["t"], float)
-        records = list(zip(a["sequence"].tolist(), t.tolist(), a["valid"], a["position"], a["measured_current"]))
+        records = (np.asarray(a["sequence"], np.int64), t, np.asarray(a["valid"], bool).reshape(t.size, -1),
+                   np.asarray(a["position"], float), np.asarray(a["measured_current"], float))
     else:
         rec = read_recording(path, robot)
         notes, t = list(rec.notes), np.asarray(rec.t, float)
@@ -579,8 +580,8 @@ def _replay_records(path: Path, robot: Any, kt: np.ndarray, period_s: float | No
             k = int(back[0]) + 1
             raise RecordingError(str(path), f"line {k + 2}: time {t[k]:.6g} s is not after the line before ({t[k - 1]:.6g} s): "
                                             "time must increase (a reversed or shuffled log?)")
-        ones = np.ones(robot.n_joints, bool)
-        records = [(k, float(t[k]), ones, rec.q[k], rec.tau[k] / kt) for k in range(rec.n_samples)]
+        records = (np.arange(rec.n_samples, dtype=np.int64), t, np.ones((rec.n_samples, robot.n_joints), bool), np.asarray(rec.q, float),
+                   np.asarray(rec.tau, float) / kt)
     if t.size >= 2 and period_s is not None:
         step = float(np.median(np.diff(t)))
         if abs(step - period_s) > 0.1 * period_s:
@@ -660,10 +661,9 @@ def _estimate(args: argparse.Namespace) -> int:
         ref_records, ref_notes = _replay_records(Path(args.reference), robot, kt, args.period)
         for note in ref_notes:
             print(f"{args.reference}: {note}", file=sys.stderr)
-        keep = [r for r in ref_records if np.all(r[2])]
+        keep = ref_records[2].all(axis=1)
         try:
-            reference = ReferenceRun(arm, np.array([r[1] for r in keep]), np.array([r[3] for r in keep]),
-                                     np.array([r[4] for r in keep]) * kt)
+            reference = ReferenceRun(arm, ref_records[1][keep], ref_records[3][keep], ref_records[4][keep] * kt)
         except ValueError as err:
             raise RecordingError(args.reference, str(err)) from None
     estimator = PayloadRLS(arm, forgetting=args.forgetting, reference=reference)
@@ -677,7 +677,7 @@ def _estimate(args: argparse.Namespace) -> int:
     try:
         if args.replay:
             start = time.perf_counter()
-            docs = stream.feed(records)
+            docs = stream.feed_arrays(*records)
             for d in docs:
                 out.write(json.dumps(d, allow_nan=False) + "\n")
             seconds = time.perf_counter() - start
