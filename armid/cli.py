@@ -256,7 +256,7 @@ def _diagnose(args: argparse.Namespace) -> int:
     if args.report:
         from .report import write_diagnosis_report
 
-        write_diagnosis_report(diag, robot.name, Path(args.report))
+        write_diagnosis_report(diag, robot.name, Path(args.report), doc.get("feasible"))
     for f in diag.found:
         print(f.sentence())
     if not diag.found:

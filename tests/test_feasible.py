@@ -230,9 +230,17 @@ def test_puma_example_feasible_within_ten_percent(tmp_path: Path) -> None:
     out = tmp_path
     code = main(["identify", str(ROOT / "examples/puma560_excitation.csv"), "--robot", str(ROBOTS / "puma560.yaml"),
                  "--validate", str(ROOT / "examples/puma560_validation.csv"), "--feasible", "--urdf", str(out / "puma.urdf"),
-                 "--json", str(out / "puma.json")])
+                 "--json", str(out / "puma.json"), "--report", str(out / "report")])
     assert code == 0
     doc = json.loads((out / "puma.json").read_text())["feasible"]
+    # the consistency report in report.md: the links least squares gets wrong, by how much,
+    # and the held-out errors side by side
+    report = (out / "report" / "report.md").read_text()
+    section = report[report.index("## Physical consistency") : report.index("## Torques")]
+    assert "links 1, 3, 4 are not a physical body" in section and "triangle inequality" in section
+    ratio = doc["feasible"]["validation"]["relative_error"] / doc["least_squares"]["validation"]["relative_error"]
+    assert f"| held-out (validation) data | {100 * doc['least_squares']['validation']['relative_error']:.4g} %" in section
+    assert f"| {ratio:.3f} |" in section
     assert doc["feasible"]["consistent"] and all(link["consistent"] for link in doc["feasible"]["links"])
     # the published PUMA 560 values (the simulation's truth) are not all physical: link 3's
     # principal moments break the triangle inequality, and the report says so
@@ -246,26 +254,47 @@ def test_puma_example_feasible_within_ten_percent(tmp_path: Path) -> None:
 
 @pytest.mark.skipif(not (SHARED / "data/kuka_lwr4/measurements_1.npz").exists(), reason="shared KUKA data not present")
 def test_kuka_lwr4_feasible() -> None:
-    """The real LWR4+ recordings: least squares is far from physical on every link; the
-    feasible estimate is physical. Its held-out error is 10.8 % above least squares' on
-    recording 2 (not within the issue's 10 %); the exact projection (a plain SDP without
-    regulariser) gives the same 10.8 %, so no physically consistent rigid body of this model
-    does better in the data's metric. Bound here: what was measured, as a regression guard."""
+    """The real LWR4+ recordings, each identified on and validated on the other two: least
+    squares is far from physical on every link; the feasible estimate is physical on every
+    link. Recordings 1 and 2 repeat one trajectory, recording 3 is another, twice as fast.
+
+    Measured (held-out relative error, feasible / least squares): 1 -> 2 2.336 / 2.015 %
+    (1.16), 2 -> 1 2.395 / 2.224 % (1.08), 1 -> 3 5.36 / 13.9 %, 2 -> 3 4.58 / 14.3 %,
+    3 -> 1 3.21 / 4.89 %, 3 -> 2 3.01 / 4.61 %. Within the issue's 10 % on five of the six;
+    1 -> 2 is not, and no choice made on recording 1 got it there: the feasible set's own
+    optimum in the data's metric (regulariser weight 0) fits recording 1 itself 1.19 times
+    worse than least squares (2.11 / 1.78 %), and its error on recording 2 is 2.334 %; the
+    regulariser's weight (0 to 3000), an unweighted metric, every Coulomb smoothing of the
+    grid, training on the raw samples instead of the filtered ones give 2.33-2.76 %, and even
+    dropping the friction signs 2.25 % (1.12). That pair keeps its regression guard."""
     from identify.preprocess import prepare
     from identify.recordings import read_recording
 
     robot = load_robot(ROBOTS / "kuka_lwr4.yaml")
     data = SHARED / "data/kuka_lwr4"
-    ex = [prepare(read_recording(data / "measurements_1.npz", robot), robot)]
-    va = [prepare(read_recording(data / "measurements_2.npz", robot), robot)]
-    feasible, least_squares, fr = _held_out(robot, ex, va)
-    assert fr.consistent  # type: ignore[attr-defined]
-    assert not any(c.consistent for c in fr.least_squares_checks)  # type: ignore[attr-defined]
-    print(f"kuka_lwr4 1 -> 2: validation error feasible {feasible:.5f}, least squares {least_squares:.5f}, ratio {feasible / least_squares:.4f}")
-    # the guard was feasible <= 1.12 x least squares (measured 2.393 % / 2.159 %); since Coulomb
-    # friction is smooth with its velocity chosen by the fit, least squares reaches 2.015 % and
-    # the feasible estimate 2.336 %: the guard stays on the feasible model's own error
-    assert feasible <= 1.12 * 0.02159
+    prepared = {k: prepare(read_recording(data / f"measurements_{k}.npz", robot), robot) for k in (1, 2, 3)}
+    ratios = {}
+    for k in (1, 2, 3):
+        result = identify(robot, [prepared[k]])
+        for v in (1, 2, 3):
+            if v == k:
+                continue
+            fr = feasible_estimate(result, [prepared[v]])
+            assert fr.consistent and fr.validation is not None and fr.least_squares_validation is not None
+            for i in range(robot.n_joints):  # independently of the solver's own report
+                assert fr.phi[10 * i] > 0 and np.linalg.eigvalsh(pseudo_inertia(fr.phi[10 * i : 10 * i + 10]))[0] >= 0
+            assert not any(c.consistent for c in fr.least_squares_checks)
+            feasible, least_squares = fr.validation["relative_error"], fr.least_squares_validation["relative_error"]
+            ratios[k, v] = feasible / least_squares
+            print(f"kuka_lwr4 {k} -> {v}: validation error feasible {feasible:.5f}, least squares {least_squares:.5f}, ratio {ratios[k, v]:.4f}")
+            if (k, v) == (1, 2):
+                # the guard was feasible <= 1.12 x least squares (measured 2.393 % / 2.159 %); since
+                # Coulomb friction is smooth with its velocity chosen by the fit, least squares
+                # reaches 2.015 % and the feasible estimate 2.336 %: the guard stays on the
+                # feasible model's own error
+                assert feasible <= 1.12 * 0.02159
+            else:
+                assert feasible <= 1.10 * least_squares, (k, v)
 
 
 def test_bad_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
