@@ -46,6 +46,11 @@ def feasible_section(feasible: dict[str, Any]) -> list[str]:
         lines.append("| held-out (validation) data | — | — | no `--validate` data |")
     if feasible["prior_notes"]:
         lines += [""] + [f"- prior: {n}" for n in feasible["prior_notes"]]
+    boxes = feasible.get("bounding_boxes")
+    if boxes:
+        held = [f"{i + 1} ({', '.join(f'{a:.3g}..{b:.3g}' for a, b in zip(box['lower'], box['upper']))} m)" for i, box in enumerate(boxes) if box]
+        lines += ["", f"Each link's mass kept in the box of its URDF collision geometry (x, y, z in the link frame): links {'; '.join(held)}; "
+                      f"links {', '.join(str(i + 1) for i, box in enumerate(boxes) if not box) or 'none'} without a box."]
     lines += ["", f"Regulariser: {feasible['regularization']['kind']}, weight {feasible['regularization']['weight']:g}."]
     return lines
 

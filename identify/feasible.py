@@ -28,6 +28,11 @@ choice), it is invariant to the frame the link is described in, and it is a barr
 ``J`` stays strictly positive definite, so every mass is strictly positive. It only decides
 what the data cannot see; the data term dominates every excited direction.
 
+Optionally (``boxes``: ``armid --bounding-box`` takes them from the URDF's collision
+geometry) each link's mass also stays inside an axis-aligned box of its link frame, three
+linear constraints on ``J`` (:func:`box_matrices`): the centre of mass inside the box and
+the second moments, hence the inertia, bounded by the box's.
+
 Solver: cvxpy with Clarabel (an open interior-point solver for SDP and exponential cones),
 both wheels on every platform from the package registry. The problem is convex: one 4x4
 PSD cone per link, the log-det terms as exponential cones, a second-order cone for the
