@@ -318,6 +318,10 @@ def test_bad_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert code == 2
     assert err[-1] == "armid identify: error: link 2 has no modeled inertial values: the physically consistent fit needs them as its prior"
     assert "Traceback" not in "\n".join(err)
+    # a robot described by DH rows has no geometry to take a box from
+    code = main(["identify", str(data), "--robot", str(ROBOTS / "planar2.yaml"), "--bounding-box"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err[-1].startswith("armid identify: error: --bounding-box: ") and "gives no link a box" in err[-1]
 
 
 def test_diagnose_feasible_takes_linear_findings(tmp_path: Path) -> None:
@@ -334,9 +338,11 @@ def test_diagnose_feasible_takes_linear_findings(tmp_path: Path) -> None:
         write_csv(paths[-1], seg.t, {"q": seg.q, "qd": seg.qd, "qdd": seg.qdd, "tau": seg.tau})
     out = tmp_path / "diag.json"
     code = main(["diagnose", str(paths[0]), "--robot", str(ROBOTS / "planar2.yaml"), "--validate", str(paths[1]), "--feasible",
-                 "--json", str(out), "--urdf", str(tmp_path / "planar2.urdf")])
+                 "--json", str(out), "--urdf", str(tmp_path / "planar2.urdf"), "--report", str(tmp_path / "report")])
     assert code == 0
     doc = json.loads(out.read_text())
+    report = (tmp_path / "report" / "diagnosis.md").read_text()
+    assert "## Physical consistency" in report and "| held-out (validation) data |" in report
     feasible = doc["feasible"]
     assert feasible["model"]["added_findings"] and feasible["feasible"]["consistent"]
     assert {e["effect"] for e in feasible["effects"]} >= {"viscous_friction"}
