@@ -38,7 +38,7 @@ def feasible_section(feasible: dict[str, Any]) -> list[str]:
         lines.append(f"| {a['link']} | {_fmt(a['mass'], 4)} | {_fmt(a['pseudo_inertia_min_eigenvalue'], 3)} | {broken} | "
                      f"{_fmt(b['mass'], 4)} | {_fmt(b['pseudo_inertia_min_eigenvalue'], 3)} | {_fmt(d, 3)} |")
     lines += ["", "| relative error | least squares | feasible | feasible / least squares |", "|---|---|---|---|"]
-    for key, label in (("fit", "identification data (as fitted: filtered, decimated)"), ("validation", "held-out (validation) data")):
+    for key, label in (("fit", "identification data (the equations as fitted)"), ("validation", "held-out (validation) data")):
         x, y = ls.get(key), fe.get(key)
         if x and y:
             lines.append(f"| {label} | {_percent(x['relative_error'])} | {_percent(y['relative_error'])} | {y['relative_error'] / x['relative_error']:.3f} |")
