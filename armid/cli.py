@@ -205,13 +205,16 @@ def _identify(args: argparse.Namespace) -> int:
 def _feasible(args: argparse.Namespace, robot: Any, result: Any, validation: list[Any], doc: dict[str, Any]) -> str | None:
     """``--feasible`` / ``--urdf``: the physically consistent estimate into ``doc["feasible"]``
     and, with ``--urdf OUT``, the identified inertials written back as a URDF."""
-    if not (args.feasible or args.urdf):
+    if not (args.feasible or args.urdf or args.bounding_box):
         return None
     from identify.feasible import feasible_estimate
 
-    from .urdf_export import effect_values, write_urdf
+    from .urdf_export import collision_boxes, effect_values, write_urdf
 
-    fr = feasible_estimate(result, validation or None)
+    boxes = collision_boxes(robot) if args.bounding_box else None
+    if boxes is not None and all(b is None for b in boxes):
+        raise IdentificationError(f"--bounding-box: {robot.source} gives no link a box (no URDF, or only meshes)")
+    fr = feasible_estimate(result, validation or None, boxes=boxes)
     doc["feasible"] = fr.to_json()
     if args.urdf:
         write_urdf(args.urdf, robot, fr.phi, effect_values(doc["feasible"]))
@@ -243,7 +246,7 @@ def _diagnose(args: argparse.Namespace) -> int:
     diag = diagnose(robot, experiments, validation)
     doc = diag.to_json()
     feasible_line = None
-    if args.feasible or args.urdf:
+    if args.feasible or args.urdf or args.bounding_box:
         feasible_line = _diagnosed_feasible(args, robot, diag, experiments, validation, doc)
     for out in (args.json, args.predictions):
         if out:
@@ -256,7 +259,7 @@ def _diagnose(args: argparse.Namespace) -> int:
     if args.report:
         from .report import write_diagnosis_report
 
-        write_diagnosis_report(diag, robot.name, Path(args.report))
+        write_diagnosis_report(diag, robot.name, Path(args.report), doc.get("feasible"))
     for f in diag.found:
         print(f.sentence())
     if not diag.found:
@@ -839,6 +842,9 @@ def _feasible_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--feasible", action="store_true",
                    help="also the physically consistent estimate (pseudo-inertia PSD, friction >= 0) and a consistency report in the JSON")
     p.add_argument("--urdf", metavar="OUT", help="write the physically consistent model as a URDF (implies --feasible)")
+    p.add_argument("--bounding-box", action="store_true",
+                   help="keep each link's mass inside the box of its URDF collision geometry (links with a mesh or without geometry: "
+                        "no box; implies --feasible)")
 
 
 def build_parser() -> argparse.ArgumentParser:
