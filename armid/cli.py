@@ -273,36 +273,18 @@ def _diagnose(args: argparse.Namespace) -> int:
 
 
 def _diagnosed_feasible(args: argparse.Namespace, robot: Any, diag: Any, experiments: list[Any], validation: list[Any], doc: dict[str, Any]) -> str | None:
-    """The feasible estimate of the declared model plus every finding that is a declarable
-    (linear) effect; findings that are not (delay, gain, cogging, tilt, ...) are named as
-    left out."""
-    from dataclasses import replace
+    """The feasible estimate of the model diagnose ends with: the declared model plus every
+    finding (identify.diagnosis.findings_model), the same fit as its 'after'."""
+    from identify.diagnosis import findings_model
+    from identify.identification import identify
 
-    from identify.effects import LINEAR_EFFECTS, SETTINGS
-    from identify.identification import IdentifyOptions, identify
-    from identify.robot import DeclaredEffect
-
-    def where(f: Any) -> str:
-        return f"{f.effect}@{'arm' if f.joint is None else f.joint + 1}"
-
-    declarable = set(LINEAR_EFFECTS) | set(SETTINGS)
-    added, declared = [], []
-    for f in diag.found:
-        if f.effect in declarable and f.joint is not None:
-            added.append(f)
-            declared.append(DeclaredEffect(f.effect, f.joint + 1))
-        elif f.effect == "coulomb_friction" and f.joint is None:  # friction on every joint it covers
-            added.append(f)
-            joints = sorted({int(k[2:]) for k in f.parameters if k.startswith("fc")})
-            declared += [DeclaredEffect(e, j) for j in joints for e in ("coulomb_friction", "viscous_friction", "torque_offset")]
-    left_out = [where(f) for f in diag.found if f not in added]
-    model = replace(robot, effects=tuple(robot.effects) + tuple(declared))
+    model, options = findings_model(robot, diag.found)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PoorExcitationWarning)
-        result = identify(model, experiments, validation, IdentifyOptions())
+        result = identify(model, experiments, validation, options)
     line = _feasible(args, model, result, validation, doc)
-    doc["feasible"]["model"] = {"declared": doc.get("declared", []), "added_findings": [where(f) for f in added],
-                                "left_out_findings": left_out}
+    doc["feasible"]["model"] = {"declared": doc.get("declared", []),
+                                "added_findings": [f"{f.effect}@{'arm' if f.joint is None else f.joint + 1}" for f in diag.found]}
     return line
 
 

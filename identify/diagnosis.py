@@ -23,7 +23,7 @@ kept for measuring before and after, never for choosing). The best-ranked candid
 clears its gates is added: (a) it cuts the held-out residual power by at least ``min_gain_joint``
 of its joint's (``min_gain`` of the arm's, for an arm-wide effect), each added parameter paying a
 penalty in the ranking, (b) a one-joint effect cuts its joint's held-out error by
-``min_error_drop``, and (c) it passes an F-test on the identification data at ``alpha``. Then refit and
+``min_error_drop`` and the arm's by ``min_arm_drop``, and (c) it passes an F-test on the identification data at ``alpha``. Then refit and
 repeat, until nothing passes. A candidate whose columns lie in the span of the model is
 absorbed (rotor inertia of a first joint with a vertical axis joins ``Izz1``), and is
 reported as such. When a look-alike (Coulomb/Stribeck, torque gain/rotor inertia,
@@ -86,6 +86,7 @@ class DiagnoseOptions:
     min_gain_joint: float = 0.20
     alpha: float = 1e-6  # F-test significance on the identification data
     min_error_drop: float = 0.05  # ... and the held-out relative error must fall by this fraction
+    min_arm_drop: float = 0.005  # ... and a one-joint finding the arm's held-out relative error by this one
     per_parameter: float = 0.005  # penalty per added parameter, as a fraction of the residual power
     max_findings: int = 12
     ranked: int = 10  # candidates tried in rank order each round for one that clears the gates
@@ -416,10 +417,10 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
                 gamma = np.linalg.solve(schur, ctr)
             except np.linalg.LinAlgError:
                 continue
-            if c.effect in DISSIPATIVE and (float(gamma[-1]) <= 0.0 if c.joint is not None else float(np.median(gamma[0::3])) <= 0.0):
+            if c.effect in DISSIPATIVE and (bool(np.any(gamma <= 0.0)) if c.joint is not None else float(np.median(gamma[0::3])) <= 0.0):
                 continue  # friction that pushes the joint along, or a negative inertia: not physical
-            if c.effect == "torque_gain" and not -0.5 < float(gamma[0]) < 1.0:
-                continue  # a torque constant off by more than a factor 2 is a wrong robot file, not an effect
+            if c.effect == "torque_gain" and not -0.9 < float(gamma[0]) < 9.0:
+                continue  # a gain below 0.1 or above 10 (or negative) is a wrong robot file or wiring, not an effect
             if c.effect == "time_delay" and abs(float(gamma[0])) < 0.5 * ident.period:
                 # shorter than half a sample period: within the timing uncertainty of the
                 # samples themselves (zero-order hold of the current, current loop, filters)
@@ -467,6 +468,9 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
                     continue
                 if _rel(yv * rows, pred_after * rows) > (1.0 - opts.min_error_drop) * _rel(yv * rows, pred_before * rows):
                     continue  # it whitens the residual but does not move the error anyone reads
+                used = wt_v > 0
+                if _rel(yv * used, pred_after * used) > (1.0 - opts.min_arm_drop) * _rel(yv * used, pred_before * used):
+                    continue  # ... nor the arm's: a joint whose torque is a thousandth of the others
             pick = (rss_v1, p_value, best, gamma, proj, cv, pred_before, pred_after)
             break
         if pick is None:
