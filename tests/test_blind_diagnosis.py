@@ -5,7 +5,8 @@ not, at three noise levels.
 
 - Each catalogue effect (and friction on every joint, the arm-wide family), on a random
   joint, at sizes from barely above the noise floor to large, over five seeds: ``armid
-  diagnose`` names it with its joint (or arm-wide) and its ``--predictions`` close at least
+  diagnose`` names it with its joint (or arm-wide; or as the look-alike of what it found, when
+  it says the data cannot tell the two apart) and its ``--predictions`` close at least
   half the gap between the declared model's error (``identify --predictions``, which is
   diagnose's "before") and the noise floor. Every error is against the validation file's raw
   torque at its own stamps (blindgen.relative_error).
@@ -52,8 +53,11 @@ def _diagnose(spec: dict, tmp_path: Path) -> tuple[blindgen.Case, dict, float]:
 def test_blind_effect_is_named_and_closes_half_the_gap(spec: dict, tmp_path: Path) -> None:
     case, doc, after = _diagnose(spec, tmp_path)
     found = [(f["effect"], f["joint"]) for f in doc["found"]]
+    # named as found, or as the look-alike the finding says this data cannot tell apart from it
+    # (Coulomb/Stribeck, gain/rotor inertia, delay/viscous, offset/spring), with the experiment that would
+    named = found + [(f["lookalike"]["effect"], f["joint"]) for f in doc["found"] if f.get("lookalike")]
     joint = case.effect_joint  # 1-based, None for an arm-wide effect
-    assert any(e == case.expected and (joint is None or j in (joint, None)) for e, j in found), \
+    assert any(e == case.expected and (joint is None or j in (joint, None)) for e, j in named), \
         f"expected {case.expected} on joint {joint}, found {found}"
     before, floor = doc["before"]["relative_error"], case.noise_floor
     assert before - after >= 0.5 * (before - floor), f"before {100 * before:.3f} %, after {100 * after:.3f} %, floor {100 * floor:.3f} %"
