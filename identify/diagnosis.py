@@ -125,6 +125,24 @@ class _Data:
         out[j :: self.n_joints] = columns
         return out
 
+    def lagged(self, j: int | None, delay: float) -> _Data:
+        """The data with a found delay undone: joint j's motion read ``delay`` later (its
+        position was reported late), or for ``j`` None every joint's torque read ``delay``
+        later (the torque channel lags the positions)."""
+        n = self.q.shape[0]
+        idx = np.arange(n, dtype=float)
+        src = idx + delay / self.period
+
+        def later(x: Array, cols: range | list[int]) -> Array:
+            x = x.copy()
+            for c in cols:
+                x[:, c] = np.interp(src, idx, x[:, c])
+            return x
+
+        if j is None:
+            return replace(self, tau=later(self.tau, range(self.n_joints)))
+        return replace(self, q=later(self.q, [j]), qd=later(self.qd, [j]), qdd=later(self.qdd, [j]))
+
     def shifted(self, j: int, steps: int) -> _Data:
         """Joint j's motion ``steps`` samples later (edges repeated)."""
         def shift(x: Array) -> Array:
@@ -337,7 +355,10 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
         return stacked_regressor(robot, effects, d.q, d.qd, d.qdd)[:, base.independent]
 
     robot0 = robot
+    sample_period = min(s.parallel.period_s for p in experiments for s in p.segments)  # the input's, before decimation
     tilt_total, tilt_rounds = np.zeros(2), 0
+    delay_total: dict[int | None, float] = {}
+    delay_rounds: dict[int | None, int] = {}
 
     wi, wv = base_columns(ident), base_columns(held)
     yi, yv = ident.y, held.y
@@ -421,7 +442,7 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
                 continue  # friction that pushes the joint along, or a negative inertia: not physical
             if c.effect == "torque_gain" and not -0.9 < float(gamma[0]) < 9.0:
                 continue  # a gain below 0.1 or above 10 (or negative) is a wrong robot file or wiring, not an effect
-            if c.effect == "time_delay" and abs(float(gamma[0])) < 0.5 * ident.period:
+            if c.effect == "time_delay" and abs(float(gamma[0])) < 0.5 * sample_period:
                 # shorter than half a sample period: within the timing uncertainty of the
                 # samples themselves (zero-order hold of the current, current loop, filters)
                 continue
@@ -509,6 +530,29 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
             base = structural_base(robot, effects)  # a tilt makes more of the first links' parameters seen
             wi, wv = base_columns(ident), base_columns(held)
             continue
+        if best.effect == "time_delay":
+            # applied exactly, like the tilt: the data are shifted by the delay and the search
+            # goes on; a further delay of the same kind found later corrects this one (the
+            # linearised estimate is biased by the fit it was taken about; at most two corrections)
+            key = ("time_delay", best.joint)
+            d = float(gamma[0])
+            ident, held = ident.lagged(best.joint, d), held.lagged(best.joint, d)
+            delay_total[best.joint] = delay_total.get(best.joint, 0.0) + d
+            earlier = next((f for f in found if f.effect == "time_delay" and f.joint == best.joint), None)
+            if earlier is not None:
+                earlier.parameters["delay_s"] = delay_total[best.joint]
+                earlier.explained = 1.0 - (1.0 - earlier.explained) * (1.0 - finding.explained)
+                earlier.error_after = finding.error_after
+            else:
+                found.append(finding)
+            delay_rounds[best.joint] = delay_rounds.get(best.joint, 0) + 1
+            if delay_rounds[best.joint] >= 3:
+                present.add(key)
+            yi, yv = ident.y, held.y
+            wi, wv = base_columns(ident), base_columns(held)
+            extra_i = np.column_stack([np.zeros((yi.size, 0))] + [c.columns(ident) for c in chosen])
+            extra_v = np.column_stack([np.zeros((yv.size, 0))] + [c.columns(held) for c in chosen])
+            continue
         found.append(finding)
         chosen.append(best)
         present.add((best.effect, best.joint))
@@ -592,12 +636,10 @@ def findings_model(robot: Robot, found: list[Finding]) -> tuple[Robot, IdentifyO
 
 
 def _refine_delays(robot: Robot, found: list[Finding], experiments: list[Prepared]) -> None:
-    """A delay's linearised estimate is biased (the derivative is taken of a model fitted
-    without the delay: a 19 ms delay came out 34 ms), so each found delay is refined on the
-    identification data with the exact model (the motion or the torque shifted in time): the
-    fit's error on a grid of 0.2-2 times the estimate (it is not unimodal: a shift by about a
-    period of the excitation's harmonics fits again), then Brent's method between the best
-    point's neighbours."""
+    """Each found delay, refined on the identification data with the exact model (the motion
+    or the torque shifted in time) as `identify` fits it: the fit's error on a grid of
+    0.6-1.6 times the search's estimate (not unimodal: a shift by about a period of the
+    excitation's harmonics fits again), then Brent's method between the best point's neighbours."""
     from scipy.optimize import minimize_scalar
 
     for f in found:
@@ -610,7 +652,7 @@ def _refine_delays(robot: Robot, found: list[Finding], experiments: list[Prepare
             model, options = findings_model(robot, found)
             return float(identify(model, experiments, None, options).fit["relative_error"])
 
-        grid = d0 * np.array([0.2, 0.35, 0.5, 0.65, 0.8, 1.0, 1.25, 1.6, 2.0])
+        grid = d0 * np.array([0.6, 0.8, 1.0, 1.25, 1.6])
         errors = [error(d) for d in grid]
         k = int(np.argmin(errors))
         lo, hi = sorted((grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]))
