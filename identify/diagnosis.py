@@ -36,6 +36,7 @@ declared model exactly as ``armid identify`` gives it, after the same with the f
 
 from __future__ import annotations
 
+import functools
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -45,6 +46,7 @@ import numpy as np
 from scipy import stats
 
 from .dynamics import regressor
+from .effects import ColumnFunction
 from .errors import PoorExcitationWarning
 from .identification import IdentificationResult, IdentifyOptions, declared_effects, identify, stacked_regressor, structural_base
 from .metrics import masked_summary, summary
@@ -110,6 +112,21 @@ class _Data:
     tau: Array
     period: float
     t: Array | None = None
+    # pointwise columns of the motion computed at the input's full rate and put through the
+    # same parallel filter as the torque (for columns that vary faster than the cut-off:
+    # cogging at speed); None: computed on the filtered samples themselves
+    full_rate: Callable[[ColumnFunction], Array] | None = None
+    _cache: dict[Any, Array] = field(default_factory=dict, compare=False, repr=False)
+
+    def filtered(self, fn: ColumnFunction) -> Array:
+        """``fn(q, qd, qdd)`` -> (n, k) as the equations see it (see ``full_rate``); the same
+        function (a partial: the same function and arguments) is computed once per data set."""
+        if self.full_rate is None:
+            return fn(self.q, self.qd, self.qdd)
+        key = (fn.func, fn.args, tuple(sorted(fn.keywords.items()))) if isinstance(fn, functools.partial) else fn
+        if key not in self._cache:
+            self._cache[key] = self.full_rate(fn)
+        return self._cache[key]
 
     @property
     def n_joints(self) -> int:
@@ -140,8 +157,9 @@ class _Data:
             return x
 
         if j is None:
-            return replace(self, tau=later(self.tau, range(self.n_joints)))
-        return replace(self, q=later(self.q, [j]), qd=later(self.qd, [j]), qdd=later(self.qdd, [j]))
+            return replace(self, tau=later(self.tau, range(self.n_joints)), _cache={})
+        # the full-rate columns would not see the lag: computed on the lagged samples instead
+        return replace(self, q=later(self.q, [j]), qd=later(self.qd, [j]), qdd=later(self.qdd, [j]), full_rate=None, _cache={})
 
     def shifted(self, j: int, steps: int) -> _Data:
         """Joint j's motion ``steps`` samples later (edges repeated)."""
@@ -156,6 +174,11 @@ class _Data:
         return _Data(shift(self.q), shift(self.qd), shift(self.qdd), self.tau, self.period, self.t)
 
 
+def _cogging_columns(j: int, period: float, q: Array, qd: Array, qdd: Array) -> Array:
+    x = 2 * np.pi * q[:, j] / period
+    return np.column_stack([np.sin(x), np.cos(x)])
+
+
 def _stack(prepared: list[Prepared]) -> _Data:
     """The equations' samples: kinematics and torque through each segment's parallel filter
     (low-pass, edges, decimation), so that torque and motion stay aligned."""
@@ -164,7 +187,12 @@ def _stack(prepared: list[Prepared]) -> _Data:
     period = filt.period_s * filt.decimation
     q, qd, qdd, tau = (np.concatenate([s.parallel.apply(getattr(s, k)) for s in segs]) for k in ("q", "qd", "qdd", "tau"))
     t = np.concatenate([s.t[s.parallel.kept(s.n_samples)] for s in segs])
-    return _Data(q, qd, qdd, tau, period, t)
+
+    def full_rate(fn: ColumnFunction) -> Array:
+        return np.concatenate([s.parallel.apply(fn(s.q, s.qd, s.qdd)) if s.parallel.cutoff_hz is not None
+                               else fn(s.q, s.qd, s.qdd)[s.parallel.kept(s.n_samples)] for s in segs])
+
+    return _Data(q, qd, qdd, tau, period, t, full_rate)
 
 
 @dataclass(frozen=True)
@@ -287,10 +315,10 @@ def _candidates(robot: Robot, data: _Data, present: set[tuple[str, int | None]],
             span = float(np.ptp(data.q[:, j]))
             for k in range(2, opts.max_cogging_per_turn + 1):
                 period = 2.0 * np.pi / k
-                if span < 2.0 * period:
+                if span < period:  # at least one whole period over the motion
                     continue
-                lin("cogging", lambda d, j=j, p=period: np.column_stack([np.sin(2 * np.pi * d.q[:, j] / p), np.cos(2 * np.pi * d.q[:, j] / p)]),  # type: ignore[misc]
-                    ("a", "b"), setting=(("period_rad", period),))
+                cog = functools.partial(_cogging_columns, j, period)
+                lin("cogging", lambda d, fn=cog: d.filtered(fn), ("a", "b"), setting=(("period_rad", period),))  # type: ignore[misc]
         if ("torque_gain", j) not in present:
             out.append(Candidate("torque_gain", j, (), ("c",), block=lambda d, j=j: ctx["predict"](d)[:, j : j + 1]))  # type: ignore[misc]
         if ("time_delay", j) not in present:  # joint j's drive reports its position late: every joint's torque leads it
@@ -707,8 +735,11 @@ def _blocks(d: _Data, parts: int = 10) -> tuple[_Data, _Data]:
     block = np.minimum(np.arange(n) * parts // max(n, 1), parts - 1)
     held = block % 2 == 1
 
+    full = d.full_rate
+
     def take(mask: Array) -> _Data:
-        return _Data(d.q[mask], d.qd[mask], d.qdd[mask], d.tau[mask], d.period, None if d.t is None else d.t[mask])
+        rows = None if full is None else (lambda fn: full(fn)[mask])
+        return _Data(d.q[mask], d.qd[mask], d.qdd[mask], d.tau[mask], d.period, None if d.t is None else d.t[mask], rows)
 
     return take(~held), take(held)
 
