@@ -14,7 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from identify.errors import (
+from armid import __version__
+from armid.identify.errors import (
     ArmidError,
     IdentificationError,
     InputFileError,
@@ -143,8 +144,8 @@ def _write_json(path: Path, doc: Any) -> None:
 def _read_checked(path: str, robot: Any) -> Any:
     """``read_recording`` and the plausibility checks (time units, torque); their warnings are held
     until every input is read."""
-    from identify.plausibility import check_recording
-    from identify.recordings import read_recording
+    from armid.identify.plausibility import check_recording
+    from armid.identify.recordings import read_recording
 
     rec = read_recording(path, robot)
     for warning in check_recording(rec.t, rec.q, rec.qd, rec.tau, rec.source):
@@ -153,10 +154,10 @@ def _read_checked(path: str, robot: Any) -> Any:
 
 
 def _identify(args: argparse.Namespace) -> int:
-    from identify.identification import IdentifyOptions, identify
-    from identify.preprocess import PrepareOptions, prepare
-    from identify.recordings import write_csv
-    from identify.robot_file import load_robot
+    from armid.identify.identification import IdentifyOptions, identify
+    from armid.identify.preprocess import PrepareOptions, prepare
+    from armid.identify.recordings import write_csv
+    from armid.identify.robot_file import load_robot
 
     robot = load_robot(args.robot)
     options = PrepareOptions(max_gap_factor=args.max_gap_factor, lowpass_hz=args.lowpass)
@@ -207,7 +208,7 @@ def _feasible(args: argparse.Namespace, robot: Any, result: Any, validation: lis
     and, with ``--urdf OUT``, the identified inertials written back as a URDF."""
     if not (args.feasible or args.urdf):
         return None
-    from identify.feasible import feasible_estimate
+    from armid.identify.feasible import feasible_estimate
 
     from .urdf_export import effect_values, write_urdf
 
@@ -224,10 +225,10 @@ def _feasible(args: argparse.Namespace, robot: Any, result: Any, validation: lis
 
 
 def _diagnose(args: argparse.Namespace) -> int:
-    from identify.diagnosis import diagnose
-    from identify.preprocess import PrepareOptions, prepare
-    from identify.recordings import write_csv
-    from identify.robot_file import load_robot
+    from armid.identify.diagnosis import diagnose
+    from armid.identify.preprocess import PrepareOptions, prepare
+    from armid.identify.recordings import write_csv
+    from armid.identify.robot_file import load_robot
 
     robot = load_robot(args.robot)
     options = PrepareOptions(max_gap_factor=args.max_gap_factor, lowpass_hz=args.lowpass, torque_hold=args.torque_hold)
@@ -275,9 +276,9 @@ def _diagnosed_feasible(args: argparse.Namespace, robot: Any, diag: Any, experim
     left out."""
     from dataclasses import replace
 
-    from identify.effects import LINEAR_EFFECTS, SETTINGS
-    from identify.identification import IdentifyOptions, identify
-    from identify.robot import DeclaredEffect
+    from armid.identify.effects import LINEAR_EFFECTS, SETTINGS
+    from armid.identify.identification import IdentifyOptions, identify
+    from armid.identify.robot import DeclaredEffect
 
     def where(f: Any) -> str:
         return f"{f.effect}@{'arm' if f.joint is None else f.joint + 1}"
@@ -311,9 +312,9 @@ def _record(args: argparse.Namespace) -> int:
 
     import can
 
-    from daq.acquisition import Acquisition, Sink
-    from daq.recorder import McapRecorder
-    from drivers.rig import load_rig, open_bus
+    from armid.daq.acquisition import Acquisition, Sink
+    from armid.daq.recorder import McapRecorder
+    from armid.drivers.rig import load_rig, open_bus
 
     rig = load_rig(args.rig)
     changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
@@ -325,22 +326,22 @@ def _record(args: argparse.Namespace) -> int:
     driver: Any
     arm = chain = None
     if rig.serial is not None:  # a Dynamixel chain: 'port: sim' is the simulated chain on a pty
-        from drivers.dynamixel_driver import DynamixelDriver
+        from armid.drivers.dynamixel_driver import DynamixelDriver
 
         port = args.channel or rig.serial.port
         simulate = port == "sim" if args.simulate is None else args.simulate
         if simulate:
-            from sim_bus.servo_chain import ServoChainProcess
+            from armid.sim_bus.servo_chain import ServoChainProcess
 
             chain = ServoChainProcess(args.rig)
             port = chain.port
         driver = DynamixelDriver(rig, port=port)
     else:
-        from drivers.canopen_driver import CanopenDriver
+        from armid.drivers.canopen_driver import CanopenDriver
 
         simulate = args.simulate if args.simulate is not None else rig.bus.interface == "virtual"
         if simulate:
-            from sim_bus.arm import SimulatedArm
+            from armid.sim_bus.arm import SimulatedArm
 
             arm = SimulatedArm(rig, bus=open_bus(**rig.bus.kwargs()))
         driver = CanopenDriver(rig)
@@ -357,23 +358,20 @@ def _record(args: argparse.Namespace) -> int:
         driver.start()
         if not rig.is_serial:
             assert driver.network is not None and driver.network.notifier is not None
-            from daq.canlog import BusLog
+            from armid.daq.canlog import BusLog
 
             can_log = BusLog(driver, out / "can.log")  # every frame on the bus, the master's included
-        import armid as _armid_pkg
-
         metadata = {
             "robot": rig.robot.name, "rig": rig.name, "rig_file": rig.source, "period_s": rig.period_s,
             "bus": f"dynamixel {driver.port_name} at {rig.bus.bitrate} baud" if rig.is_serial else f"{rig.bus.interface}:{rig.bus.channel}",
             "pdo_plan": None if rig.is_serial else rig.pdo_plan,
             "drives": driver.drive_configuration, "excitation": "none (armid record)",
-            "versions": {"armid": getattr(_armid_pkg, "__version__", "0.1.0"), "python": platform.python_version(),
-                         "python-can": can.__version__},
+            "versions": {"armid": __version__, "python": platform.python_version(), "python-can": can.__version__},
         }
         recorder = McapRecorder(out / "run.mcap", [j.name for j in rig.robot.joints], driver.torque_constants, metadata)
         sinks = [Sink("recorder", recorder.write, bounded=False)]
         if not args.no_zenoh:
-            from daq.stream import Stream
+            from armid.daq.stream import Stream
 
             session = open_zenoh(args)
             stream = Stream(session, rig.robot.name, "recorder", lambda: {"records": acq.sequence, "invalid": acq.invalid.tolist(),
@@ -417,9 +415,9 @@ def _excite(args: argparse.Namespace) -> int:
 
     from rich.console import Console
 
-    from daq.excite import ExcitationSession
-    from drivers.rig import load_rig
-    from identify import excitation as ex
+    from armid.daq.excite import ExcitationSession
+    from armid.drivers.rig import load_rig
+    from armid.identify import excitation as ex
 
     from .experiments import Experiment, design_experiments, run_experiments
 
@@ -482,7 +480,7 @@ def load_trajectory(path: str | Path, n_joints: int, period_s: float) -> tuple[A
     """A trajectory JSON for ``armid excite --trajectory``: a ``designs.json`` entry (or a file
     holding exactly one), ``{"fourier": {...}}``, or the Fourier block itself. Returns the
     trajectory and the moving joints (0-based); every problem names the file and the field."""
-    from identify.trajectories import FourierTrajectory
+    from armid.identify.trajectories import FourierTrajectory
 
     src = str(path)
     try:
@@ -559,7 +557,7 @@ def load_trajectory(path: str | Path, n_joints: int, period_s: float) -> tuple[A
 def _replay_records(path: Path, robot: Any, kt: np.ndarray, period_s: float | None) -> tuple[list[tuple[Any, ...]], list[str]]:
     """(sequence, time, valid, position, current) of a recording (MCAP or CSV), in order, on
     the recording's own time stamps; time must increase (a CSV names its line)."""
-    from identify.recordings import read_mcap_arrays, read_recording
+    from armid.identify.recordings import read_mcap_arrays, read_recording
 
     if path.suffix.lower() == ".mcap":
         if not path.exists():
@@ -637,9 +635,9 @@ def _estimate(args: argparse.Namespace) -> int:
     """On-line payload estimation, live or on a recording; always on the records' time stamps."""
     import time
 
-    from daq.payload_service import EstimateStream
-    from identify.payload import PayloadRLS, ReferenceRun, arm_model_from_identification
-    from identify.robot_file import load_robot
+    from armid.daq.payload_service import EstimateStream
+    from armid.identify.payload import PayloadRLS, ReferenceRun, arm_model_from_identification
+    from armid.identify.robot_file import load_robot
 
     if not args.replay and args.mode != "live":
         raise UsageError("say what to run on: 'live' (the Zenoh stream) or --replay DATA")
@@ -683,7 +681,7 @@ def _estimate(args: argparse.Namespace) -> int:
             seconds = time.perf_counter() - start
             print(_estimate_summary(estimator.n_updates_ if hasattr(estimator, "n_updates_") else 0, docs, seconds, stream), file=sys.stderr)
             return 0
-        from daq.payload_service import PayloadService
+        from armid.daq.payload_service import PayloadService
 
         estimator.warm()  # nothing left to run for the first time once records arrive
         session = open_zenoh(args)
@@ -723,8 +721,8 @@ def _sim(args: argparse.Namespace) -> int:
     import signal
     import threading
 
-    from drivers.rig import load_rig
-    from sim_bus.arm import SimulatedArm
+    from armid.drivers.rig import load_rig
+    from armid.sim_bus.arm import SimulatedArm
 
     rig = load_rig(args.rig)
     changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
@@ -765,7 +763,7 @@ def _run_until(stop: Any, duration: float | None) -> None:
 def _sim_chain(rig: Any, args: argparse.Namespace, stop: Any) -> int:
     """A Dynamixel rig: the simulated servo chain on a pty; the driver opens the printed port."""
 
-    from sim_bus.servo_chain import SimulatedServoChain
+    from armid.sim_bus.servo_chain import SimulatedServoChain
 
     chain = SimulatedServoChain(rig, seed=args.seed)
     print(f"armid sim: {rig.name}: {rig.n_joints} Dynamixel servos (ids {', '.join(str(d.node_id) for d in rig.drives)}) "
@@ -802,7 +800,7 @@ def open_zenoh(args: argparse.Namespace) -> Any:
     names a certificate that is not there, or cannot open a session is bad input (exit 2)."""
     import zenoh
 
-    from daq.stream import session_config
+    from armid.daq.stream import session_config
 
     src = args.zenoh_config
     endpoints = "--zenoh-listen/--zenoh-connect"

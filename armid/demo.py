@@ -17,11 +17,12 @@ from typing import Any
 
 import numpy as np
 
-from daq.excite import ExcitationSession
-from drivers.rig import Rig, load_rig
-from identify import excitation as ex
-from identify.identification import IdentificationResult, IdentifyOptions, identify
-from identify.single_link import SequenceResult, single_link_sequence
+from armid.daq.excite import ExcitationSession
+from armid.drivers.rig import Rig, load_rig
+from armid.identify import excitation as ex
+from armid.identify.identification import IdentificationResult, IdentifyOptions, identify
+from armid.identify.single_link import SequenceResult, single_link_sequence
+from armid.resources import config_file
 
 from .experiments import (
     design_experiments,
@@ -30,12 +31,12 @@ from .experiments import (
     write_json,
 )
 
-DEFAULT_RIG = Path(__file__).resolve().parent.parent / "config" / "rigs" / "sim.yaml"
+DEFAULT_RIG = config_file("rigs/sim.yaml")  # package data: found in a wheel install too
 
 
 def true_parameters(rig: Rig, names: list[str]) -> np.ndarray:
     """The simulated arm's parameters in the order of ``names`` (rigid body, then fv, fc, ia)."""
-    from sim_bus.physics import simulation_config
+    from armid.sim_bus.physics import simulation_config
 
     cfg = simulation_config(rig.simulation, rig.n_joints, rig.source)
     phi = np.zeros(len(names))
@@ -154,14 +155,14 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0) -> int:
         whole = identify(robot, [prepared["whole_a"]], [prepared["whole_b"]], IdentifyOptions(exclude_reversals=True))
         truth = check_against_truth(rig, seq, whole)
         comparison = seq.compare(whole)
-        from identify.diagnosis import diagnose
+        from armid.identify.diagnosis import diagnose
 
         diagnosis = diagnose(robot, [prepared["whole_a"]], [prepared["whole_b"]])
         phases.start("payload", "payload: the identified arm works through whole_a; a 2 kg payload is attached and removed, "
                      "estimated on-line from the live Zenoh stream")
         payload = run_payload(rig, whole, experiments[-2].design, out, console)
         phases.start("report", "writing the report and its plots")
-        from identify.feasible import feasible_estimate
+        from armid.identify.feasible import feasible_estimate
 
         from .urdf_export import effect_values, write_urdf
 
@@ -207,12 +208,12 @@ def run_payload(rig: Rig, whole: Any, design: Any, out: Path, console: Any, warm
 
     import zenoh
 
-    from daq.payload_service import EstimateStream, PayloadService
-    from daq.stream import Stream, session_config
-    from identify import excitation as ex
-    from identify.payload import ArmModel, PayloadRLS
-    from identify.recordings import read_mcap_arrays
-    from sim_bus.physics import Payload
+    from armid.daq.payload_service import EstimateStream, PayloadService
+    from armid.daq.stream import Stream, session_config
+    from armid.identify import excitation as ex
+    from armid.identify.payload import ArmModel, PayloadRLS
+    from armid.identify.recordings import read_mcap_arrays
+    from armid.sim_bus.physics import Payload
 
     robot = rig.robot
     truth = Payload(*DEMO_PAYLOAD)  # type: ignore[arg-type]

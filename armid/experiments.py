@@ -16,11 +16,11 @@ from typing import Any
 
 import numpy as np
 
-from daq.excite import ExcitationSession, RunReport
-from identify import excitation as ex
-from identify.preprocess import Prepared, PrepareOptions, prepare
-from identify.recordings import Recording, read_mcap_arrays, read_recording
-from identify.robot import Robot
+from armid.daq.excite import ExcitationSession, RunReport
+from armid.identify import excitation as ex
+from armid.identify.preprocess import Prepared, PrepareOptions, prepare
+from armid.identify.recordings import Recording, read_mcap_arrays, read_recording
+from armid.identify.robot import Robot
 
 PREPARE = PrepareOptions(lowpass_hz=None, torque_hold=True)
 """How drive recordings are prepared: the drives' velocity through the 5-point filter for

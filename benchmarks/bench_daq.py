@@ -29,12 +29,12 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 
-from daq.acquisition import Acquisition, Sink  # noqa: E402
-from daq.canlog import BusLog  # noqa: E402
-from daq.recorder import McapRecorder  # noqa: E402
-from daq.stream import Stream, session_config  # noqa: E402
-from drivers.canopen_driver import CanopenDriver  # noqa: E402
-from drivers.rig import load_rig  # noqa: E402
+from armid.daq.acquisition import Acquisition, Sink  # noqa: E402
+from armid.daq.canlog import BusLog  # noqa: E402
+from armid.daq.recorder import McapRecorder  # noqa: E402
+from armid.daq.stream import Stream, session_config  # noqa: E402
+from armid.drivers.canopen_driver import CanopenDriver  # noqa: E402
+from armid.drivers.rig import load_rig  # noqa: E402
 
 RIG = ROOT / "config" / "rigs" / "sim.yaml"
 

@@ -18,14 +18,13 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-from daq.payload_service import EstimateStream
-from drivers.rig import load_rig
-from identify import excitation as ex
-from identify.identification import declared_effects, structural_base
-from identify.payload import ArmModel, PayloadRLS
-from sim_bus.offline import simulate
-from sim_bus.physics import Payload, simulation_config
+from armid.daq.payload_service import EstimateStream
+from armid.drivers.rig import load_rig
+from armid.identify import excitation as ex
+from armid.identify.identification import declared_effects, structural_base
+from armid.identify.payload import ArmModel, PayloadRLS
+from armid.sim_bus.offline import simulate
+from armid.sim_bus.physics import Payload, simulation_config
 
 RIG = Path(__file__).resolve().parent.parent / "config" / "rigs" / "sim.yaml"
 

@@ -18,8 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-
-from drivers.interface import DriveFault, Driver, DriverError
+from armid.drivers.interface import DriveFault, Driver, DriverError
 
 from .record_format import JointStateRecord
 

@@ -22,8 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import can
-
-from drivers.interface import Sample
+from armid.drivers.interface import Sample
 
 
 class BusLog:
@@ -75,7 +74,7 @@ class _Received(can.Listener):
 
 def replay_log(path: str | Path, rig: Any, timeout_s: float = 30.0) -> list[Sample]:
     """Decode ``path`` as the rig's driver would have: one sample per SYNC in the log."""
-    from drivers.canopen_driver import CanopenDriver
+    from armid.drivers.canopen_driver import CanopenDriver
 
     channel = f"armid-replay-{uuid.uuid4().hex[:8]}"
     listen_bus = can.Bus(interface="virtual", channel=channel)

@@ -10,10 +10,9 @@ the reference pose (rotor inertias included when given): stiff enough to track, 
 from __future__ import annotations
 
 import numpy as np
-
-from identify.pinocchio_bridge import to_pinocchio
-from identify.robot import Robot
-from identify.spatial import Array
+from armid.identify.pinocchio_bridge import to_pinocchio
+from armid.identify.robot import Robot
+from armid.identify.spatial import Array
 
 
 class ComputedTorque:

@@ -24,12 +24,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-from drivers.interface import DriveFault, Driver, DriverError
-from identify.errors import UsageError
-from identify.excitation import Limits, Plan
-from identify.robot import Robot
-from identify.spatial import Array
+from armid.drivers.interface import DriveFault, Driver, DriverError
+from armid.identify.errors import UsageError
+from armid.identify.excitation import Limits, Plan
+from armid.identify.robot import Robot
+from armid.identify.spatial import Array
 
 from .acquisition import Acquisition, Sink
 from .canlog import BusLog
@@ -210,15 +209,15 @@ class ExcitationSession:
     def __init__(self, rig: Any, simulate: bool = True, tracking_limit_rad: float = 0.2, stream: Any = None,
                  bus: Any = None, bandwidth_hz: float = LOOP_BANDWIDTH_HZ) -> None:
 
-        from drivers.canopen_driver import CanopenDriver
+        from armid.drivers.canopen_driver import CanopenDriver
 
         self.rig = rig
         self.robot: Robot = rig.robot
         self.arm = None
         self._buses: list[Any] = []
         if simulate:
-            from drivers.rig import open_bus
-            from sim_bus.arm import SimulatedArm
+            from armid.drivers.rig import open_bus
+            from armid.sim_bus.arm import SimulatedArm
 
             arm_bus = open_bus(**rig.bus.kwargs())
             self._buses.append(arm_bus)
@@ -340,10 +339,13 @@ class ExcitationSession:
 
 
 def _versions() -> dict[str, str]:
-    import can
-    import canopen
+    from importlib.metadata import PackageNotFoundError, version
 
-    import armid
+    def of(dist: str) -> str:
+        try:
+            return version(dist)
+        except PackageNotFoundError:
+            return "?"
 
-    return {"armid": getattr(armid, "__version__", "0.1.0"), "python": platform.python_version(), "python-can": can.__version__,
-            "canopen": getattr(canopen, "__version__", "?"), "numpy": np.__version__}
+    return {"armid": of("armid"), "python": platform.python_version(), "python-can": of("python-can"),
+            "canopen": of("canopen"), "numpy": np.__version__}

@@ -25,10 +25,9 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 import numpy as np
-
-from identify.errors import RecordingError
-from identify.payload import PayloadRLS
-from identify.spatial import Array
+from armid.identify.errors import RecordingError
+from armid.identify.payload import PayloadRLS
+from armid.identify.spatial import Array
 
 from .record_format import JointStateRecord, check_encoding
 from .stream import key

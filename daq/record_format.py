@@ -14,9 +14,8 @@ import struct
 from dataclasses import dataclass
 
 import numpy as np
-
-from drivers.interface import Sample
-from identify.spatial import Array
+from armid.drivers.interface import Sample
+from armid.identify.spatial import Array
 
 SCHEMA = "armid.JointState"
 VERSION = 1

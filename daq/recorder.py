@@ -21,10 +21,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-from identify.recordings import MCAP_TOPIC
-from identify.recordings import read_mcap_arrays as read_mcap  # noqa: F401  (the reader lives with the other readers)
-from identify.spatial import Array
+from armid.identify.recordings import MCAP_TOPIC
+from armid.identify.recordings import read_mcap_arrays as read_mcap  # noqa: F401  (the reader lives with the other readers)
+from armid.identify.spatial import Array
 
 from .record_format import JointStateRecord
 

@@ -26,15 +26,15 @@ from dataclasses import dataclass, field
 import can
 import canopen
 import numpy as np
+from armid.identify.spatial import Array
 from canopen.sdo import SdoAbortedError, SdoCommunicationError, SdoVariable
 
-from identify.spatial import Array
-
+from ..resources import config_file
 from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverError, HeartbeatLost, Sample
 from .pdo_plan import PLANS, PdoSpec, check_bus_budget
 from .rig import Rig, open_bus
 
-EDS = str(__import__("pathlib").Path(__file__).resolve().parent.parent / "config" / "drives" / "armid_cia402.eds")
+EDS = str(config_file("drives/armid_cia402.eds"))  # package data (armid.config)
 
 SYNC_COUNTER_OVERFLOW = 240
 CONTROLWORD_REFRESH = 25

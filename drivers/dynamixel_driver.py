@@ -31,8 +31,7 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-
-from identify.spatial import Array
+from armid.identify.spatial import Array
 
 from . import dynamixel_protocol as dxl
 from .dynamixel_protocol import Address, ProtocolError, ReplyTimeout, StatusError

@@ -16,9 +16,8 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
-
-from identify.errors import ArmidError
-from identify.spatial import Array
+from armid.identify.errors import ArmidError
+from armid.identify.spatial import Array
 
 
 class DriverError(ArmidError):

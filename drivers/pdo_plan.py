@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from identify.errors import ArmidError
+from armid.identify.errors import ArmidError
 
 POSITION = (0x6064, 0, 32)
 VELOCITY = (0x606C, 0, 32)

@@ -13,10 +13,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-from identify.errors import ArmidError
-from identify.robot import Robot
-from identify.robot_file import load_robot
+from armid.identify.errors import ArmidError
+from armid.identify.robot import Robot
+from armid.identify.robot_file import load_robot
 
 
 class RigFileError(ArmidError, ValueError):

@@ -16,15 +16,14 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-from daq.payload_service import EstimateStream
-from drivers.rig import load_rig
-from identify import excitation as ex
-from identify.identification import IdentifyOptions, identify
-from identify.payload import ArmModel, PayloadRLS, ReferenceRun
-from identify.preprocess import prepare
-from sim_bus.offline import simulate
-from sim_bus.physics import Payload, simulation_config
+from armid.daq.payload_service import EstimateStream
+from armid.drivers.rig import load_rig
+from armid.identify import excitation as ex
+from armid.identify.identification import IdentifyOptions, identify
+from armid.identify.payload import ArmModel, PayloadRLS, ReferenceRun
+from armid.identify.preprocess import prepare
+from armid.sim_bus.offline import simulate
+from armid.sim_bus.physics import Payload, simulation_config
 
 ROOT = str(Path(__file__).resolve().parent.parent)
 rig = load_rig(ROOT + '/config/rigs/sim.yaml')

@@ -19,8 +19,7 @@ from typing import Any
 import can
 import canopen
 import numpy as np
-
-from drivers.rig import Rig, open_bus
+from armid.drivers.rig import Rig, open_bus
 
 from .drive import SimulatedDrive
 from .physics import ArmPhysics, Measurement, simulation_config

@@ -17,19 +17,19 @@ from __future__ import annotations
 import struct
 import time
 from enum import Enum
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import canopen
 import numpy as np
+from armid.drivers.rig import DriveUnits
 from canopen.objectdictionary import ODVariable
 
-from drivers.rig import DriveUnits
+from armid.resources import config_file
 
 if TYPE_CHECKING:
     from .physics import Measurement
 
-EDS = Path(__file__).resolve().parent.parent / "config" / "drives" / "armid_cia402.eds"
+EDS = config_file("drives/armid_cia402.eds")  # package data (armid.config)
 
 MODE_CSP = 8
 MODE_CST = 10

@@ -12,12 +12,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from daq.control import ComputedTorque
-from drivers.rig import DriveUnits
-from identify.recordings import Recording
-from identify.robot import Robot
-from identify.spatial import Array
+from armid.daq.control import ComputedTorque
+from armid.drivers.rig import DriveUnits
+from armid.identify.recordings import Recording
+from armid.identify.robot import Robot
+from armid.identify.spatial import Array
 
 from .physics import ArmPhysics, Payload, SimulationConfig
 

@@ -29,10 +29,9 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-
-from drivers import dynamixel_protocol as dxl
-from drivers.dynamixel_protocol import ALERT, Address, Instruction
-from drivers.rig import Rig
+from armid.drivers import dynamixel_protocol as dxl
+from armid.drivers.dynamixel_protocol import ALERT, Address, Instruction
+from armid.drivers.rig import Rig
 
 from .physics import ArmPhysics, Measurement, simulation_config
 
@@ -372,7 +371,7 @@ class ServoChainProcess:
         import subprocess
         import sys
 
-        args = [sys.executable, "-m", "sim_bus.servo_chain", str(rig_file)] + ([] if seed is None else ["--seed", str(seed)])
+        args = [sys.executable, "-m", "armid.sim_bus.servo_chain", str(rig_file)] + ([] if seed is None else ["--seed", str(seed)])
         self._process = subprocess.Popen(args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1)
         self.port: str = self._reply(start_timeout)["port"]
 
@@ -430,7 +429,7 @@ def serve(rig_file: str, seed: int | None = None) -> None:
     import json
     import sys
 
-    from drivers.rig import load_rig
+    from armid.drivers.rig import load_rig
 
     def say(doc: dict[str, Any]) -> None:
         sys.stdout.write(json.dumps(doc) + "\n")

@@ -14,14 +14,13 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
-
-from daq.control import ComputedTorque
-from drivers.canopen_driver import CanopenDriver
-from drivers.interface import DriveConfigError, DriveFault, HeartbeatLost
-from drivers.pdo_plan import BusBudgetError, bus_load, check_bus_budget, frame_bits
-from drivers.rig import RigFileError, load_rig, rig_from_dict
-from sim_bus.arm import SimulatedArm
-from sim_bus.drive import EMCY_POSITION_LIMIT, State, next_state
+from armid.daq.control import ComputedTorque
+from armid.drivers.canopen_driver import CanopenDriver
+from armid.drivers.interface import DriveConfigError, DriveFault, HeartbeatLost
+from armid.drivers.pdo_plan import BusBudgetError, bus_load, check_bus_budget, frame_bits
+from armid.drivers.rig import RigFileError, load_rig, rig_from_dict
+from armid.sim_bus.arm import SimulatedArm
+from armid.sim_bus.drive import EMCY_POSITION_LIMIT, State, next_state
 
 ROOT = Path(__file__).resolve().parent.parent
 SIM_RIG = ROOT / "config" / "rigs" / "sim.yaml"

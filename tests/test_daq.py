@@ -13,14 +13,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from armid.daq.record_format import ENCODING, JointStateRecord, check_encoding
+from armid.daq.recorder import read_mcap
+from armid.drivers.interface import Sample
+from armid.identify.preprocess import prepare
+from armid.identify.recordings import read_recording
+from armid.identify.robot_file import load_robot
 
 from armid.cli import main
-from daq.record_format import ENCODING, JointStateRecord, check_encoding
-from daq.recorder import read_mcap
-from drivers.interface import Sample
-from identify.preprocess import prepare
-from identify.recordings import read_recording
-from identify.robot_file import load_robot
 
 ROOT = Path(__file__).resolve().parent.parent
 HELPERS = Path(__file__).resolve().parent / "helpers"
@@ -139,10 +139,10 @@ def test_watch_shows_the_live_stream_with_rate_gaps_and_alive_components(tmp_pat
     import threading
 
     import zenoh
+    from armid.daq.stream import session_config
     from rich.console import Console
 
     from armid.watch import watch
-    from daq.stream import session_config
 
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
     console = Console(file=io.StringIO(), width=120, force_terminal=False)
@@ -163,8 +163,8 @@ def test_watch_shows_the_live_stream_with_rate_gaps_and_alive_components(tmp_pat
 
 
 def test_the_raw_can_log_holds_every_frame_and_replays_into_the_same_records(tmp_path: Path) -> None:
-    from daq.canlog import replay_log
-    from drivers.rig import load_rig
+    from armid.daq.canlog import replay_log
+    from armid.drivers.rig import load_rig
 
     rig = load_rig(ROOT / "config/rigs/sim.yaml")
     code = main(["record", "--rig", str(ROOT / "config/rigs/sim.yaml"), "--channel", f"armid-rec-{uuid.uuid4().hex[:6]}",
@@ -199,7 +199,7 @@ def test_the_raw_can_log_holds_every_frame_and_replays_into_the_same_records(tmp
 def test_drive_velocity_carried_every_second_cycle_is_interpolated_not_dropped(tmp_path: Path) -> None:
     """The alternate_velocity plan: velocity is fresh on even cycles and held on odd ones; a
     recording must interpolate the fresh ones, not differentiate positions instead."""
-    from daq.recorder import McapRecorder
+    from armid.daq.recorder import McapRecorder
 
     robot = load_robot(ROOT / "config" / "robots" / "planar2.yaml")
     period = 0.002

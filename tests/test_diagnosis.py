@@ -8,14 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from identify.diagnosis import diagnose
-from identify.preprocess import PrepareOptions, prepare
-from identify.robot import DeclaredEffect, Robot
-from identify.robot_file import load_robot
-from identify.trajectories import random_fourier_trajectory
-from sim_bus.offline import simulate
-from sim_bus.physics import JointEffects, SimulationConfig
+from armid.identify.diagnosis import diagnose
+from armid.identify.preprocess import PrepareOptions, prepare
+from armid.identify.robot import DeclaredEffect, Robot
+from armid.identify.robot_file import load_robot
+from armid.identify.trajectories import random_fourier_trajectory
+from armid.sim_bus.offline import simulate
+from armid.sim_bus.physics import JointEffects, SimulationConfig
 
 ROOT = Path(__file__).resolve().parent.parent
 PUMA = load_robot(ROOT / "config" / "robots" / "puma560.yaml")

@@ -12,18 +12,17 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
-
-from daq.acquisition import Acquisition, Sink
-from daq.control import ComputedTorque
-from daq.recorder import McapRecorder
-from drivers import dynamixel_protocol as dxl
-from drivers.canopen_driver import CanopenDriver
-from drivers.dynamixel_driver import DynamixelDriver, ServoLost
-from drivers.interface import DriveConfigError, DriveFault, DriverError
-from drivers.rig import RigFileError, load_rig, rig_from_dict
-from identify.recordings import read_recording
-from sim_bus.arm import SimulatedArm
-from sim_bus.servo_chain import ServoChainProcess
+from armid.daq.acquisition import Acquisition, Sink
+from armid.daq.control import ComputedTorque
+from armid.daq.recorder import McapRecorder
+from armid.drivers import dynamixel_protocol as dxl
+from armid.drivers.canopen_driver import CanopenDriver
+from armid.drivers.dynamixel_driver import DynamixelDriver, ServoLost
+from armid.drivers.interface import DriveConfigError, DriveFault, DriverError
+from armid.drivers.rig import RigFileError, load_rig, rig_from_dict
+from armid.identify.recordings import read_recording
+from armid.sim_bus.arm import SimulatedArm
+from armid.sim_bus.servo_chain import ServoChainProcess
 
 ROOT = Path(__file__).resolve().parent.parent
 DXL_RIG = ROOT / "config" / "rigs" / "sim_dynamixel.yaml"

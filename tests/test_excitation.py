@@ -9,19 +9,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from armid.daq.excite import ExcitationSession
+from armid.drivers.rig import load_rig
+from armid.identify import excitation as ex
+from armid.identify.identification import IdentifyOptions, identify
+from armid.identify.preprocess import PrepareOptions, prepare
+from armid.identify.recordings import Recording, read_mcap_arrays
+from armid.identify.robot_file import load_robot
+from armid.identify.single_link import single_link_sequence
+from armid.sim_bus.offline import simulate
+from armid.sim_bus.physics import simulation_config
 
 from armid.cli import main
 from armid.demo import true_parameters
-from daq.excite import ExcitationSession
-from drivers.rig import load_rig
-from identify import excitation as ex
-from identify.identification import IdentifyOptions, identify
-from identify.preprocess import PrepareOptions, prepare
-from identify.recordings import Recording, read_mcap_arrays
-from identify.robot_file import load_robot
-from identify.single_link import single_link_sequence
-from sim_bus.offline import simulate
-from sim_bus.physics import simulation_config
 
 ROOT = Path(__file__).resolve().parent.parent
 RIG = ROOT / "config" / "rigs" / "sim.yaml"

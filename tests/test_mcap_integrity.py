@@ -17,13 +17,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from armid.daq.record_format import JointStateRecord
+from armid.daq.recorder import McapRecorder
+from armid.drivers.interface import Sample
+from armid.identify.recordings import _McapScan, read_mcap_arrays, read_recording
+from armid.identify.robot_file import load_robot
 
 from armid.cli import main
-from daq.record_format import JointStateRecord
-from daq.recorder import McapRecorder
-from drivers.interface import Sample
-from identify.recordings import _McapScan, read_mcap_arrays, read_recording
-from identify.robot_file import load_robot
 
 ROOT = Path(__file__).resolve().parent.parent
 PUMA = ROOT / "config" / "robots" / "puma560.yaml"

@@ -17,17 +17,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from armid.cli import main
-from armid.demo import true_parameters
-from daq.excite import ExcitationSession
-from daq.payload_service import EstimateStream, PayloadService, wait_for
-from daq.stream import Stream, session_config
-from drivers.rig import load_rig
-from identify import excitation as ex
-from identify.differentiation import five_point_derivative
-from identify.identification import declared_effects, stacked_regressor, structural_base
-from identify.payload import (
+from armid.daq.excite import ExcitationSession
+from armid.daq.payload_service import EstimateStream, PayloadService, wait_for
+from armid.daq.stream import Stream, session_config
+from armid.drivers.rig import load_rig
+from armid.identify import excitation as ex
+from armid.identify.differentiation import five_point_derivative
+from armid.identify.identification import declared_effects, stacked_regressor, structural_base
+from armid.identify.payload import (
     ArmModel,
     PayloadRLS,
     ReferenceRun,
@@ -38,9 +35,12 @@ from identify.payload import (
     rls_update,
     slope_on_times,
 )
-from identify.recordings import read_mcap_arrays
-from sim_bus.offline import simulate
-from sim_bus.physics import Payload, simulation_config
+from armid.identify.recordings import read_mcap_arrays
+from armid.sim_bus.offline import simulate
+from armid.sim_bus.physics import Payload, simulation_config
+
+from armid.cli import main
+from armid.demo import true_parameters
 
 ROOT = Path(__file__).resolve().parent.parent
 RIG = ROOT / "config" / "rigs" / "sim.yaml"
@@ -410,8 +410,8 @@ def robustness_runs(gain: bool = True, offset: bool = True, load: bool = True) -
     arm with the model errors; then the same trajectory with 2 kg attached 3 s in, estimated
     alone and against an unloaded run of it (reference mode). Returns the published documents
     and the attach time."""
-    from identify.identification import IdentifyOptions, identify
-    from identify.preprocess import prepare
+    from armid.identify.identification import IdentifyOptions, identify
+    from armid.identify.preprocess import prepare
 
     arm0, plan, cfg0 = _arm_and_design()
     cfg = _with_errors(cfg0, gain, offset, load)

@@ -11,9 +11,8 @@ import threading
 import time
 
 import zenoh
-
-from daq.record_format import JointStateRecord
-from daq.stream import key, session_config
+from armid.daq.record_format import JointStateRecord
+from armid.daq.stream import key, session_config
 
 robot, endpoint, out, seconds = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4])
 rows: list[tuple[int, float]] = []

@@ -4,10 +4,9 @@ import sys
 import time
 
 import numpy as np
-
-from daq.record_format import JointStateRecord
-from daq.recorder import McapRecorder
-from drivers.interface import Sample
+from armid.daq.record_format import JointStateRecord
+from armid.daq.recorder import McapRecorder
+from armid.drivers.interface import Sample
 
 rec = McapRecorder(sys.argv[1], [f"j{k + 1}" for k in range(6)], np.ones(6), {"robot": "synthetic"})
 k = 0

@@ -11,9 +11,8 @@ import threading
 import time
 
 import zenoh
-
-from daq.record_format import JointStateRecord, check_encoding
-from daq.stream import key, session_config
+from armid.daq.record_format import JointStateRecord, check_encoding
+from armid.daq.stream import key, session_config
 
 robot, endpoint, out, seconds = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4])
 slow = float(sys.argv[5]) if len(sys.argv) > 5 else 0.0
