@@ -14,8 +14,8 @@ import time
 from collections import deque
 from typing import Any
 
-from armid.daq.record_format import JointStateRecord, check_encoding
 from armid.daq.stream import key
+from armid.schema.joint_state import JointStateRecord, check_encoding
 
 
 class WatchState:

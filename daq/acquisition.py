@@ -18,9 +18,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from armid.drivers.interface import DriveFault, Driver, DriverError
 
-from .record_format import JointStateRecord
+from armid.drivers.interface import DriveFault, Driver, DriverError
+from armid.schema.joint_state import JointStateRecord
 
 Handler = Callable[[JointStateRecord], None]
 

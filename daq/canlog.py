@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import can
+
 from armid.drivers.interface import Sample
 
 

@@ -26,8 +26,9 @@ from dataclasses import dataclass, field
 import can
 import canopen
 import numpy as np
-from armid.identify.spatial import Array
 from canopen.sdo import SdoAbortedError, SdoCommunicationError, SdoVariable
+
+from armid.schema import Array
 
 from ..resources import config_file
 from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverError, HeartbeatLost, Sample

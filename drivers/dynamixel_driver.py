@@ -31,20 +31,18 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-from armid.identify.spatial import Array
+
+from armid.schema import Array
+from armid.schema.errors import ServoLost  # noqa: F401  (re-exported)
 
 from . import dynamixel_protocol as dxl
 from .dynamixel_protocol import Address, ProtocolError, ReplyTimeout, StatusError
-from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverError, HeartbeatLost, Sample
+from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverError, Sample
 from .rig import Rig
 
 REBOOT_WAIT_S = 1.0  # a rebooting servo answers a ping again within this
 ONE_OFF_TIMEOUT_S = 0.02  # a one-off transaction's reply timeout, at least
 ONE_OFF_ATTEMPTS = 3
-
-
-class ServoLost(HeartbeatLost):
-    """A servo has not answered for ``silent_cycles`` cycles in a row."""
 
 
 class DynamixelDriver(Driver):

@@ -11,6 +11,7 @@ import sys
 import threading
 
 import zenoh
+
 from armid.daq.stream import key, session_config
 
 robot, endpoint, out, seconds = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4])

@@ -11,8 +11,9 @@ import threading
 import time
 
 import zenoh
-from armid.daq.record_format import JointStateRecord
+
 from armid.daq.stream import key, session_config
+from armid.schema.joint_state import JointStateRecord
 
 robot, endpoint, out, seconds = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4])
 rows: list[tuple[int, float]] = []
