@@ -79,7 +79,7 @@ def run(seconds: float, period_s: float) -> dict[str, float]:
     session = zenoh.open(session_config(connect=[endpoint]))
     try:
         driver.start()
-        recorder = McapRecorder(tmp / "run.mcap", [j.name for j in rig.robot.joints], driver.torque_constants, {"robot": rig.robot.name})
+        recorder = McapRecorder(tmp / "run.mcap", [j.name for j in rig.robot.joints], {"robot": rig.robot.name})
         log = BusLog(driver, tmp / "can.log")
         stream = Stream(session, rig.robot.name, "bench", lambda: {})
         acq = Acquisition(driver, [Sink("recorder", recorder.write, bounded=False), Sink("zenoh", stream.publish, capacity=5000)])

@@ -18,11 +18,12 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from armid.daq.payload_service import EstimateStream
-from armid.drivers.rig import load_rig
 from armid.identify import excitation as ex
 from armid.identify.identification import declared_effects, structural_base
 from armid.identify.payload import ArmModel, PayloadRLS
+from armid.io.rig_file import load_rig
 from armid.sim_bus.offline import simulate
 from armid.sim_bus.physics import Payload, simulation_config
 
@@ -43,17 +44,16 @@ def main(seconds: float = 20.0) -> None:
     plan = ex.plan(d, np.asarray(rig.simulation["initial_position"], float), ex.Limits.of(robot), periods=max(1, int(seconds / 5)))
     run = simulate(robot, simulation_config(rig.simulation, 6), plan.evaluate, plan.duration_s,
                    payloads=[(plan.duration_s / 2, Payload(2.0, (0.02, -0.03, 0.08)))])
-    records = [(k, float(run.t[k]), np.ones(6, bool), run.position[k], run.current[k]) for k in range(run.t.size)]
-    kt = np.array([j.torque_constant for j in robot.joints])
+    records = [(k, float(run.t[k]), np.ones(6, bool), run.position[k], run.torque[k]) for k in range(run.t.size)]
     duration = run.t[-1] - run.t[0]
 
-    EstimateStream(PayloadRLS(arm), kt).feed(records[:200])  # first-call costs out of the way (nothing is compiled)
-    stream = EstimateStream(PayloadRLS(arm), kt)
+    EstimateStream(PayloadRLS(arm)).feed(records[:200])  # first-call costs out of the way (nothing is compiled)
+    stream = EstimateStream(PayloadRLS(arm))
     start = time.perf_counter()
     docs = stream.feed(records)
     replay_s = time.perf_counter() - start
 
-    one = EstimateStream(PayloadRLS(arm), kt)
+    one = EstimateStream(PayloadRLS(arm))
     start = time.perf_counter()
     for r in records:
         one.feed([r])

@@ -16,12 +16,13 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from armid.daq.payload_service import EstimateStream
-from armid.drivers.rig import load_rig
 from armid.identify import excitation as ex
 from armid.identify.identification import IdentifyOptions, identify
 from armid.identify.payload import ArmModel, PayloadRLS, ReferenceRun
 from armid.identify.preprocess import prepare
+from armid.io.rig_file import load_rig
 from armid.sim_bus.offline import simulate
 from armid.sim_bus.physics import Payload, simulation_config
 
@@ -58,7 +59,7 @@ for label, kw in [("none", dict(gain=False, offset=False, load=False)), ("gain",
     unloaded = simulate(robot, cfg, plan.evaluate, plan.duration_s, seed=10)
     for ref in (None, ReferenceRun(arm, unloaded.t, unloaded.position, unloaded.torque)):
         est = PayloadRLS(arm, reference=ref)
-        st = EstimateStream(est, np.ones(6))
+        st = EstimateStream(est)
         docs = st.feed((k, float(loaded.t[k]), np.ones(6, bool), loaded.position[k], loaded.torque[k]) for k in range(loaded.t.size))
         tt = np.array([x['record_time'] for x in docs])
         neg = sum(1 for x in docs if x['mass'] is not None and x['mass'] < 0)

@@ -10,9 +10,10 @@ the reference pose (rotor inertias included when given): stiff enough to track, 
 from __future__ import annotations
 
 import numpy as np
-from armid.identify.pinocchio_bridge import to_pinocchio
-from armid.identify.robot import Robot
-from armid.identify.spatial import Array
+
+from .pinocchio_bridge import to_pinocchio
+from .robot import Robot
+from .spatial import Array
 
 
 class ComputedTorque:

@@ -19,6 +19,7 @@ from typing import Any
 import can
 import canopen
 import numpy as np
+
 from armid.drivers.rig import Rig, open_bus
 
 from .drive import SimulatedDrive

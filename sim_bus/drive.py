@@ -21,9 +21,9 @@ from typing import TYPE_CHECKING
 
 import canopen
 import numpy as np
-from armid.drivers.rig import DriveUnits
 from canopen.objectdictionary import ODVariable
 
+from armid.drivers.rig import DriveUnits
 from armid.resources import config_file
 
 if TYPE_CHECKING:

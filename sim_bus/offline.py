@@ -12,11 +12,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from armid.daq.control import ComputedTorque
+
 from armid.drivers.rig import DriveUnits
+from armid.identify.control import ComputedTorque
 from armid.identify.recordings import Recording
 from armid.identify.robot import Robot
-from armid.identify.spatial import Array
+from armid.schema import Array
 
 from .physics import ArmPhysics, Payload, SimulationConfig
 

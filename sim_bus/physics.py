@@ -24,9 +24,10 @@ from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
+
 from armid.identify.pinocchio_bridge import to_pinocchio
 from armid.identify.robot import Robot
-from armid.identify.spatial import Array
+from armid.schema import Array
 
 EFFECT_FIELDS = ("coulomb", "viscous", "stribeck", "stribeck_velocity", "rotor_inertia", "torque_gain", "cogging",
                  "cogging_period", "cogging_phase", "spring", "spring_rest", "offset", "delay_s", "load_friction")

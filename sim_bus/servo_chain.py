@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
 from armid.drivers import dynamixel_protocol as dxl
 from armid.drivers.dynamixel_protocol import ALERT, Address, Instruction
 from armid.drivers.rig import Rig
@@ -429,8 +430,7 @@ def serve(rig_file: str, seed: int | None = None) -> None:
     import json
     import sys
 
-    from armid.drivers.rig import load_rig
-
+    from armid.io.rig_file import load_rig
     def say(doc: dict[str, Any]) -> None:
         sys.stdout.write(json.dumps(doc) + "\n")
         sys.stdout.flush()

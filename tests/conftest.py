@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from armid.identify.robot import Inertial, Joint, JointLimits, JointType, Robot, dh_joint, inertia_entries, mdh_joint
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -14,11 +14,13 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
-from armid.daq.control import ComputedTorque
+
 from armid.drivers.canopen_driver import CanopenDriver
 from armid.drivers.interface import DriveConfigError, DriveFault, HeartbeatLost
 from armid.drivers.pdo_plan import BusBudgetError, bus_load, check_bus_budget, frame_bits
-from armid.drivers.rig import RigFileError, load_rig, rig_from_dict
+from armid.identify.control import ComputedTorque
+from armid.io.rig_file import load_rig, rig_from_dict
+from armid.schema.errors import RigFileError
 from armid.sim_bus.arm import SimulatedArm
 from armid.sim_bus.drive import EMCY_POSITION_LIMIT, State, next_state
 

@@ -8,11 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from armid.identify.diagnosis import diagnose
 from armid.identify.preprocess import PrepareOptions, prepare
 from armid.identify.robot import DeclaredEffect, Robot
-from armid.identify.robot_file import load_robot
 from armid.identify.trajectories import random_fourier_trajectory
+from armid.io.robot_file import load_robot
 from armid.sim_bus.offline import simulate
 from armid.sim_bus.physics import JointEffects, SimulationConfig
 

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import ROBOTS
+
 from armid.identify.differentiation import five_point_derivative
 from armid.identify.errors import RecordingError
 from armid.identify.filtering import lowpass
 from armid.identify.preprocess import PrepareOptions, prepare
-from armid.identify.recordings import Recording, read_recording, write_csv
-from armid.identify.robot_file import load_robot
-from conftest import ROBOTS
+from armid.io.recordings import Recording, read_recording, write_csv
+from armid.io.robot_file import load_robot
 
 
 def test_five_point_filter_is_exact_on_parabolas():  # type: ignore[no-untyped-def]

@@ -5,11 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 import pytest
+from conftest import ROBOTS, random_motion, random_robot
+
 from armid.identify import dynamics as dyn
 from armid.identify.pinocchio_bridge import KHOSLA_TO_PINOCCHIO_ORDER, parameter_map, to_pinocchio
 from armid.identify.robot import Inertial, change_link_frame, inertial_from_parameters, link_parameters
-from armid.identify.robot_file import load_robot
-from conftest import ROBOTS, random_motion, random_robot
+from armid.io.robot_file import load_robot
 
 
 def _pin_reference(robot, q, qd, qdd):  # type: ignore[no-untyped-def]

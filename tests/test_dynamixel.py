@@ -12,15 +12,17 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
+
 from armid.daq.acquisition import Acquisition, Sink
-from armid.daq.control import ComputedTorque
 from armid.daq.recorder import McapRecorder
 from armid.drivers import dynamixel_protocol as dxl
 from armid.drivers.canopen_driver import CanopenDriver
 from armid.drivers.dynamixel_driver import DynamixelDriver, ServoLost
 from armid.drivers.interface import DriveConfigError, DriveFault, DriverError
-from armid.drivers.rig import RigFileError, load_rig, rig_from_dict
-from armid.identify.recordings import read_recording
+from armid.identify.control import ComputedTorque
+from armid.io.recordings import read_recording
+from armid.io.rig_file import load_rig, rig_from_dict
+from armid.schema.errors import RigFileError
 from armid.sim_bus.arm import SimulatedArm
 from armid.sim_bus.servo_chain import ServoChainProcess
 
@@ -302,7 +304,7 @@ def _acquire(driver: object, rig: object, path: Path) -> tuple[list, np.ndarray]
     """The DAQ as `armid record` runs it: acquisition thread, inline control law, MCAP sink."""
     robot = rig.robot  # type: ignore[attr-defined]
     records: list = []  # type: ignore[type-arg]
-    recorder = McapRecorder(path, [j.name for j in robot.joints], driver.torque_constants, {"robot": robot.name})  # type: ignore[attr-defined]
+    recorder = McapRecorder(path, [j.name for j in robot.joints], {"robot": robot.name})  # type: ignore[attr-defined]
     q_ref: list[np.ndarray] = []
     control = ComputedTorque(robot, bandwidth_hz=3.0, q_nominal=np.asarray(rig.simulation["initial_position"]))  # type: ignore[attr-defined]
 

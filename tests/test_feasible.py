@@ -14,6 +14,9 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 import pytest
+from conftest import ROBOTS, SHARED, random_robot
+
+from armid.cli import main
 from armid.identify.effects import effect_columns
 from armid.identify.feasible import (
     check_link,
@@ -27,11 +30,8 @@ from armid.identify.identification import identify
 from armid.identify.pinocchio_bridge import to_pinocchio
 from armid.identify.preprocess import Prepared, Segment
 from armid.identify.robot import DeclaredEffect, Inertial, Robot, inertia_entries, link_parameters
-from armid.identify.robot_file import load_robot
 from armid.identify.trajectories import random_fourier_trajectory
-from conftest import ROBOTS, SHARED, random_robot
-
-from armid.cli import main
+from armid.io.robot_file import load_robot
 from armid.urdf_export import write_urdf
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -252,7 +252,7 @@ def test_kuka_lwr4_feasible() -> None:
     regulariser) gives the same 10.8 %, so no physically consistent rigid body of this model
     does better in the data's metric. Bound here: what was measured, as a regression guard."""
     from armid.identify.preprocess import prepare
-    from armid.identify.recordings import read_recording
+    from armid.io.recordings import read_recording
 
     robot = load_robot(ROBOTS / "kuka_lwr4.yaml")
     data = SHARED / "data/kuka_lwr4"
@@ -276,7 +276,7 @@ def test_bad_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str
     bad.write_text(text[:cut] + text[cut:].split("\n", 1)[1])
     robot = load_robot(bad)
     data = tmp_path / "d.csv"
-    from armid.identify.recordings import write_csv
+    from armid.io.recordings import write_csv
 
     seg = _robot_data(load_robot(ROBOTS / "planar2.yaml"), 400, 3).segments[0]
     write_csv(data, seg.t, {"q": seg.q, "qd": seg.qd, "qdd": seg.qdd, "tau": seg.tau})
@@ -292,7 +292,7 @@ def test_diagnose_feasible_takes_linear_findings(tmp_path: Path) -> None:
     """``diagnose --feasible``: friction the robot file does not declare is found, joins the
     feasible model as a signed effect, and the feasible model is physical; its held-out
     error is that of a model with the friction, not the declared one's."""
-    from armid.identify.recordings import write_csv
+    from armid.io.recordings import write_csv
 
     robot = load_robot(ROBOTS / "planar2.yaml")
     paths = []
@@ -320,6 +320,7 @@ def test_demo_rig_data_feasible_within_ten_percent() -> None:
     rotor inertia, drive quantisation, current noise, a current loop), tracked by the drives'
     controller, velocity from the encoders, acceleration from the 5-point filter."""
     import yaml
+
     from armid.identify.preprocess import prepare
     from armid.sim_bus.offline import simulate
     from armid.sim_bus.physics import simulation_config

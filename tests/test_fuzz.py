@@ -242,8 +242,8 @@ def test_bad_mcap(case: str, tmp_path: Path, capsys: pytest.CaptureFixture[str])
 def _read_as_identify_does(path: Path) -> Any:
     """What ``armid identify`` does before preprocessing: read, then the plausibility checks."""
     from armid.identify.plausibility import check_recording
-    from armid.identify.recordings import read_recording
-    from armid.identify.robot_file import load_robot
+    from armid.io.recordings import read_recording
+    from armid.io.robot_file import load_robot
 
     rec = read_recording(path, load_robot(PUMA))
     assert check_recording(rec.t, rec.q, rec.qd, rec.tau, rec.source) == []
@@ -344,7 +344,7 @@ def test_bad_robot(case: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 
 
 def test_urdf_robot_repeating_its_urdf_is_accepted(tmp_path: Path) -> None:
-    from armid.identify.robot_file import load_robot
+    from armid.io.robot_file import load_robot
 
     same = load_robot(_ur5(tmp_path / "same.yaml", "revolute"))
     assert [j.type.value for j in same.joints] == ["revolute"] * 6
@@ -352,7 +352,7 @@ def test_urdf_robot_repeating_its_urdf_is_accepted(tmp_path: Path) -> None:
 
 def test_triangle_violating_inertia_is_a_warning(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from armid.identify.errors import ImplausibleDataWarning
-    from armid.identify.robot_file import load_robot
+    from armid.io.robot_file import load_robot
 
     with pytest.warns(ImplausibleDataWarning, match=r"joints\[2\]\.inertial\.inertia: .* break the triangle inequality"):
         load_robot(PUMA)  # the published PUMA 560 values (links 1 and 3)
@@ -428,8 +428,7 @@ def test_unknown_interface_override(command: str, tmp_path: Path, capsys: pytest
 
 
 def test_unbroken_rig_loads(tmp_path: Path) -> None:
-    from armid.drivers.rig import load_rig
-
+    from armid.io.rig_file import load_rig
     assert load_rig(_rig(tmp_path / "rig.yaml", lambda d: None)).n_joints == 6
 
 

@@ -6,12 +6,13 @@ import warnings
 
 import numpy as np
 import pytest
+from conftest import ROBOTS
+
 from armid.identify.errors import PoorExcitationWarning
 from armid.identify.identifiability import excitation
 from armid.identify.identification import structural_base
 from armid.identify.robot import Robot
-from armid.identify.robot_file import load_robot
-from conftest import ROBOTS
+from armid.io.robot_file import load_robot
 
 
 def _classes(base):  # type: ignore[no-untyped-def]

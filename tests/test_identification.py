@@ -9,14 +9,14 @@ import sys
 import numpy as np
 import pinocchio as pin
 import pytest
-from armid.identify.errors import RobotFileError
-from armid.identify.pinocchio_bridge import to_pinocchio
-from armid.identify.recordings import write_csv
-from armid.identify.robot_file import load_robot
-from armid.identify.trajectories import random_fourier_trajectory
 from conftest import ROBOTS, SHARED
 
 from armid.cli import main
+from armid.identify.errors import RobotFileError
+from armid.identify.pinocchio_bridge import to_pinocchio
+from armid.identify.trajectories import random_fourier_trajectory
+from armid.io.recordings import write_csv
+from armid.io.robot_file import load_robot
 
 
 def _simulate(robot_file, path, seed, noise=0.0, with_qdd=True, duration=8.0):  # type: ignore[no-untyped-def]

@@ -20,9 +20,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from armid.daq.stream import session_config
 
 from armid.cli import main
+from armid.daq.stream import session_config
 
 ROOT = Path(__file__).resolve().parent.parent
 LAB = ROOT / "config" / "zenoh" / "lab.json5"

@@ -12,9 +12,8 @@ import sys
 import uuid
 from pathlib import Path
 
-from armid.drivers.rig import load_rig
-
 from armid.demo import DEFAULT_RIG, run_payload
+from armid.io.rig_file import load_rig
 
 
 def main() -> None:
