@@ -145,7 +145,7 @@ def _read_checked(path: str, robot: Any) -> Any:
     """``read_recording`` and the plausibility checks (time units, torque); their warnings are held
     until every input is read."""
     from armid.identify.plausibility import check_recording
-    from armid.identify.recordings import read_recording
+    from armid.io.recordings import read_recording
 
     rec = read_recording(path, robot)
     for warning in check_recording(rec.t, rec.q, rec.qd, rec.tau, rec.source):
@@ -156,8 +156,8 @@ def _read_checked(path: str, robot: Any) -> Any:
 def _identify(args: argparse.Namespace) -> int:
     from armid.identify.identification import IdentifyOptions, identify
     from armid.identify.preprocess import PrepareOptions, prepare
-    from armid.identify.recordings import write_csv
-    from armid.identify.robot_file import load_robot
+    from armid.io.recordings import write_csv
+    from armid.io.robot_file import load_robot
 
     robot = load_robot(args.robot)
     options = PrepareOptions(max_gap_factor=args.max_gap_factor, lowpass_hz=args.lowpass)
@@ -227,8 +227,8 @@ def _feasible(args: argparse.Namespace, robot: Any, result: Any, validation: lis
 def _diagnose(args: argparse.Namespace) -> int:
     from armid.identify.diagnosis import diagnose
     from armid.identify.preprocess import PrepareOptions, prepare
-    from armid.identify.recordings import write_csv
-    from armid.identify.robot_file import load_robot
+    from armid.io.recordings import write_csv
+    from armid.io.robot_file import load_robot
 
     robot = load_robot(args.robot)
     options = PrepareOptions(max_gap_factor=args.max_gap_factor, lowpass_hz=args.lowpass, torque_hold=args.torque_hold)
@@ -306,7 +306,6 @@ def _diagnosed_feasible(args: argparse.Namespace, robot: Any, diag: Any, experim
 
 def _record(args: argparse.Namespace) -> int:
     import platform
-    import signal
     import threading
     import time
 
@@ -314,8 +313,7 @@ def _record(args: argparse.Namespace) -> int:
 
     from armid.daq.acquisition import Acquisition, Sink
     from armid.daq.recorder import McapRecorder
-    from armid.drivers.rig import load_rig, open_bus
-
+    from armid.io.rig_file import load_rig
     rig = load_rig(args.rig)
     changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
     if changes and not rig.is_serial:
@@ -323,35 +321,12 @@ def _record(args: argparse.Namespace) -> int:
     _inputs_read()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    driver: Any
-    arm = chain = None
-    if rig.serial is not None:  # a Dynamixel chain: 'port: sim' is the simulated chain on a pty
-        from armid.drivers.dynamixel_driver import DynamixelDriver
-
-        port = args.channel or rig.serial.port
-        simulate = port == "sim" if args.simulate is None else args.simulate
-        if simulate:
-            from armid.sim_bus.servo_chain import ServoChainProcess
-
-            chain = ServoChainProcess(args.rig)
-            port = chain.port
-        driver = DynamixelDriver(rig, port=port)
-    else:
-        from armid.drivers.canopen_driver import CanopenDriver
-
-        simulate = args.simulate if args.simulate is not None else rig.bus.interface == "virtual"
-        if simulate:
-            from armid.sim_bus.arm import SimulatedArm
-
-            arm = SimulatedArm(rig, bus=open_bus(**rig.bus.kwargs()))
-        driver = CanopenDriver(rig)
-        # an arm simulated in this process never runs ahead of what records it (SYNC waits for
-        # the consumer); --duration is then the arm's time, whatever the wall clock does
-        driver.paced_by_consumer = simulate
-    paced = simulate and not rig.is_serial
+    driver, sim = _open_driver(rig, args)
+    # an arm simulated in this process never runs ahead of what records it (SYNC waits for
+    # the consumer); --duration is then the arm's time, whatever the wall clock does
+    paced = driver.paced_by_consumer
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    restore = _stop_on_signals(stop)
     session = stream = None
     can_log = None
     try:
@@ -368,7 +343,7 @@ def _record(args: argparse.Namespace) -> int:
             "drives": driver.drive_configuration, "excitation": "none (armid record)",
             "versions": {"armid": __version__, "python": platform.python_version(), "python-can": can.__version__},
         }
-        recorder = McapRecorder(out / "run.mcap", [j.name for j in rig.robot.joints], driver.torque_constants, metadata)
+        recorder = McapRecorder(out / "run.mcap", [j.name for j in rig.robot.joints], metadata)
         sinks = [Sink("recorder", recorder.write, bounded=False)]
         if not args.no_zenoh:
             from armid.daq.stream import Stream
@@ -404,10 +379,46 @@ def _record(args: argparse.Namespace) -> int:
             stream.close()
         if session is not None:
             session.close()
-        if arm is not None:
-            arm.close()
-        if chain is not None:
-            chain.close()
+        if sim is not None:
+            sim.close()
+        restore()
+
+
+def _simulating(rig: Any, args: argparse.Namespace) -> bool:
+    """``--simulate``/``--no-simulate``, else: a serial rig on ``port: sim``, a CAN rig on ``virtual``."""
+    if args.simulate is not None:
+        return bool(args.simulate)
+    if rig.serial is not None:
+        return (getattr(args, "channel", None) or rig.serial.port) == "sim"
+    return bool(rig.bus.interface == "virtual")
+
+
+def _open_driver(rig: Any, args: argparse.Namespace) -> tuple[Any, Any]:
+    """The rig's driver (the registry names it), on the simulated hardware when simulating: (driver, simulator or None)."""
+    from armid.drivers import open_driver
+
+    if _simulating(rig, args):
+        from .simulated import simulated_driver
+
+        return simulated_driver(rig)
+    kwargs = {"port": args.channel} if rig.serial is not None and getattr(args, "channel", None) else {}
+    return open_driver(rig, **kwargs), None
+
+
+def _stop_on_signals(stop: Any) -> Any:
+    """SIGINT and SIGTERM set ``stop`` until the returned function puts the previous handlers back."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    def restore() -> None:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+    return restore
 
 
 def _excite(args: argparse.Namespace) -> int:
@@ -416,14 +427,14 @@ def _excite(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     from armid.daq.excite import ExcitationSession
-    from armid.drivers.rig import load_rig
     from armid.identify import excitation as ex
+    from armid.io.rig_file import load_rig
 
     from .experiments import Experiment, design_experiments, run_experiments
 
     rig = load_rig(args.rig)
     changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
-    if changes:
+    if changes and not rig.is_serial:
         rig = rig.with_bus(**changes)
     robot = rig.robot
     n = robot.n_joints
@@ -431,7 +442,7 @@ def _excite(args: argparse.Namespace) -> int:
         raise OptionError("--frequency", f"{args.frequency:g} Hz is not below the {0.5 / rig.period_s:g} Hz Nyquist frequency "
                                          f"of {rig.source}'s {rig.period_s:g} s period")
     console = Console(stderr=True)
-    simulate = args.simulate if args.simulate is not None else rig.bus.interface == "virtual"
+    simulate = _simulating(rig, args)
     links: list[int] = []
     for spec in args.link or []:
         if spec == "all":
@@ -449,7 +460,8 @@ def _excite(args: argparse.Namespace) -> int:
     out = Path(args.out or f"runs/{time.strftime('%Y%m%d-%H%M%S')}")
     # the pose the arm will be at: the rig's (simulated) start, or the drives' own report
     start = np.asarray(rig.simulation.get("initial_position", np.zeros(n)), float) if simulate else None
-    with ExcitationSession(rig, simulate=simulate, tracking_limit_rad=args.tracking_limit) as session:
+    driver, sim = _open_driver(rig, args)
+    with ExcitationSession(rig, driver, simulator=sim, tracking_limit_rad=args.tracking_limit) as session:
         if start is None or np.abs(start - session.position).max() > 0.02:
             start = session.position
         if trajectory is not None:
@@ -555,9 +567,10 @@ def load_trajectory(path: str | Path, n_joints: int, period_s: float) -> tuple[A
 
 
 def _replay_records(path: Path, robot: Any, kt: np.ndarray, period_s: float | None) -> tuple[list[tuple[Any, ...]], list[str]]:
-    """(sequence, time, valid, position, current) of a recording (MCAP or CSV), in order, on
-    the recording's own time stamps; time must increase (a CSV names its line)."""
-    from armid.identify.recordings import read_mcap_arrays, read_recording
+    """(sequence, time, valid, position, torque) of a recording (MCAP or CSV), in order, on
+    the recording's own time stamps; time must increase (a CSV names its line). A ROS 2
+    recording carries the torque; a JSON one (before it) its measured current times ``kt``."""
+    from armid.io.recordings import read_mcap_arrays, read_recording
 
     if path.suffix.lower() == ".mcap":
         if not path.exists():
@@ -568,7 +581,8 @@ def _replay_records(path: Path, robot: Any, kt: np.ndarray, period_s: float | No
         if a["position"].shape[1] != robot.n_joints:
             raise RecordingError(str(path), f"{a['position'].shape[1]} joints recorded, robot {robot.name} has {robot.n_joints}")
         t = np.asarray(a["t"], float)
-        records = list(zip(a["sequence"].tolist(), t.tolist(), a["valid"], a["position"], a["measured_current"]))
+        torque = a["torque"] if "torque" in a else a["measured_current"] * kt
+        records = list(zip(a["sequence"].tolist(), t.tolist(), a["valid"], a["position"], torque))
     else:
         rec = read_recording(path, robot)
         notes, t = list(rec.notes), np.asarray(rec.t, float)
@@ -578,7 +592,7 @@ def _replay_records(path: Path, robot: Any, kt: np.ndarray, period_s: float | No
             raise RecordingError(str(path), f"line {k + 2}: time {t[k]:.6g} s is not after the line before ({t[k - 1]:.6g} s): "
                                             "time must increase (a reversed or shuffled log?)")
         ones = np.ones(robot.n_joints, bool)
-        records = [(k, float(t[k]), ones, rec.q[k], rec.tau[k] / kt) for k in range(rec.n_samples)]
+        records = [(k, float(t[k]), ones, rec.q[k], rec.tau[k]) for k in range(rec.n_samples)]
     if t.size >= 2 and period_s is not None:
         step = float(np.median(np.diff(t)))
         if abs(step - period_s) > 0.1 * period_s:
@@ -637,7 +651,7 @@ def _estimate(args: argparse.Namespace) -> int:
 
     from armid.daq.payload_service import EstimateStream
     from armid.identify.payload import PayloadRLS, ReferenceRun, arm_model_from_identification
-    from armid.identify.robot_file import load_robot
+    from armid.io.robot_file import load_robot
 
     if not args.replay and args.mode != "live":
         raise UsageError("say what to run on: 'live' (the Zenoh stream) or --replay DATA")
@@ -661,11 +675,11 @@ def _estimate(args: argparse.Namespace) -> int:
         keep = [r for r in ref_records if np.all(r[2])]
         try:
             reference = ReferenceRun(arm, np.array([r[1] for r in keep]), np.array([r[3] for r in keep]),
-                                     np.array([r[4] for r in keep]) * kt)
+                                     np.array([r[4] for r in keep]))
         except ValueError as err:
             raise RecordingError(args.reference, str(err)) from None
     estimator = PayloadRLS(arm, forgetting=args.forgetting, reference=reference)
-    stream = EstimateStream(estimator, kt, publish_every=args.publish_every, strict_time=bool(args.replay),
+    stream = EstimateStream(estimator, publish_every=args.publish_every, strict_time=bool(args.replay),
                             source=str(args.replay or "stream"))
     if args.replay:
         records, notes = _replay_records(Path(args.replay), robot, kt, args.period)
@@ -718,11 +732,9 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _sim(args: argparse.Namespace) -> int:
-    import signal
     import threading
 
-    from armid.drivers.rig import load_rig
-    from armid.sim_bus.arm import SimulatedArm
+    from armid.io.rig_file import load_rig
 
     rig = load_rig(args.rig)
     changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
@@ -730,10 +742,16 @@ def _sim(args: argparse.Namespace) -> int:
         rig = rig.with_bus(**changes)
     _inputs_read()
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    if rig.is_serial:
-        return _sim_chain(rig, args, stop)
+    restore = _stop_on_signals(stop)
+    try:
+        return _sim_chain(rig, args, stop) if rig.is_serial else _sim_arm(rig, args, stop)
+    finally:
+        restore()
+
+
+def _sim_arm(rig: Any, args: argparse.Namespace, stop: Any) -> int:
+    from armid.sim_bus.arm import SimulatedArm
+
     arm = SimulatedArm(rig, seed=args.seed)
     print(f"armid sim: {rig.name}: {rig.n_joints} drives (nodes {', '.join(str(d.node_id) for d in rig.drives)}) "
           f"on {rig.bus.interface}:{rig.bus.channel}, lock-step with SYNC at {rig.period_s * 1000:g} ms", file=sys.stderr, flush=True)

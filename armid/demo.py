@@ -17,11 +17,11 @@ from typing import Any
 
 import numpy as np
 
-from armid.daq.excite import ExcitationSession
-from armid.drivers.rig import Rig, load_rig
+from armid.drivers.rig import Rig
 from armid.identify import excitation as ex
 from armid.identify.identification import IdentificationResult, IdentifyOptions, identify
 from armid.identify.single_link import SequenceResult, single_link_sequence
+from armid.io.rig_file import load_rig
 from armid.resources import config_file
 
 from .experiments import (
@@ -30,6 +30,7 @@ from .experiments import (
     run_experiments,
     write_json,
 )
+from .simulated import excitation_session
 
 DEFAULT_RIG = config_file("rigs/sim.yaml")  # package data: found in a wheel install too
 
@@ -141,7 +142,7 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0) -> int:
         motion_s = sum(e.plan.duration_s for e in experiments)
         phases.start("runs", f"running the {len(experiments)} experiments on the drives in real time ({motion_s:.0f} s of motion, "
                      "2 ms SYNC over the virtual CAN bus), each recorded as MCAP")
-        with ExcitationSession(rig, simulate=True) as session:
+        with excitation_session(rig, simulate=True) as session:
             reports = run_experiments(session, experiments, out / "runs", console)
         write_json(out / "runs.json", [r.to_json() for r in reports])
         failed = [r for r in reports if not r.completed]
@@ -212,7 +213,7 @@ def run_payload(rig: Rig, whole: Any, design: Any, out: Path, console: Any, warm
     from armid.daq.stream import Stream, session_config
     from armid.identify import excitation as ex
     from armid.identify.payload import ArmModel, PayloadRLS
-    from armid.identify.recordings import read_mcap_arrays
+    from armid.io.recordings import read_mcap_arrays
     from armid.sim_bus.physics import Payload
 
     robot = rig.robot
@@ -221,17 +222,16 @@ def run_payload(rig: Rig, whole: Any, design: Any, out: Path, console: Any, warm
         arm = whole
     else:
         arm = ArmModel(robot, tuple(whole.effects), whole.base.independent, whole.estimate.beta, whole.estimate.joint_sigma)
-    kt = np.array([j.torque_constant for j in robot.joints])
     estimates: list[dict[str, Any]] = []
     estimator = PayloadRLS(arm)
     if warm:
         estimator.warm()
     session = zenoh.open(session_config(listen=[], connect=[]))
-    service = PayloadService(session, robot.name, EstimateStream(estimator, kt), on_estimate=estimates.append)
+    service = PayloadService(session, robot.name, EstimateStream(estimator), on_estimate=estimates.append)
     stream = Stream(session, robot.name, "demo", lambda: {"component": "demo"})
     run_dir = out / "runs" / "payload"
     try:
-        with ExcitationSession(rig, simulate=True, stream=stream) as s:
+        with excitation_session(rig, simulate=True, stream=stream) as s:
             assert s.arm is not None
             physics = s.arm.physics
             plan = ex.plan(design, s.position, s.limits, periods=2)

@@ -19,8 +19,8 @@ import numpy as np
 from armid.daq.excite import ExcitationSession, RunReport
 from armid.identify import excitation as ex
 from armid.identify.preprocess import Prepared, PrepareOptions, prepare
-from armid.identify.recordings import Recording, read_mcap_arrays, read_recording
 from armid.identify.robot import Robot
+from armid.io.recordings import Recording, read_mcap_arrays, read_recording
 
 PREPARE = PrepareOptions(lowpass_hz=None, torque_hold=True)
 """How drive recordings are prepared: the drives' velocity through the 5-point filter for

@@ -29,7 +29,7 @@ import numpy as np
 
 from armid.identify.errors import RobotFileError
 from armid.identify.robot import Robot, inertial_from_parameters
-from armid.identify.spatial import Array
+from armid.schema import Array
 
 
 def _f(x: float) -> str:

@@ -17,10 +17,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from armid.daq.excite import ExcitationSession
+
+from armid.cli import main
 from armid.daq.payload_service import EstimateStream, PayloadService, wait_for
 from armid.daq.stream import Stream, session_config
-from armid.drivers.rig import load_rig
+from armid.demo import true_parameters
 from armid.identify import excitation as ex
 from armid.identify.differentiation import five_point_derivative
 from armid.identify.identification import declared_effects, stacked_regressor, structural_base
@@ -35,12 +36,11 @@ from armid.identify.payload import (
     rls_update,
     slope_on_times,
 )
-from armid.identify.recordings import read_mcap_arrays
+from armid.io.recordings import read_mcap_arrays
+from armid.io.rig_file import load_rig
 from armid.sim_bus.offline import simulate
 from armid.sim_bus.physics import Payload, simulation_config
-
-from armid.cli import main
-from armid.demo import true_parameters
+from armid.simulated import excitation_session
 
 ROOT = Path(__file__).resolve().parent.parent
 RIG = ROOT / "config" / "rigs" / "sim.yaml"
@@ -162,7 +162,7 @@ def test_payload_attached_and_removed_is_tracked_within_2_s_offline() -> None:
     t_on, t_off = plan.lead_in_s + 3.0, plan.lead_in_s + 7.0
     run = simulate(arm.robot, cfg, plan.evaluate, plan.duration_s, payloads=[(t_on, PAYLOAD), (t_off, None)], seed=9)
     est = PayloadRLS(arm)
-    stream = EstimateStream(est, np.ones(6), publish_every=10)
+    stream = EstimateStream(est, publish_every=10)
     docs = stream.feed((k, float(run.t[k]), np.ones(6, bool), run.position[k], run.torque[k]) for k in range(run.t.size))
     times = np.array([d["record_time"] for d in docs])
     assert len(docs) >= run.t.size // 10 - 1  # 50 Hz
@@ -191,12 +191,11 @@ def test_live_estimates_over_zenoh_reach_another_process_and_agree_with_replay(t
     assert sub.stdout is not None and sub.stdout.readline().strip() == "ready"
     publisher = zenoh.open(session_config(listen=[stream_endpoint]))
     estimator = zenoh.open(session_config(connect=[stream_endpoint, estimates_endpoint]))
-    kt = np.array([j.torque_constant for j in arm.robot.joints])
-    service = PayloadService(estimator, rig.robot.name, EstimateStream(PayloadRLS(arm), kt), max_backlog=10**9)
+    service = PayloadService(estimator, rig.robot.name, EstimateStream(PayloadRLS(arm)), max_backlog=10**9)
     stream = Stream(publisher, rig.robot.name, "excite", lambda: {})
     cycles: dict[str, int] = {}
     try:
-        with ExcitationSession(rig, simulate=True, stream=stream) as s:
+        with excitation_session(rig, simulate=True, stream=stream) as s:
             assert s.arm is not None
             arm_sim = s.arm
 
@@ -424,7 +423,7 @@ def robustness_runs(gain: bool = True, offset: bool = True, load: bool = True) -
     unloaded = simulate(robot, cfg, plan.evaluate, plan.duration_s, seed=10)  # type: ignore[arg-type]
     out: dict[str, list[dict]] = {}
     for name, ref in (("alone", None), ("reference", ReferenceRun(arm, unloaded.t, unloaded.position, unloaded.torque))):
-        stream = EstimateStream(PayloadRLS(arm, reference=ref), np.ones(6))
+        stream = EstimateStream(PayloadRLS(arm, reference=ref))
         out[name] = stream.feed((k, float(loaded.t[k]), np.ones(6, bool), loaded.position[k], loaded.torque[k]) for k in range(loaded.t.size))
     out["t_on"] = [{"t": t_on}]
     return out
