@@ -25,26 +25,25 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 import numpy as np
+
 from armid.identify.errors import RecordingError
 from armid.identify.payload import PayloadRLS
-from armid.identify.spatial import Array
+from armid.schema import Array
+from armid.schema.joint_state import JointStateRecord, check_encoding
 
-from .record_format import JointStateRecord, check_encoding
 from .stream import key
 
 
 class EstimateStream:
     """Records in sequence order -> the documents to publish (pure, no I/O)."""
 
-    def __init__(self, estimator: PayloadRLS, torque_constants: Array, publish_every: int = 10, strict_time: bool = False,
-                 source: str = "stream") -> None:
+    def __init__(self, estimator: PayloadRLS, publish_every: int = 10, strict_time: bool = False, source: str = "stream") -> None:
         """``strict_time``: a record whose time is not after the previous one is refused
         (:class:`RecordingError`, for a recording); otherwise it is dropped, counted in
         ``time_faults`` and the derivatives restart (a live stream whose clock stepped)."""
         if publish_every < 1:
             raise ValueError(f"publish_every must be at least 1, got {publish_every}")
         self.estimator = estimator
-        self.kt = np.asarray(torque_constants, float)
         self.publish_every = publish_every
         self.strict_time = strict_time
         self.source = source
@@ -61,7 +60,8 @@ class EstimateStream:
         self.estimator.restart_filter()
 
     def feed(self, records: Iterable[tuple[int, float, Array, Array, Array]]) -> list[dict[str, Any]]:
-        """(sequence, time, valid, position, measured current) per record; returns what to publish.
+        """(sequence, time, valid, position, torque) per record, SI (the driver applied the torque
+        constants); returns what to publish.
 
         Runs of consecutive valid records go to the estimator in one batch each; a gap in
         the sequence numbers or an invalid record restarts the derivative filter."""
@@ -83,7 +83,7 @@ class EstimateStream:
                                        [k for k, sq in enumerate(seqs) if sq % self.publish_every == 0], publish)
             run.clear()
 
-        for seq, t, valid, q, current in records:
+        for seq, t, valid, q, torque in records:
             if self.last_time is not None and not t > self.last_time:
                 if self.strict_time:
                     flush()
@@ -105,7 +105,7 @@ class EstimateStream:
                 self.invalid += 1
                 self.estimator.restart_filter()
                 continue
-            run.append((seq, t, q, current * self.kt))
+            run.append((seq, t, q, np.asarray(torque, float)))
         flush()
         return out
 
@@ -115,7 +115,7 @@ def _from_record(r: JointStateRecord) -> tuple[int, float, Array, Array, Array]:
     the estimator differentiates on time stamps, so live and replay see the same floats."""
     s = r.sample
     ns = int(round(s.time_s * 1e9))
-    return r.sequence, ns // 1_000_000_000 + 1e-9 * (ns % 1_000_000_000), s.valid, s.position, s.measured_current
+    return r.sequence, ns // 1_000_000_000 + 1e-9 * (ns % 1_000_000_000), s.valid, s.position, s.joint_torque()
 
 
 class PayloadService:

@@ -13,14 +13,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from armid.daq.record_format import ENCODING, JointStateRecord, check_encoding
-from armid.daq.recorder import read_mcap
-from armid.drivers.interface import Sample
-from armid.identify.preprocess import prepare
-from armid.identify.recordings import read_recording
-from armid.identify.robot_file import load_robot
 
 from armid.cli import main
+from armid.drivers.interface import Sample
+from armid.identify.preprocess import prepare
+from armid.io.recordings import read_mcap_arrays as read_mcap
+from armid.io.recordings import read_recording
+from armid.io.robot_file import load_robot
+from armid.schema.joint_state import ENCODING, JointStateRecord, check_encoding
 
 ROOT = Path(__file__).resolve().parent.parent
 HELPERS = Path(__file__).resolve().parent / "helpers"
@@ -44,7 +44,7 @@ def test_record_layout_round_trip_and_refuses_bad_input() -> None:
     with pytest.raises(ValueError, match="bytes for 3 joints"):
         JointStateRecord.unpack(data[:-1])
     with pytest.raises(ValueError, match="is not"):
-        check_encoding("application/octet-stream;armid.JointState/2")
+        check_encoding("application/octet-stream;armid.JointState/1")  # the layout before the torque field
     check_encoding(ENCODING)
 
 
@@ -139,9 +139,9 @@ def test_watch_shows_the_live_stream_with_rate_gaps_and_alive_components(tmp_pat
     import threading
 
     import zenoh
-    from armid.daq.stream import session_config
     from rich.console import Console
 
+    from armid.daq.stream import session_config
     from armid.watch import watch
 
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
@@ -164,8 +164,7 @@ def test_watch_shows_the_live_stream_with_rate_gaps_and_alive_components(tmp_pat
 
 def test_the_raw_can_log_holds_every_frame_and_replays_into_the_same_records(tmp_path: Path) -> None:
     from armid.daq.canlog import replay_log
-    from armid.drivers.rig import load_rig
-
+    from armid.io.rig_file import load_rig
     rig = load_rig(ROOT / "config/rigs/sim.yaml")
     code = main(["record", "--rig", str(ROOT / "config/rigs/sim.yaml"), "--channel", f"armid-rec-{uuid.uuid4().hex[:6]}",
                  "--out", str(tmp_path / "run"), "--duration", "3", "--no-zenoh"])
@@ -206,13 +205,14 @@ def test_drive_velocity_carried_every_second_cycle_is_interpolated_not_dropped(t
     t = np.arange(2000) * period
     q = np.column_stack([np.sin(2 * np.pi * 0.7 * t), 0.5 * np.cos(2 * np.pi * 1.1 * t)])
     qd = np.column_stack([2 * np.pi * 0.7 * np.cos(2 * np.pi * 0.7 * t), -0.5 * 2 * np.pi * 1.1 * np.sin(2 * np.pi * 1.1 * t)])
-    rec = McapRecorder(tmp_path / "run.mcap", ["shoulder", "elbow"], np.ones(2), {"robot": "planar2"})
+    rec = McapRecorder(tmp_path / "run.mcap", ["shoulder", "elbow"], {"robot": "planar2"})
     held = qd[0].copy()
     for k in range(t.size):
         fresh = k % 2 == 0
         if fresh:
             held = qd[k].copy()
-        s = Sample(k + 1, float(t[k]), np.ones(2, bool), q[k].copy(), held.copy(), np.full(2, fresh), np.zeros(2), np.ones(2), np.zeros(2, np.int64))
+        s = Sample(k + 1, float(t[k]), np.ones(2, bool), q[k].copy(), held.copy(), np.full(2, fresh), np.zeros(2), np.ones(2), np.zeros(2, np.int64),
+                   np.ones(2))
         rec.write(JointStateRecord(k, s))
     rec.close()
     back = read_recording(tmp_path / "run.mcap", robot)
