@@ -16,9 +16,7 @@ frame is in, or three periods after its SYNC with the missing joints marked inva
 
 from __future__ import annotations
 
-import gc
 import struct
-import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -31,7 +29,7 @@ from canopen.sdo import SdoAbortedError, SdoCommunicationError, SdoVariable
 from armid.schema import Array
 
 from ..resources import config_file
-from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverError, HeartbeatLost, Sample
+from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverError, HeartbeatLost, ProcessSettings, Sample
 from .pdo_plan import PLANS, PdoSpec, check_bus_budget
 from .rig import Rig, open_bus
 
@@ -127,6 +125,7 @@ class CanopenDriver(Driver):
         self._cycle = 0
         self._last = Sample.empty(0, 0.0, self.n_joints)
         self._emitted = Sample.empty(0, 0.0, self.n_joints)
+        self._settings = ProcessSettings()
         self.paced_by_consumer = False  # see _sync_loop; for an arm simulated in this process
         self._listen_only = False
         self._t0: float | None = None
@@ -176,7 +175,7 @@ class CanopenDriver(Driver):
         r = self.rig
         # a thread waiting for the GIL waits up to the switch interval (5 ms by default):
         # more than two cycles. A 2 ms loop needs the interpreter to switch ten times faster.
-        sys.setswitchinterval(min(sys.getswitchinterval(), self.period_s / 10))
+        self._settings.fast_switching(self.period_s)  # put back by close()
         check_bus_budget(r.pdo_plan, r.n_joints, r.period_s, r.bus.bitrate, r.heartbeat_ms)
         if self._bus is None:
             kwargs = r.bus.kwargs()
@@ -205,8 +204,7 @@ class CanopenDriver(Driver):
         self.network.send_message(0, bytes([0x01, 0]))  # NMT start all
         # a full garbage collection walks every object of the process and stalls all threads
         # for many milliseconds; what exists after start-up is never garbage, so freeze it
-        gc.collect()
-        gc.freeze()
+        self._settings.freeze()
         if r.bus.interface == "socketcan":
             # the kernel's broadcast manager cycles 240 SYNC frames with counters 1..240; the
             # bus echoes each one back (receive_own_messages), and the echo opens its cycle
@@ -567,6 +565,7 @@ class CanopenDriver(Driver):
         self.set_controlword(joints, 0x02)
 
     def close(self) -> None:
+        self._settings.restore()
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=1.0)

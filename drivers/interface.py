@@ -10,7 +10,10 @@ of the wrong length, an unknown node, error frames) is an :class:`Event` in
 from __future__ import annotations
 
 import abc
+import gc
 import queue
+import sys
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -31,6 +34,64 @@ class Event:
     message: str
     joint: int | None = None
     time_s: float = field(default_factory=time.time)
+
+
+class ProcessSettings:
+    """Process-wide settings a 2 ms loop needs, held while any holder runs and put back as
+    they were when the last one lets go (:meth:`restore`, safe to call twice).
+
+    - the interpreter's switch interval (5 ms by default: a thread waiting for the GIL would
+      wait more than two cycles) is lowered to a tenth of the period;
+    - what exists after start-up is frozen out of the garbage collector's full collections
+      (they walk every object and stall all threads for many milliseconds); unfrozen at the
+      end, unless the process had frozen objects of its own before (those stay its business).
+    """
+
+    _lock = threading.Lock()
+    _interval_holders = 0
+    _interval_before = 0.005
+    _freeze_holders = 0
+    _froze = False
+
+    def __init__(self) -> None:
+        self._interval = self._freeze = False
+
+    def fast_switching(self, period_s: float) -> None:
+        cls = type(self)
+        with cls._lock:
+            if not self._interval:
+                if cls._interval_holders == 0:
+                    cls._interval_before = sys.getswitchinterval()
+                cls._interval_holders += 1
+                self._interval = True
+            sys.setswitchinterval(min(sys.getswitchinterval(), period_s / 10))
+
+    def freeze(self) -> None:
+        cls = type(self)
+        gc.collect()
+        with cls._lock:
+            if not self._freeze:
+                if cls._freeze_holders == 0:
+                    cls._froze = gc.get_freeze_count() == 0
+                cls._freeze_holders += 1
+                self._freeze = True
+            if cls._froze:
+                gc.freeze()
+
+    def restore(self) -> None:
+        cls = type(self)
+        with cls._lock:
+            if self._interval:
+                self._interval = False
+                cls._interval_holders -= 1
+                if cls._interval_holders == 0:
+                    sys.setswitchinterval(cls._interval_before)
+            if self._freeze:
+                self._freeze = False
+                cls._freeze_holders -= 1
+                if cls._freeze_holders == 0 and cls._froze:
+                    gc.unfreeze()
+                    cls._froze = False
 
 
 class CycleClock:

@@ -9,8 +9,6 @@ physics' state per SYNC for tests that compare what the driver read with the tru
 
 from __future__ import annotations
 
-import gc
-import sys
 import threading
 import time
 from collections import deque
@@ -20,6 +18,7 @@ import can
 import canopen
 import numpy as np
 
+from armid.drivers.interface import ProcessSettings
 from armid.drivers.rig import Rig, open_bus
 
 from .drive import SimulatedDrive
@@ -63,7 +62,8 @@ class SimulatedArm:
         self.rig = rig
         # a thread waiting for the GIL waits up to the switch interval (5 ms by default):
         # more than two cycles. A 2 ms loop needs the interpreter to switch ten times faster.
-        sys.setswitchinterval(min(sys.getswitchinterval(), rig.period_s / 10))
+        self._settings = ProcessSettings()  # put back by close()
+        self._settings.fast_switching(rig.period_s)
         sim = dict(rig.simulation)
         self.seed = int(sim.get("seed", 0) if seed is None else seed)
         self.config = simulation_config(sim, rig.n_joints, f"{rig.source}: simulation")
@@ -80,8 +80,7 @@ class SimulatedArm:
         self.syncs = 0
         self._stop = threading.Event()
         self._watchdog = threading.Thread(target=self._watch, name="armid-sim-watchdog", daemon=True)
-        gc.collect()
-        gc.freeze()  # see CanopenDriver.start: keep full collections short while running
+        self._settings.freeze()  # see CanopenDriver.start: keep full collections short while running
         self._watchdog.start()
         self.step_seconds: deque[float] = deque(maxlen=100_000)
 
@@ -129,6 +128,7 @@ class SimulatedArm:
         }
 
     def close(self) -> None:
+        self._settings.restore()
         self._stop.set()
         self._watchdog.join(timeout=1.0)
         for d in self.drives:
