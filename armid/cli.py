@@ -15,14 +15,14 @@ from typing import Any
 import numpy as np
 
 from armid import __version__
-from armid.identify.errors import (
+from armid.schema.errors import (
     ArmidError,
     IdentificationError,
+    InputError,
     InputFileError,
     OptionError,
     PoorExcitationWarning,
     RecordingError,
-    RobotFileError,
     UsageError,
 )
 
@@ -995,12 +995,13 @@ def _one_line(text: str, most: int = 600) -> str:
 
 
 def _exit_code(err: BaseException) -> tuple[int, str]:
-    """(exit code, message) for an error that reached the command line: 2 for bad input
-    (files, recordings, options, data that cannot give an estimate, refused plans), 1 for a
-    runtime fault or a bug."""
+    """(exit code, message) for an error that reached the command line, by type: 2 for bad
+    input (an :class:`InputError`: files, recordings, options, data that cannot give an
+    estimate, refused plans), 1 for a runtime fault (any other :class:`ArmidError`: a drive,
+    the bus, the simulated hardware) or a bug. A ``ValueError`` from elsewhere is a bug, not
+    bad input. The tree is drawn in :mod:`armid.schema.errors`."""
     if isinstance(err, ArmidError):
-        bad_input = isinstance(err, ValueError | RobotFileError | RecordingError | IdentificationError | InputFileError)
-        return (2 if bad_input else 1), str(err)
+        return (2 if isinstance(err, InputError) else 1), str(err)
     if isinstance(err, OSError):
         # a named file that cannot be opened or written is the user's to fix; a socket or a
         # device failing under a running command is a runtime fault

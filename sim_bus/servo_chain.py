@@ -33,6 +33,7 @@ import numpy as np
 from armid.drivers import dynamixel_protocol as dxl
 from armid.drivers.dynamixel_protocol import ALERT, Address, Instruction
 from armid.drivers.rig import Rig
+from armid.schema.errors import RigFileError, SimulationError, UsageError
 
 from .physics import ArmPhysics, Measurement, simulation_config
 
@@ -137,7 +138,7 @@ class SimulatedServoChain:
 
     def __init__(self, rig: Rig, seed: int | None = None) -> None:
         if rig.serial is None:
-            raise ValueError(f"{rig.source}: not a serial rig (bus.interface: dynamixel)")
+            raise RigFileError(rig.source, "bus.interface", "not a serial rig (bus.interface: dynamixel)")
         self.rig = rig
         self.baudrate = rig.serial.baudrate
         sim = dict(rig.simulation)
@@ -172,9 +173,9 @@ class SimulatedServoChain:
         FAULTS). ``hardware_error`` sets Hardware Error Status to ``bits`` (default:
         overload) and turns torque off, until a Reboot."""
         if kind not in FAULTS:
-            raise ValueError(f"unknown fault {kind!r}; known: {', '.join(FAULTS)}")
+            raise UsageError(f"unknown fault {kind!r}; known: {', '.join(FAULTS)}")
         if servo_id not in self._by_id:
-            raise ValueError(f"no servo {servo_id} in the chain ({sorted(self._by_id)})")
+            raise UsageError(f"no servo {servo_id} in the chain ({sorted(self._by_id)})")
         servo = self._by_id[servo_id]
         with self._lock:
             if kind == "hardware_error":
@@ -384,10 +385,10 @@ class ServoChainProcess:
         line = self._process.stdout.readline() if ready else ""
         if not line:
             self._process.kill()
-            raise RuntimeError(f"the simulated servo chain did not answer within {timeout} s (exit code {self._process.poll()})")
+            raise SimulationError(f"the simulated servo chain did not answer within {timeout} s (exit code {self._process.poll()})")
         doc = json.loads(line)
         if "error" in doc:
-            raise ValueError(doc["error"])
+            raise SimulationError(f"the simulated servo chain: {doc['error']}")
         return doc
 
     def _ask(self, *message: Any) -> Any:
