@@ -24,7 +24,7 @@ from armid.daq.acquisition import Acquisition, Sink
 from armid.daq.recorder import McapRecorder
 from armid.io.rig_file import load_rig
 from armid.resources import config_file
-from armid.schema.joint_state import EXTRA_TOPIC, JOINT_STATES_TOPIC, JointStateRecord
+from armid.schema.joint_state import JOINT_STATES_TOPIC, JointStateRecord
 from armid.simulated import simulated_driver
 
 
