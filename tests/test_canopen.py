@@ -38,8 +38,9 @@ class _Bench:
     def __init__(self) -> None:
         self.channel = f"armid-test-{uuid.uuid4().hex[:8]}"
         self.rig = _rig(self.channel)
-        self.arm = SimulatedArm(self.rig, bus=can.Bus(interface="virtual", channel=self.channel))
-        self.driver = CanopenDriver(self.rig, bus=can.Bus(interface="virtual", channel=self.channel))
+        self.buses = [can.Bus(interface="virtual", channel=self.channel) for _ in range(2)]  # passed in: ours to shut down
+        self.arm = SimulatedArm(self.rig, bus=self.buses[0])
+        self.driver = CanopenDriver(self.rig, bus=self.buses[1])
         self.driver.start()
         self.control = ComputedTorque(self.rig.robot, q_nominal=self.arm.physics.position)
 
@@ -57,6 +58,8 @@ class _Bench:
     def close(self) -> None:
         self.driver.close()
         self.arm.close()
+        for bus in self.buses:
+            bus.shutdown()
 
 
 @pytest.fixture
@@ -215,15 +218,18 @@ def test_bad_frames_do_not_crash_the_driver_and_are_reported(bench: _Bench) -> N
 def test_drive_that_disagrees_with_the_rig_is_refused() -> None:
     channel = f"armid-test-{uuid.uuid4().hex[:8]}"
     rig = _rig(channel)
-    arm = SimulatedArm(rig, bus=can.Bus(interface="virtual", channel=channel))
+    buses = [can.Bus(interface="virtual", channel=channel) for _ in range(2)]
+    arm = SimulatedArm(rig, bus=buses[0])
     arm.drive(3).node.data_store[0x6091][1] = struct.pack("<I", 50_000)  # gear 50 in the drive
-    driver = CanopenDriver(rig, bus=can.Bus(interface="virtual", channel=channel))
+    driver = CanopenDriver(rig, bus=buses[1])
     try:
         with pytest.raises(DriveConfigError, match=r"joint 4 \(node 4\): 0x6091 gear ratio is 50 in the drive, 76 in"):
             driver.start()
     finally:
         driver.close()
         arm.close()
+        for bus in buses:
+            bus.shutdown()
 
 
 def _multicast_available() -> str | None:
@@ -290,7 +296,8 @@ def test_socketcan_vcan0() -> None:
     except OSError as err:
         pytest.skip(f"no vcan0 interface here ({err}); `ip link add dev vcan0 type vcan && ip link set up vcan0` enables this test")
     rig = _rig("vcan0", "socketcan")
-    arm = SimulatedArm(rig, bus=can.Bus(interface="socketcan", channel="vcan0"))
+    arm_bus = can.Bus(interface="socketcan", channel="vcan0")
+    arm = SimulatedArm(rig, bus=arm_bus)
     driver = CanopenDriver(rig)
     try:
         driver.start()
@@ -298,4 +305,5 @@ def test_socketcan_vcan0() -> None:
     finally:
         driver.close()
         arm.close()
+        arm_bus.shutdown()
     assert all(s.valid.all() for s in samples)

@@ -332,10 +332,15 @@ def test_the_same_acquisition_code_runs_on_both_driver_families(family: str, tmp
     if family == "canopen":
         channel = f"armid-test-{uuid.uuid4().hex[:8]}"
         rig = load_rig(CAN_RIG).with_bus(channel=channel)
-        arm = SimulatedArm(rig, bus=can.Bus(interface="virtual", channel=channel))
-        driver: object = CanopenDriver(rig, bus=can.Bus(interface="virtual", channel=channel))
+        buses = [can.Bus(interface="virtual", channel=channel) for _ in range(2)]
+        arm = SimulatedArm(rig, bus=buses[0])
+        driver: object = CanopenDriver(rig, bus=buses[1])
         driver.paced_by_consumer = True  # type: ignore[attr-defined]
-        close = arm.close
+
+        def close() -> None:
+            arm.close()
+            for bus in buses:
+                bus.shutdown()
     else:
         rig = load_rig(DXL_RIG)
         driver = DynamixelDriver(rig, port=chain.port)
