@@ -119,6 +119,7 @@ def _check_against_simulator(samples: list, log: dict, rig) -> None:  # type: ig
     assert compared >= 0.9 * len(samples)
 
 
+@pytest.mark.slow
 def test_virtual_bus_10_s_six_axes_no_lost_cycle(bench: _Bench) -> None:
     bench.hold(50)
     bench.driver.enable()
@@ -241,6 +242,7 @@ def _multicast_available() -> str | None:
         return f"no UDP sockets: {err}"
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(_multicast_available() is not None, reason=str(_multicast_available()))
 def test_udp_multicast_two_processes_10_s(tmp_path: Path) -> None:
     group = f"239.74.{np.random.default_rng().integers(1, 250)}.{np.random.default_rng().integers(1, 250)}"

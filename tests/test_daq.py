@@ -79,6 +79,7 @@ def _subscriber(robot: str, endpoint: str, out: Path, seconds: float, slow: floa
     return proc
 
 
+@pytest.mark.slow
 def test_record_30_s_every_cycle_reaches_a_subscriber_in_another_process(tmp_path: Path) -> None:
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
     got = tmp_path / "seqs.txt"

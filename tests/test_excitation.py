@@ -58,6 +58,7 @@ def _truth(names: list[str]) -> np.ndarray:
     return true_parameters(load_rig(RIG), names)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 3, 7])
 def test_single_link_sequence_and_whole_arm_recover_the_combinations_within_their_standard_deviations(seed: int) -> None:
     """The rig's simulated arm (friction, rotor inertia, quantisation, current noise), off the bus.

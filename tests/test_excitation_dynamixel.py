@@ -45,6 +45,7 @@ def _rig_at(tmp_path: Path, period_s: float) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_excitation_runs_on_the_servo_chain_and_a_fault_quick_stops_within_3_cycles(tmp_path: Path) -> None:
     rig = load_rig(_rig_at(tmp_path, 0.005))
     with excitation_session(rig, simulate=True) as s:

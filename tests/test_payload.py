@@ -179,6 +179,7 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
+@pytest.mark.slow
 def test_live_estimates_over_zenoh_reach_another_process_and_agree_with_replay(tmp_path: Path) -> None:
     import zenoh
 
@@ -448,6 +449,7 @@ def test_payload_with_the_model_errors_of_a_real_arm_alone_and_against_a_referen
             assert np.linalg.norm(np.array(d["com"]) - PAYLOAD.com) <= com_tol, (name, dt, d["com"])
 
 
+@pytest.mark.slow
 def test_the_demo_payload_phase_from_a_cold_start(tmp_path: Path) -> None:
     """Issue 19: the demo's payload phase in a fresh process with an empty numba cache
     (nothing compiled before it starts, and the estimator compiles nothing). Events on the
