@@ -122,3 +122,18 @@ def test_the_checker_sees_a_wrong_import(tmp_path: Path) -> None:
     found = imports("armid.identify.bad", bad)
     assert ("armid.io.recordings", 2) in found and ("yaml", 3) in found
     assert layer("armid.io.recordings") not in ALLOWED["identify"]
+
+
+def test_every_package_is_installed() -> None:
+    """Each folder with an ``__init__.py`` is a package the wheel lists (``pyproject.toml``)."""
+    import tomllib
+
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = set()
+    for package, folder in FOLDERS.items():
+        for init in (ROOT / folder).rglob("__init__.py"):
+            parts = init.parent.relative_to(ROOT / folder).parts
+            if package == "armid" and parts and parts[0] in ("identify", "daq", "drivers", "sim_bus"):
+                continue
+            found.add(".".join([package, *parts]))
+    assert found == listed, (sorted(found - listed), sorted(listed - found))
