@@ -859,6 +859,7 @@ def _feasible_arguments(p: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="armid", description="Robot dynamics identification (Khosla 1987) from servo data.")
+    parser.add_argument("--version", action="version", version=f"armid {__version__}")  # the installed metadata
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     p = sub.add_parser("identify", help="least-squares identification (eq. 18) with identifiability classes")
     p.add_argument("data", nargs="+", help="recordings to identify on (CSV or .npz)")
