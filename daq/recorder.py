@@ -35,6 +35,7 @@ from armid.schema.joint_state import (
     JOINT_STATES_TOPIC,
     ROS2_MSGDEFS,
     JointStateRecord,
+    ros2_messages,
 )
 
 CHUNK_BYTES = 16 * 1024
@@ -48,7 +49,6 @@ class McapRecorder:
 
     def __init__(self, path: str | Path, joint_names: list[str], metadata: dict[str, Any]) -> None:
         from mcap.writer import CompressionType, IndexType, Writer
-        from mcap_ros2._dynamic import serialize_dynamic
 
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -58,12 +58,10 @@ class McapRecorder:
         # find messages without them, and the file is its chunks, each checked by its CRC
         self._writer = Writer(self._file, chunk_size=1 << 62, compression=CompressionType.ZSTD, index_types=IndexType.ALL & ~IndexType.MESSAGE)
         self._writer.start(profile="ros2", library="armid")
-        self._encode = {}
         self._channel = {}
         for topic, kind in ((JOINT_STATES_TOPIC, JOINT_STATE_TYPE), (EXTRA_TOPIC, EXTRA_TYPE)):
             schema = self._writer.register_schema(kind, "ros2msg", ROS2_MSGDEFS[kind].encode())
             self._channel[topic] = self._writer.register_channel(topic, "cdr", schema)
-            self._encode[topic] = serialize_dynamic(kind, ROS2_MSGDEFS[kind])[kind]
         self._writer.add_metadata("armid.run", {k: v if isinstance(v, str) else json.dumps(v) for k, v in metadata.items()})
         self.names = list(joint_names)
         self._last_flush = time.monotonic()
@@ -71,17 +69,9 @@ class McapRecorder:
         self.count = 0
 
     def write(self, record: JointStateRecord) -> None:
-        s = record.sample
-        ns = int(round(s.time_s * 1e9))
-        header = {"stamp": {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}, "frame_id": ""}
-        joint_state = {"header": header, "name": self.names, "position": s.position.tolist(), "velocity": s.velocity.tolist(),
-                       "effort": s.joint_torque().tolist()}
-        extra = {"header": header, "sequence": record.sequence, "cycle": s.cycle, "valid": s.valid.tolist(),
-                 "velocity_fresh": s.velocity_fresh.tolist(), "commanded_current": s.commanded_current.tolist(),
-                 "measured_current": s.measured_current.tolist(), "statusword": [int(x) & 0xFFFF for x in s.status]}
+        ns = int(round(record.sample.time_s * 1e9))
         seq = record.sequence % 2**32
-        for topic, msg in ((JOINT_STATES_TOPIC, joint_state), (EXTRA_TOPIC, extra)):
-            data = self._encode[topic](msg)
+        for topic, data in zip((JOINT_STATES_TOPIC, EXTRA_TOPIC), ros2_messages(record, self.names)):
             self._writer.add_message(self._channel[topic], ns, data, ns, seq)
             self._chunk_bytes += len(data) + _RECORD_OVERHEAD
         self.count += 1

@@ -28,6 +28,7 @@ class Recording:
     lines: Array | None = None
     notes: list[str] = field(default_factory=list)
     torque_held: bool = False  # torque held over the period before each stamp (drive currents)
+    cycle: Array | None = None  # each sample's cycle counter (a drive recording), else None
 
     @property
     def n_samples(self) -> int:

@@ -85,7 +85,8 @@ def _read_mcap(path: Path, robot: Robot) -> Recording:
     else:  # a JSON recording (before the ROS 2 format): the robot's torque constants
         kt = np.array([j.torque_constant for j in robot.joints])
         tau, how = arrays["measured_current"][keep] * kt, "torque = measured current x torque_constant"
-    return Recording(str(path), t, arrays["position"][keep], tau, velocity, None, None, notes + [how], torque_held=True)
+    return Recording(str(path), t, arrays["position"][keep], tau, velocity, None, None, notes + [how], torque_held=True,
+                     cycle=arrays["cycle"][keep])
 
 
 def _drive_velocity(t: Array, velocity: Array, fresh: Array, notes: list[str]) -> Array | None:

@@ -143,3 +143,58 @@ ROS2_MSGDEFS = {
                  "float64[] commanded_current\nfloat64[] measured_current\nuint16[] statusword\n" + _HEADER_DEFS),
 }
 """``ros2msg`` schema text of each message type, as rosbag2 writes it (dependencies after ``MSG:`` lines)."""
+
+
+class _Cdr:
+    """A little-endian CDR (XCDR1) buffer: what ROS 2's rmw writes. Alignment counts from the
+    end of the 4-byte encapsulation header."""
+
+    def __init__(self) -> None:
+        self.buf = bytearray(b"\x00\x01\x00\x00")
+
+    def align(self, size: int) -> None:
+        pad = -(len(self.buf) - 4) % size
+        if pad:
+            self.buf += bytes(pad)
+
+    def u32(self, value: int) -> None:
+        self.align(4)
+        self.buf += struct.pack("<I", value)
+
+    def header(self, ns: int) -> None:
+        self.align(4)
+        self.buf += struct.pack("<iII", ns // 1_000_000_000, ns % 1_000_000_000, 1) + b"\x00"  # stamp, frame_id ""
+
+    def strings(self, values: list[bytes]) -> None:
+        self.u32(len(values))
+        for v in values:
+            self.u32(len(v) + 1)
+            self.buf += v + b"\x00"
+
+    def array(self, values: Array, dtype: str, size: int) -> None:
+        self.u32(len(values))
+        self.align(size)
+        self.buf += np.ascontiguousarray(values, dtype).tobytes()
+
+
+def ros2_messages(record: JointStateRecord, names: list[str]) -> tuple[bytes, bytes]:
+    """The record as CDR bytes of (``sensor_msgs/msg/JointState``, ``armid_msgs/msg/JointStateExtra``),
+    byte for byte what a ROS 2 serializer writes for :data:`ROS2_MSGDEFS` (tested against
+    ``mcap_ros2``'s), at a small fraction of a generic serializer's cost per cycle."""
+    s = record.sample
+    ns = int(round(s.time_s * 1e9))
+    state = _Cdr()
+    state.header(ns)
+    state.strings([n.encode() for n in names])
+    for values in (s.position, s.velocity, s.joint_torque()):
+        state.array(values, "<f8", 8)
+    extra = _Cdr()
+    extra.header(ns)
+    extra.align(8)
+    extra.buf += struct.pack("<QQ", record.sequence, s.cycle)
+    extra.array(s.valid, "u1", 1)
+    extra.array(s.velocity_fresh, "u1", 1)
+    extra.array(s.commanded_current, "<f8", 8)
+    extra.array(s.measured_current, "<f8", 8)
+    extra.array(np.asarray(s.status) & 0xFFFF, "<u2", 2)
+    return bytes(state.buf), bytes(extra.buf)
