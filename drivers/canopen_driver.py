@@ -31,7 +31,7 @@ from armid.schema import Array
 from ..resources import config_file
 from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverError, HeartbeatLost, ProcessSettings, Sample
 from .pdo_plan import PLANS, PdoSpec, check_bus_budget
-from .rig import Rig, open_bus
+from .rig import Rig, current_of, open_bus, permille_of
 
 EDS = str(config_file("drives/armid_cia402.eds"))  # package data (armid.config)
 
@@ -442,7 +442,7 @@ class CanopenDriver(Driver):
                     s.velocity[t.joint] = v / u.counts_per_rad
                     s.velocity_fresh[t.joint] = True
                 elif index == 0x6078:
-                    s.measured_current[t.joint] = v / 1000.0 * u.rated_current_a
+                    s.measured_current[t.joint] = current_of(v, u.rated_current_a)
                 elif index == 0x6041:
                     s.status[t.joint] = v
             if not any(j == t.joint for j, _ in target.expected):
@@ -516,9 +516,9 @@ class CanopenDriver(Driver):
             raise ValueError(f"torque command must be {self.n_joints} finite values, got {tau}")
         current = tau / self.torque_constants
         rated = np.array([u.rated_current_a for u in self.units])
-        permille = np.clip(np.round(current / rated * 1000.0), -32768, 32767).astype(np.int64)
+        permille = permille_of(current, rated).astype(np.int64)
         self._target = permille
-        self._commanded = permille / 1000.0 * rated
+        self._commanded = current_of(permille, rated)
         self._position_mode = False
 
     def command_position(self, position: Array) -> None:

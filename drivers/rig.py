@@ -30,6 +30,17 @@ class ArmDescription(Protocol):
     def n_joints(self) -> int: ...
 
 
+def permille_of(current_a: Any, rated_current_a: Any) -> Any:
+    """Current (A) in whole per mille of the rated current, as a CiA 402 drive counts it
+    (``0x6071``, ``0x6078``: int16); the one place this conversion is written."""
+    return np.clip(np.round(current_a / rated_current_a * 1000.0), -32768, 32767)
+
+
+def current_of(permille: Any, rated_current_a: Any) -> Any:
+    """Per mille of the rated current back to A: :func:`permille_of`'s inverse."""
+    return permille / 1000.0 * rated_current_a
+
+
 @dataclass(frozen=True)
 class DriveUnits:
     """A drive's motor: encoder, gear, rating; the joint's torque constant (gear included).
