@@ -3,9 +3,12 @@
 CSV with a header: ``t``, ``q1..qn``, optional ``qd1..qdn`` and ``qdd1..qddn``, and
 ``tau1..taun`` or ``i1..in`` (scaled by each joint's ``torque_constant``). Also NumPy
 ``.npz`` archives with ``times, positions, velocities[, accelerations], torques`` (the
-layout of the shared KUKA LWR4+ data). MCAP recordings from ``armid record``: every chunk's
-CRC is checked, reading resumes after a bad chunk, and the notes say what was lost
-(:func:`read_mcap_arrays`).
+layout of the shared KUKA LWR4+ data). MCAP recordings from ``armid record``: the ROS 2
+layout (``/joint_states`` and ``/armid/joint_state_extra`` in CDR, decoded with
+``mcap_ros2`` against armid's own ``ros2msg`` schemas; the torque as the driver recorded it)
+and the JSON layout written before it (``/joint_state``; torque = measured current times the
+robot's torque constants). Every chunk's CRC is checked, reading resumes after a bad chunk,
+and the notes say what was lost (:func:`read_mcap_arrays`).
 """
 
 from __future__ import annotations
