@@ -305,15 +305,14 @@ def _diagnosed_feasible(args: argparse.Namespace, robot: Any, diag: Any, experim
 
 
 def _record(args: argparse.Namespace) -> int:
-    import platform
     import threading
     import time
-
-    import can
 
     from armid.daq.acquisition import Acquisition, Sink
     from armid.daq.recorder import McapRecorder
     from armid.io.rig_file import load_rig
+    from armid.schema import versions
+
     rig = load_rig(args.rig)
     changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
     if changes and not rig.is_serial:
@@ -340,8 +339,8 @@ def _record(args: argparse.Namespace) -> int:
             "robot": rig.robot.name, "rig": rig.name, "rig_file": rig.source, "period_s": rig.period_s,
             "bus": f"dynamixel {driver.port_name} at {rig.bus.bitrate} baud" if rig.is_serial else f"{rig.bus.interface}:{rig.bus.channel}",
             "pdo_plan": None if rig.is_serial else rig.pdo_plan,
-            "drives": driver.drive_configuration, "excitation": "none (armid record)",
-            "versions": {"armid": __version__, "python": platform.python_version(), "python-can": can.__version__},
+            "driver": rig.driver, "drives": driver.drive_configuration, "excitation": "none (armid record)",
+            "versions": versions("python-can"),
         }
         recorder = McapRecorder(out / "run.mcap", [j.name for j in rig.robot.joints], metadata)
         sinks = [Sink("recorder", recorder.write, bounded=False)]

@@ -15,7 +15,6 @@ recorded to its own folder (``run.mcap`` and the raw frames in ``can.log``).
 
 from __future__ import annotations
 
-import platform
 import threading
 import time
 from collections.abc import Callable
@@ -30,7 +29,7 @@ from armid.identify.control import ComputedTorque
 from armid.identify.errors import UsageError
 from armid.identify.excitation import Limits, Plan
 from armid.identify.robot import Robot
-from armid.schema import Array
+from armid.schema import Array, versions
 from armid.schema.joint_state import JointStateRecord
 
 from .acquisition import Acquisition, Sink
@@ -334,13 +333,5 @@ class ExcitationSession:
 
 
 def _versions() -> dict[str, str]:
-    from importlib.metadata import PackageNotFoundError, version
-
-    def of(dist: str) -> str:
-        try:
-            return version(dist)
-        except PackageNotFoundError:
-            return "?"
-
-    return {"armid": of("armid"), "python": platform.python_version(), "python-can": of("python-can"),
-            "canopen": of("canopen"), "numpy": np.__version__}
+    """The software that made a recording (installed metadata, ``importlib.metadata``)."""
+    return versions("python-can", "canopen", "numpy")
