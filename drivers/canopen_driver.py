@@ -172,6 +172,13 @@ class CanopenDriver(Driver):
 
     # --- start-up ---
     def start(self) -> None:
+        try:
+            self._start()
+        except BaseException:
+            self._settings.restore()  # a driver that did not start changes nothing process-wide
+            raise
+
+    def _start(self) -> None:
         r = self.rig
         # a thread waiting for the GIL waits up to the switch interval (5 ms by default):
         # more than two cycles. A 2 ms loop needs the interpreter to switch ten times faster.

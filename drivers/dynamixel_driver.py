@@ -211,6 +211,13 @@ class DynamixelDriver(Driver):
     # --- start-up ---
     def start(self) -> None:
         """Check the budget, open the port, configure every servo, start cycling (torque off)."""
+        try:
+            self._start()
+        except BaseException:
+            self._settings.restore()  # a driver that did not start changes nothing process-wide
+            raise
+
+    def _start(self) -> None:
         self._settings.fast_switching(self.period_s)  # put back by close()
         dxl.check_budget(self.budget)
         self._open()

@@ -60,10 +60,7 @@ class SimulatedArm:
 
     def __init__(self, rig: Rig, bus: can.BusABC | None = None, seed: int | None = None, log_size: int = 200_000) -> None:
         self.rig = rig
-        # a thread waiting for the GIL waits up to the switch interval (5 ms by default):
-        # more than two cycles. A 2 ms loop needs the interpreter to switch ten times faster.
         self._settings = ProcessSettings()  # put back by close()
-        self._settings.fast_switching(rig.period_s)
         sim = dict(rig.simulation)
         self.seed = int(sim.get("seed", 0) if seed is None else seed)
         self.config = simulation_config(sim, rig.n_joints, f"{rig.source}: simulation")
@@ -71,6 +68,9 @@ class SimulatedArm:
         self._own_bus = bus is None
         self.bus = bus if bus is not None else open_bus(**rig.bus.kwargs())
         self.network = canopen.Network(self.bus)
+        # a thread waiting for the GIL waits up to the switch interval (5 ms by default):
+        # more than two cycles. A 2 ms loop needs the interpreter to switch ten times faster.
+        self._settings.fast_switching(rig.period_s)
         self.network.connect()
         sync_timeout = float(sim.get("sync_timeout_s", 0.1))
         self.drives = [SimulatedDrive(d.node_id, d.joint, d.units, self.network, sync_timeout) for d in rig.drives]
