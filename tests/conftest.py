@@ -54,7 +54,7 @@ def any_robot(request: pytest.FixtureRequest) -> Robot:
 
 # --- leaks -------------------------------------------------------------------------------
 _BUSES: weakref.WeakSet[Any] = weakref.WeakSet()
-_SESSIONS: weakref.WeakSet[Any] = weakref.WeakSet()
+_SESSIONS: list[Any] = []  # zenoh.Session takes no weak reference: closed ones are dropped after each test
 _LONG_LIVED_THREADS = ("armid-regressor",)  # identify's regressor pool: one per process, by design
 _THREAD_GRACE_S = 3.0
 
@@ -77,7 +77,7 @@ def _track_buses_and_sessions() -> None:
 
     def open_session(*args: Any, **kwargs: Any) -> Any:
         session = original_open(*args, **kwargs)
-        _SESSIONS.add(session)
+        _SESSIONS.append(session)
         return session
 
     zenoh.open = open_session
@@ -93,7 +93,7 @@ def no_leaks() -> Iterator[None]:
     """Fail a test that leaves a bus open, a Zenoh session open, a thread running or a
     process-wide setting changed (python-can's and zenoh-python's test suites do the same)."""
     _track_buses_and_sessions()
-    buses, sessions = set(map(id, _BUSES)), set(map(id, _SESSIONS))
+    buses, sessions = set(map(id, _BUSES)), len(_SESSIONS)
     threads = set(threading.enumerate())
     settings = _process_settings()
     yield
@@ -102,10 +102,11 @@ def no_leaks() -> Iterator[None]:
         if id(bus) not in buses and not getattr(bus, "_is_shutdown", True):
             problems.append(f"a python-can bus left open: {bus!r}")
             bus.shutdown()
-    for session in list(_SESSIONS):
-        if id(session) not in sessions and not session.is_closed():
+    for session in _SESSIONS[sessions:]:
+        if not session.is_closed():
             problems.append("a Zenoh session left open")
             session.close()
+    _SESSIONS[:] = [s for s in _SESSIONS if not s.is_closed()]
     deadline = time.monotonic() + _THREAD_GRACE_S
     for t in set(threading.enumerate()) - threads:
         if isinstance(t, threading._DummyThread) or t.name.startswith(_LONG_LIVED_THREADS):  # foreign (Rust) threads
@@ -118,6 +119,15 @@ def no_leaks() -> Iterator[None]:
         if after[name] != value:
             problems.append(f"{name} changed: {value!r} -> {after[name]!r}")
     if after["sys.getswitchinterval()"] != settings["sys.getswitchinterval()"]:
+        # put the process back, so that one leak does not fail every test after it
+        from armid.drivers.interface import ProcessSettings
+
         sys.setswitchinterval(settings["sys.getswitchinterval()"])
+        ProcessSettings._interval_holders = 0
+    if after["gc.get_freeze_count()"] != settings["gc.get_freeze_count()"] and settings["gc.get_freeze_count()"] == 0:
+        from armid.drivers.interface import ProcessSettings
+
+        gc.unfreeze()
+        ProcessSettings._freeze_holders, ProcessSettings._froze = 0, False
     if problems:
         pytest.fail("the test leaks:\n" + "\n".join(problems), pytrace=False)
