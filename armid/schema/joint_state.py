@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -171,7 +172,7 @@ class _Cdr:
             self.u32(len(v) + 1)
             self.buf += v + b"\x00"
 
-    def array(self, values: Array, dtype: str, size: int) -> None:
+    def array(self, values: NDArray[Any], dtype: str, size: int) -> None:
         self.u32(len(values))
         self.align(size)
         self.buf += np.ascontiguousarray(values, dtype).tobytes()
@@ -196,5 +197,5 @@ def ros2_messages(record: JointStateRecord, names: list[str]) -> tuple[bytes, by
     extra.array(s.velocity_fresh, "u1", 1)
     extra.array(s.commanded_current, "<f8", 8)
     extra.array(s.measured_current, "<f8", 8)
-    extra.array(np.asarray(s.status) & 0xFFFF, "<u2", 2)
+    extra.array(np.asarray(s.status, np.int64) & 0xFFFF, "<u2", 2)
     return bytes(state.buf), bytes(extra.buf)
