@@ -14,14 +14,15 @@ from typing import Any
 
 import numpy as np
 
-from identify.errors import (
+from armid import __version__
+from armid.schema.errors import (
     ArmidError,
     IdentificationError,
+    InputError,
     InputFileError,
     OptionError,
     PoorExcitationWarning,
     RecordingError,
-    RobotFileError,
     UsageError,
 )
 
@@ -143,8 +144,8 @@ def _write_json(path: Path, doc: Any) -> None:
 def _read_checked(path: str, robot: Any) -> Any:
     """``read_recording`` and the plausibility checks (time units, torque); their warnings are held
     until every input is read."""
-    from identify.plausibility import check_recording
-    from identify.recordings import read_recording
+    from armid.identify.plausibility import check_recording
+    from armid.io.recordings import read_recording
 
     rec = read_recording(path, robot)
     for warning in check_recording(rec.t, rec.q, rec.qd, rec.tau, rec.source):
@@ -153,10 +154,10 @@ def _read_checked(path: str, robot: Any) -> Any:
 
 
 def _identify(args: argparse.Namespace) -> int:
-    from identify.identification import IdentifyOptions, identify
-    from identify.preprocess import PrepareOptions, prepare
-    from identify.recordings import write_csv
-    from identify.robot_file import load_robot
+    from armid.identify.identification import IdentifyOptions, identify
+    from armid.identify.preprocess import PrepareOptions, prepare
+    from armid.io.recordings import write_csv
+    from armid.io.robot_file import load_robot
 
     robot = load_robot(args.robot)
     options = PrepareOptions(max_gap_factor=args.max_gap_factor, lowpass_hz=args.lowpass)
@@ -207,7 +208,7 @@ def _feasible(args: argparse.Namespace, robot: Any, result: Any, validation: lis
     and, with ``--urdf OUT``, the identified inertials written back as a URDF."""
     if not (args.feasible or args.urdf or args.bounding_box):
         return None
-    from identify.feasible import feasible_estimate
+    from armid.identify.feasible import feasible_estimate
 
     from .urdf_export import collision_boxes, effect_values, write_urdf
 
@@ -227,10 +228,10 @@ def _feasible(args: argparse.Namespace, robot: Any, result: Any, validation: lis
 
 
 def _diagnose(args: argparse.Namespace) -> int:
-    from identify.diagnosis import diagnose
-    from identify.preprocess import PrepareOptions, prepare
-    from identify.recordings import write_csv
-    from identify.robot_file import load_robot
+    from armid.identify.diagnosis import diagnose
+    from armid.identify.preprocess import PrepareOptions, prepare
+    from armid.io.recordings import write_csv
+    from armid.io.robot_file import load_robot
 
     robot = load_robot(args.robot)
     options = PrepareOptions(max_gap_factor=args.max_gap_factor, lowpass_hz=args.lowpass, torque_hold=args.torque_hold)
@@ -275,8 +276,8 @@ def _diagnose(args: argparse.Namespace) -> int:
 def _diagnosed_feasible(args: argparse.Namespace, robot: Any, diag: Any, experiments: list[Any], validation: list[Any], doc: dict[str, Any]) -> str | None:
     """The feasible estimate of the model diagnose ends with: the declared model plus every
     finding (identify.diagnosis.findings_model), the same fit as its 'after'."""
-    from identify.diagnosis import findings_model
-    from identify.identification import identify
+    from armid.identify.diagnosis import findings_model
+    from armid.identify.identification import identify
 
     model, options = findings_model(robot, diag.found)
     with warnings.catch_warnings():
@@ -289,16 +290,13 @@ def _diagnosed_feasible(args: argparse.Namespace, robot: Any, diag: Any, experim
 
 
 def _record(args: argparse.Namespace) -> int:
-    import platform
-    import signal
     import threading
     import time
 
-    import can
-
-    from daq.acquisition import Acquisition, Sink
-    from daq.recorder import McapRecorder
-    from drivers.rig import load_rig, open_bus
+    from armid.daq.acquisition import Acquisition, Sink
+    from armid.daq.recorder import McapRecorder
+    from armid.io.rig_file import load_rig
+    from armid.schema import versions
 
     rig = load_rig(args.rig)
     changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
@@ -307,58 +305,32 @@ def _record(args: argparse.Namespace) -> int:
     _inputs_read()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    driver: Any
-    arm = chain = None
-    if rig.serial is not None:  # a Dynamixel chain: 'port: sim' is the simulated chain on a pty
-        from drivers.dynamixel_driver import DynamixelDriver
-
-        port = args.channel or rig.serial.port
-        simulate = port == "sim" if args.simulate is None else args.simulate
-        if simulate:
-            from sim_bus.servo_chain import ServoChainProcess
-
-            chain = ServoChainProcess(args.rig)
-            port = chain.port
-        driver = DynamixelDriver(rig, port=port)
-    else:
-        from drivers.canopen_driver import CanopenDriver
-
-        simulate = args.simulate if args.simulate is not None else rig.bus.interface == "virtual"
-        if simulate:
-            from sim_bus.arm import SimulatedArm
-
-            arm = SimulatedArm(rig, bus=open_bus(**rig.bus.kwargs()))
-        driver = CanopenDriver(rig)
-        # an arm simulated in this process never runs ahead of what records it (SYNC waits for
-        # the consumer); --duration is then the arm's time, whatever the wall clock does
-        driver.paced_by_consumer = simulate
-    paced = simulate and not rig.is_serial
+    driver, sim = _open_driver(rig, args)
+    # an arm simulated in this process never runs ahead of what records it (SYNC waits for
+    # the consumer); --duration is then the arm's time, whatever the wall clock does
+    paced = driver.paced_by_consumer
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    restore = _stop_on_signals(stop)
     session = stream = None
     can_log = None
     try:
         driver.start()
         if not rig.is_serial:
             assert driver.network is not None and driver.network.notifier is not None
-            from daq.canlog import BusLog
+            from armid.daq.canlog import BusLog
 
             can_log = BusLog(driver, out / "can.log")  # every frame on the bus, the master's included
-        import armid as _armid_pkg
-
         metadata = {
             "robot": rig.robot.name, "rig": rig.name, "rig_file": rig.source, "period_s": rig.period_s,
             "bus": f"dynamixel {driver.port_name} at {rig.bus.bitrate} baud" if rig.is_serial else f"{rig.bus.interface}:{rig.bus.channel}",
             "pdo_plan": None if rig.is_serial else rig.pdo_plan,
-            "drives": driver.drive_configuration, "excitation": "none (armid record)",
-            "versions": {"armid": getattr(_armid_pkg, "__version__", "0.1.0"), "python": platform.python_version(),
-                         "python-can": can.__version__},
+            "driver": rig.driver, "drives": driver.drive_configuration, "excitation": "none (armid record)",
+            "versions": versions("python-can"),
         }
-        recorder = McapRecorder(out / "run.mcap", [j.name for j in rig.robot.joints], driver.torque_constants, metadata)
+        recorder = McapRecorder(out / "run.mcap", [j.name for j in rig.robot.joints], metadata)
         sinks = [Sink("recorder", recorder.write, bounded=False)]
         if not args.no_zenoh:
-            from daq.stream import Stream
+            from armid.daq.stream import Stream
 
             session = open_zenoh(args)
             stream = Stream(session, rig.robot.name, "recorder", lambda: {"records": acq.sequence, "invalid": acq.invalid.tolist(),
@@ -391,10 +363,46 @@ def _record(args: argparse.Namespace) -> int:
             stream.close()
         if session is not None:
             session.close()
-        if arm is not None:
-            arm.close()
-        if chain is not None:
-            chain.close()
+        if sim is not None:
+            sim.close()
+        restore()
+
+
+def _simulating(rig: Any, args: argparse.Namespace) -> bool:
+    """``--simulate``/``--no-simulate``, else: a serial rig on ``port: sim``, a CAN rig on ``virtual``."""
+    if args.simulate is not None:
+        return bool(args.simulate)
+    if rig.serial is not None:
+        return (getattr(args, "channel", None) or rig.serial.port) == "sim"
+    return bool(rig.bus.interface == "virtual")
+
+
+def _open_driver(rig: Any, args: argparse.Namespace) -> tuple[Any, Any]:
+    """The rig's driver (the registry names it), on the simulated hardware when simulating: (driver, simulator or None)."""
+    from armid.drivers import open_driver
+
+    if _simulating(rig, args):
+        from .simulated import simulated_driver
+
+        return simulated_driver(rig)
+    kwargs = {"port": args.channel} if rig.serial is not None and getattr(args, "channel", None) else {}
+    return open_driver(rig, **kwargs), None
+
+
+def _stop_on_signals(stop: Any) -> Any:
+    """SIGINT and SIGTERM set ``stop`` until the returned function puts the previous handlers back."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    def restore() -> None:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+    return restore
 
 
 def _excite(args: argparse.Namespace) -> int:
@@ -402,15 +410,15 @@ def _excite(args: argparse.Namespace) -> int:
 
     from rich.console import Console
 
-    from daq.excite import ExcitationSession
-    from drivers.rig import load_rig
-    from identify import excitation as ex
+    from armid.daq.excite import ExcitationSession
+    from armid.identify import excitation as ex
+    from armid.io.rig_file import load_rig
 
     from .experiments import Experiment, design_experiments, run_experiments
 
     rig = load_rig(args.rig)
     changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
-    if changes:
+    if changes and not rig.is_serial:
         rig = rig.with_bus(**changes)
     robot = rig.robot
     n = robot.n_joints
@@ -418,7 +426,7 @@ def _excite(args: argparse.Namespace) -> int:
         raise OptionError("--frequency", f"{args.frequency:g} Hz is not below the {0.5 / rig.period_s:g} Hz Nyquist frequency "
                                          f"of {rig.source}'s {rig.period_s:g} s period")
     console = Console(stderr=True)
-    simulate = args.simulate if args.simulate is not None else rig.bus.interface == "virtual"
+    simulate = _simulating(rig, args)
     links: list[int] = []
     for spec in args.link or []:
         if spec == "all":
@@ -436,7 +444,8 @@ def _excite(args: argparse.Namespace) -> int:
     out = Path(args.out or f"runs/{time.strftime('%Y%m%d-%H%M%S')}")
     # the pose the arm will be at: the rig's (simulated) start, or the drives' own report
     start = np.asarray(rig.simulation.get("initial_position", np.zeros(n)), float) if simulate else None
-    with ExcitationSession(rig, simulate=simulate, tracking_limit_rad=args.tracking_limit) as session:
+    driver, sim = _open_driver(rig, args)
+    with ExcitationSession(rig, driver, simulator=sim, tracking_limit_rad=args.tracking_limit) as session:
         if start is None or np.abs(start - session.position).max() > 0.02:
             start = session.position
         if trajectory is not None:
@@ -467,7 +476,7 @@ def load_trajectory(path: str | Path, n_joints: int, period_s: float) -> tuple[A
     """A trajectory JSON for ``armid excite --trajectory``: a ``designs.json`` entry (or a file
     holding exactly one), ``{"fourier": {...}}``, or the Fourier block itself. Returns the
     trajectory and the moving joints (0-based); every problem names the file and the field."""
-    from identify.trajectories import FourierTrajectory
+    from armid.identify.trajectories import FourierTrajectory
 
     src = str(path)
     try:
@@ -542,9 +551,10 @@ def load_trajectory(path: str | Path, n_joints: int, period_s: float) -> tuple[A
 
 
 def _replay_records(path: Path, robot: Any, kt: np.ndarray, period_s: float | None) -> tuple[tuple[np.ndarray, ...], list[str]]:
-    """(sequence, time, valid, position, current) of a recording (MCAP or CSV), in order, on
-    the recording's own time stamps; time must increase (a CSV names its line)."""
-    from identify.recordings import read_mcap_arrays, read_recording
+    """(sequence, time, valid, position, torque) of a recording (MCAP or CSV), in order, on
+    the recording's own time stamps; time must increase (a CSV names its line). A ROS 2
+    recording carries the torque; a JSON one (before it) its measured current times ``kt``."""
+    from armid.io.recordings import read_mcap_arrays, read_recording
 
     if path.suffix.lower() == ".mcap":
         if not path.exists():
@@ -555,8 +565,9 @@ def _replay_records(path: Path, robot: Any, kt: np.ndarray, period_s: float | No
         if a["position"].shape[1] != robot.n_joints:
             raise RecordingError(str(path), f"{a['position'].shape[1]} joints recorded, robot {robot.name} has {robot.n_joints}")
         t = np.asarray(a["t"], float)
+        torque = a["torque"] if "torque" in a else a["measured_current"] * kt
         records = (np.asarray(a["sequence"], np.int64), t, np.asarray(a["valid"], bool).reshape(t.size, -1),
-                   np.asarray(a["position"], float), np.asarray(a["measured_current"], float))
+                   np.asarray(a["position"], float), np.asarray(torque, float))
     else:
         rec = read_recording(path, robot)
         notes, t = list(rec.notes), np.asarray(rec.t, float)
@@ -566,7 +577,7 @@ def _replay_records(path: Path, robot: Any, kt: np.ndarray, period_s: float | No
             raise RecordingError(str(path), f"line {k + 2}: time {t[k]:.6g} s is not after the line before ({t[k - 1]:.6g} s): "
                                             "time must increase (a reversed or shuffled log?)")
         records = (np.arange(rec.n_samples, dtype=np.int64), t, np.ones((rec.n_samples, robot.n_joints), bool), np.asarray(rec.q, float),
-                   np.asarray(rec.tau, float) / kt)
+                   np.asarray(rec.tau, float))
     if t.size >= 2 and period_s is not None:
         step = float(np.median(np.diff(t)))
         if abs(step - period_s) > 0.1 * period_s:
@@ -623,9 +634,9 @@ def _estimate(args: argparse.Namespace) -> int:
     """On-line payload estimation, live or on a recording; always on the records' time stamps."""
     import time
 
-    from daq.payload_service import EstimateStream
-    from identify.payload import PayloadRLS, ReferenceRun, arm_model_from_identification
-    from identify.robot_file import load_robot
+    from armid.daq.payload_service import EstimateStream
+    from armid.identify.payload import PayloadRLS, ReferenceRun, arm_model_from_identification
+    from armid.io.robot_file import load_robot
 
     if not args.replay and args.mode != "live":
         raise UsageError("say what to run on: 'live' (the Zenoh stream) or --replay DATA")
@@ -648,11 +659,11 @@ def _estimate(args: argparse.Namespace) -> int:
             print(f"{args.reference}: {note}", file=sys.stderr)
         keep = ref_records[2].all(axis=1)
         try:
-            reference = ReferenceRun(arm, ref_records[1][keep], ref_records[3][keep], ref_records[4][keep] * kt)
+            reference = ReferenceRun(arm, ref_records[1][keep], ref_records[3][keep], ref_records[4][keep])
         except ValueError as err:
             raise RecordingError(args.reference, str(err)) from None
     estimator = PayloadRLS(arm, forgetting=args.forgetting, reference=reference)
-    stream = EstimateStream(estimator, kt, publish_every=args.publish_every, strict_time=bool(args.replay),
+    stream = EstimateStream(estimator, publish_every=args.publish_every, strict_time=bool(args.replay),
                             source=str(args.replay or "stream"))
     if args.replay:
         records, notes = _replay_records(Path(args.replay), robot, kt, args.period)
@@ -668,7 +679,7 @@ def _estimate(args: argparse.Namespace) -> int:
             seconds = time.perf_counter() - start
             print(_estimate_summary(estimator.n_updates_ if hasattr(estimator, "n_updates_") else 0, docs, seconds, stream), file=sys.stderr)
             return 0
-        from daq.payload_service import PayloadService
+        from armid.daq.payload_service import PayloadService
 
         estimator.warm()  # nothing left to run for the first time once records arrive
         session = open_zenoh(args)
@@ -705,11 +716,9 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _sim(args: argparse.Namespace) -> int:
-    import signal
     import threading
 
-    from drivers.rig import load_rig
-    from sim_bus.arm import SimulatedArm
+    from armid.io.rig_file import load_rig
 
     rig = load_rig(args.rig)
     changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
@@ -717,10 +726,16 @@ def _sim(args: argparse.Namespace) -> int:
         rig = rig.with_bus(**changes)
     _inputs_read()
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    if rig.is_serial:
-        return _sim_chain(rig, args, stop)
+    restore = _stop_on_signals(stop)
+    try:
+        return _sim_chain(rig, args, stop) if rig.is_serial else _sim_arm(rig, args, stop)
+    finally:
+        restore()
+
+
+def _sim_arm(rig: Any, args: argparse.Namespace, stop: Any) -> int:
+    from armid.sim_bus.arm import SimulatedArm
+
     arm = SimulatedArm(rig, seed=args.seed)
     print(f"armid sim: {rig.name}: {rig.n_joints} drives (nodes {', '.join(str(d.node_id) for d in rig.drives)}) "
           f"on {rig.bus.interface}:{rig.bus.channel}, lock-step with SYNC at {rig.period_s * 1000:g} ms", file=sys.stderr, flush=True)
@@ -750,7 +765,7 @@ def _run_until(stop: Any, duration: float | None) -> None:
 def _sim_chain(rig: Any, args: argparse.Namespace, stop: Any) -> int:
     """A Dynamixel rig: the simulated servo chain on a pty; the driver opens the printed port."""
 
-    from sim_bus.servo_chain import SimulatedServoChain
+    from armid.sim_bus.servo_chain import SimulatedServoChain
 
     chain = SimulatedServoChain(rig, seed=args.seed)
     print(f"armid sim: {rig.name}: {rig.n_joints} Dynamixel servos (ids {', '.join(str(d.node_id) for d in rig.drives)}) "
@@ -787,7 +802,7 @@ def open_zenoh(args: argparse.Namespace) -> Any:
     names a certificate that is not there, or cannot open a session is bad input (exit 2)."""
     import zenoh
 
-    from daq.stream import session_config
+    from armid.daq.stream import session_config
 
     src = args.zenoh_config
     endpoints = "--zenoh-listen/--zenoh-connect"
@@ -831,6 +846,7 @@ def _feasible_arguments(p: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="armid", description="Robot dynamics identification (Khosla 1987) from servo data.")
+    parser.add_argument("--version", action="version", version=f"armid {__version__}")  # the installed metadata
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     p = sub.add_parser("identify", help="least-squares identification (eq. 18) with identifiability classes")
     p.add_argument("data", nargs="+", help="recordings to identify on (CSV or .npz)")
@@ -967,12 +983,13 @@ def _one_line(text: str, most: int = 600) -> str:
 
 
 def _exit_code(err: BaseException) -> tuple[int, str]:
-    """(exit code, message) for an error that reached the command line: 2 for bad input
-    (files, recordings, options, data that cannot give an estimate, refused plans), 1 for a
-    runtime fault or a bug."""
+    """(exit code, message) for an error that reached the command line, by type: 2 for bad
+    input (an :class:`InputError`: files, recordings, options, data that cannot give an
+    estimate, refused plans), 1 for a runtime fault (any other :class:`ArmidError`: a drive,
+    the bus, the simulated hardware) or a bug. A ``ValueError`` from elsewhere is a bug, not
+    bad input. The tree is drawn in :mod:`armid.schema.errors`."""
     if isinstance(err, ArmidError):
-        bad_input = isinstance(err, ValueError | RobotFileError | RecordingError | IdentificationError | InputFileError)
-        return (2 if bad_input else 1), str(err)
+        return (2 if isinstance(err, InputError) else 1), str(err)
     if isinstance(err, OSError):
         # a named file that cannot be opened or written is the user's to fix; a socket or a
         # device failing under a running command is a runtime fault

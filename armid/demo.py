@@ -17,11 +17,12 @@ from typing import Any
 
 import numpy as np
 
-from daq.excite import ExcitationSession
-from drivers.rig import Rig, load_rig
-from identify import excitation as ex
-from identify.identification import IdentificationResult, IdentifyOptions, identify
-from identify.single_link import SequenceResult, single_link_sequence
+from armid.drivers.rig import Rig
+from armid.identify import excitation as ex
+from armid.identify.identification import IdentificationResult, IdentifyOptions, identify
+from armid.identify.single_link import SequenceResult, single_link_sequence
+from armid.io.rig_file import load_rig
+from armid.resources import config_file
 
 from .experiments import (
     design_experiments,
@@ -29,13 +30,14 @@ from .experiments import (
     run_experiments,
     write_json,
 )
+from .simulated import excitation_session
 
-DEFAULT_RIG = Path(__file__).resolve().parent.parent / "config" / "rigs" / "sim.yaml"
+DEFAULT_RIG = config_file("rigs/sim.yaml")  # package data: found in a wheel install too
 
 
 def true_parameters(rig: Rig, names: list[str]) -> np.ndarray:
     """The simulated arm's parameters in the order of ``names`` (rigid body, then fv, fc, ia)."""
-    from sim_bus.physics import simulation_config
+    from armid.sim_bus.physics import simulation_config
 
     cfg = simulation_config(rig.simulation, rig.n_joints, rig.source)
     phi = np.zeros(len(names))
@@ -140,7 +142,7 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0) -> int:
         motion_s = sum(e.plan.duration_s for e in experiments)
         phases.start("runs", f"running the {len(experiments)} experiments on the drives in real time ({motion_s:.0f} s of motion, "
                      "2 ms SYNC over the virtual CAN bus), each recorded as MCAP")
-        with ExcitationSession(rig, simulate=True) as session:
+        with excitation_session(rig, simulate=True) as session:
             reports = run_experiments(session, experiments, out / "runs", console)
         write_json(out / "runs.json", [r.to_json() for r in reports])
         failed = [r for r in reports if not r.completed]
@@ -154,14 +156,14 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0) -> int:
         whole = identify(robot, [prepared["whole_a"]], [prepared["whole_b"]], IdentifyOptions(exclude_reversals=True))
         truth = check_against_truth(rig, seq, whole)
         comparison = seq.compare(whole)
-        from identify.diagnosis import diagnose
+        from armid.identify.diagnosis import diagnose
 
         diagnosis = diagnose(robot, [prepared["whole_a"]], [prepared["whole_b"]])
         phases.start("payload", "payload: the identified arm works through whole_a; a 2 kg payload is attached and removed, "
                      "estimated on-line from the live Zenoh stream")
         payload = run_payload(rig, whole, experiments[-2].design, out, console)
         phases.start("report", "writing the report and its plots")
-        from identify.feasible import feasible_estimate
+        from armid.identify.feasible import feasible_estimate
 
         from .urdf_export import effect_values, write_urdf
 
@@ -207,12 +209,12 @@ def run_payload(rig: Rig, whole: Any, design: Any, out: Path, console: Any, warm
 
     import zenoh
 
-    from daq.payload_service import EstimateStream, PayloadService
-    from daq.stream import Stream, session_config
-    from identify import excitation as ex
-    from identify.payload import ArmModel, PayloadRLS
-    from identify.recordings import read_mcap_arrays
-    from sim_bus.physics import Payload
+    from armid.daq.payload_service import EstimateStream, PayloadService
+    from armid.daq.stream import Stream, session_config
+    from armid.identify import excitation as ex
+    from armid.identify.payload import ArmModel, PayloadRLS
+    from armid.io.recordings import read_mcap_arrays
+    from armid.sim_bus.physics import Payload
 
     robot = rig.robot
     truth = Payload(*DEMO_PAYLOAD)  # type: ignore[arg-type]
@@ -220,17 +222,16 @@ def run_payload(rig: Rig, whole: Any, design: Any, out: Path, console: Any, warm
         arm = whole
     else:
         arm = ArmModel(robot, tuple(whole.effects), whole.base.independent, whole.estimate.beta, whole.estimate.joint_sigma)
-    kt = np.array([j.torque_constant for j in robot.joints])
     estimates: list[dict[str, Any]] = []
     estimator = PayloadRLS(arm)
     if warm:
         estimator.warm()
     session = zenoh.open(session_config(listen=[], connect=[]))
-    service = PayloadService(session, robot.name, EstimateStream(estimator, kt), on_estimate=estimates.append)
+    service = PayloadService(session, robot.name, EstimateStream(estimator), on_estimate=estimates.append)
     stream = Stream(session, robot.name, "demo", lambda: {"component": "demo"})
     run_dir = out / "runs" / "payload"
     try:
-        with ExcitationSession(rig, simulate=True, stream=stream) as s:
+        with excitation_session(rig, simulate=True, stream=stream) as s:
             assert s.arm is not None
             physics = s.arm.physics
             plan = ex.plan(design, s.position, s.limits, periods=2)

@@ -16,11 +16,11 @@ from typing import Any
 
 import numpy as np
 
-from daq.excite import ExcitationSession, RunReport
-from identify import excitation as ex
-from identify.preprocess import Prepared, PrepareOptions, prepare
-from identify.recordings import Recording, read_mcap_arrays, read_recording
-from identify.robot import Robot
+from armid.daq.excite import ExcitationSession, RunReport
+from armid.identify import excitation as ex
+from armid.identify.preprocess import Prepared, PrepareOptions, prepare
+from armid.identify.robot import Robot
+from armid.io.recordings import Recording, read_recording
 
 PREPARE = PrepareOptions(lowpass_hz=None, torque_hold=True)
 """How drive recordings are prepared: the drives' velocity through the 5-point filter for
@@ -118,12 +118,11 @@ def run_experiments(session: ExcitationSession, experiments: list[Experiment], o
 def excitation_recording(report: RunReport, robot: Robot, period_s: float) -> Recording:
     """The run's recording, cut to its excitation window (whole periods of the design)."""
     rec = read_recording(report.recording, robot)
-    arrays, _, _ = read_mcap_arrays(report.recording)
-    cycles = arrays["cycle"][arrays["valid"].all(axis=1)]
-    t_plan = (cycles - report.first_cycle) * period_s
+    assert rec.cycle is not None  # a drive recording carries its cycle counter
+    t_plan = (rec.cycle - report.first_cycle) * period_s
     w0, w1 = report.window_s
     keep = (t_plan >= w0) & (t_plan <= w1)
-    return replace(rec, t=rec.t[keep], q=rec.q[keep], tau=rec.tau[keep], qd=None if rec.qd is None else rec.qd[keep],
+    return replace(rec, t=rec.t[keep], q=rec.q[keep], tau=rec.tau[keep], qd=None if rec.qd is None else rec.qd[keep], cycle=rec.cycle[keep],
                    notes=rec.notes + [f"cut to the excitation window {w0:.2f}-{w1:.2f} s of the plan"])
 
 

@@ -7,8 +7,8 @@ from typing import Any
 
 import numpy as np
 
-from identify.identification import IdentificationResult
-from identify.preprocess import Segment
+from armid.identify.identification import IdentificationResult
+from armid.identify.preprocess import Segment
 
 
 def _fmt(x: float | None, digits: int = 5) -> str:

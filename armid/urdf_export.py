@@ -27,9 +27,9 @@ from typing import Any
 
 import numpy as np
 
-from identify.errors import RobotFileError
-from identify.robot import Robot, inertial_from_parameters
-from identify.spatial import Array
+from armid.identify.errors import RobotFileError
+from armid.identify.robot import Robot, inertial_from_parameters
+from armid.schema import Array
 
 
 def _f(x: float) -> str:

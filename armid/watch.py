@@ -14,8 +14,8 @@ import time
 from collections import deque
 from typing import Any
 
-from daq.record_format import JointStateRecord, check_encoding
-from daq.stream import key
+from armid.daq.stream import key
+from armid.schema.joint_state import JointStateRecord, check_encoding
 
 
 class WatchState:

@@ -25,11 +25,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from daq.control import ComputedTorque  # noqa: E402
-from daq.excite import LOOP_BANDWIDTH_HZ  # noqa: E402
-from drivers.canopen_driver import CanopenDriver  # noqa: E402
-from drivers.rig import load_rig  # noqa: E402
-from sim_bus.arm import SimulatedArm  # noqa: E402
+from armid.daq.excite import LOOP_BANDWIDTH_HZ  # noqa: E402
+from armid.drivers.canopen_driver import CanopenDriver  # noqa: E402
+from armid.drivers.rig import load_rig  # noqa: E402
+from armid.identify.control import ComputedTorque  # noqa: E402
+from armid.sim_bus.arm import SimulatedArm  # noqa: E402
 
 RIG = ROOT / "config" / "rigs" / "sim.yaml"
 

@@ -29,12 +29,12 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 
-from daq.acquisition import Acquisition, Sink  # noqa: E402
-from daq.canlog import BusLog  # noqa: E402
-from daq.recorder import McapRecorder  # noqa: E402
-from daq.stream import Stream, session_config  # noqa: E402
-from drivers.canopen_driver import CanopenDriver  # noqa: E402
-from drivers.rig import load_rig  # noqa: E402
+from armid.daq.acquisition import Acquisition, Sink  # noqa: E402
+from armid.daq.canlog import BusLog  # noqa: E402
+from armid.daq.recorder import McapRecorder  # noqa: E402
+from armid.daq.stream import Stream, session_config  # noqa: E402
+from armid.drivers.canopen_driver import CanopenDriver  # noqa: E402
+from armid.drivers.rig import load_rig  # noqa: E402
 
 RIG = ROOT / "config" / "rigs" / "sim.yaml"
 
@@ -79,7 +79,7 @@ def run(seconds: float, period_s: float) -> dict[str, float]:
     session = zenoh.open(session_config(connect=[endpoint]))
     try:
         driver.start()
-        recorder = McapRecorder(tmp / "run.mcap", [j.name for j in rig.robot.joints], driver.torque_constants, {"robot": rig.robot.name})
+        recorder = McapRecorder(tmp / "run.mcap", [j.name for j in rig.robot.joints], {"robot": rig.robot.name})
         log = BusLog(driver, tmp / "can.log")
         stream = Stream(session, rig.robot.name, "bench", lambda: {})
         acq = Acquisition(driver, [Sink("recorder", recorder.write, bounded=False), Sink("zenoh", stream.publish, capacity=5000)])

@@ -23,14 +23,14 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize
 
-from identify import excitation as ex
-from identify._regressor_lanes import regressor_rows
-from identify.dynamics import _joint_constants, _out_layout, check_joint_arrays, regressor
-from identify.effects import effect_columns
-from identify.identification import declared_effects
-from identify.robot import Robot
-from identify.robot_file import load_robot
-from identify.trajectories import FourierTrajectory
+from armid.identify import excitation as ex
+from armid.identify._regressor_lanes import regressor_rows
+from armid.identify.dynamics import _joint_constants, _out_layout, check_joint_arrays, regressor
+from armid.identify.effects import effect_columns
+from armid.identify.identification import declared_effects
+from armid.identify.robot import Robot
+from armid.identify.trajectories import FourierTrajectory
+from armid.io.robot_file import load_robot
 
 ROBOT = Path(__file__).resolve().parent.parent / "config" / "robots" / "puma560.yaml"
 START = np.array([0.0, 0.7854, -0.7854, 0.0, 0.0, 0.0])  # config/rigs/sim.yaml's initial position

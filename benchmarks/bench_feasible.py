@@ -17,12 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
-from identify.dynamics import regressor
-from identify.feasible import feasible_estimate
-from identify.identification import identify
-from identify.preprocess import Prepared, Segment
-from identify.robot_file import load_robot
-from identify.trajectories import random_fourier_trajectory
+from armid.identify.dynamics import regressor
+from armid.identify.feasible import feasible_estimate
+from armid.identify.identification import identify
+from armid.identify.preprocess import Prepared, Segment
+from armid.identify.trajectories import random_fourier_trajectory
+from armid.io.robot_file import load_robot
 
 ROBOT = Path(__file__).resolve().parent.parent / "config" / "robots" / "puma560.yaml"
 

@@ -13,12 +13,12 @@ from pathlib import Path
 
 import numpy as np
 
-from identify.dynamics import regressor
-from identify.identification import identify, stacked_regressor, structural_base
-from identify.preprocess import prepare
-from identify.recordings import read_recording, write_csv
-from identify.robot_file import load_robot
-from identify.trajectories import random_fourier_trajectory
+from armid.identify.dynamics import regressor
+from armid.identify.identification import identify, stacked_regressor, structural_base
+from armid.identify.preprocess import prepare
+from armid.identify.trajectories import random_fourier_trajectory
+from armid.io.recordings import read_recording, write_csv
+from armid.io.robot_file import load_robot
 
 ROBOT = Path(__file__).resolve().parent.parent / "config" / "robots" / "puma560.yaml"
 

@@ -20,13 +20,13 @@ from pathlib import Path
 
 import numpy as np
 
-from daq.payload_service import EstimateStream
-from drivers.rig import load_rig
-from identify import excitation as ex
-from identify.identification import declared_effects, structural_base
-from identify.payload import ArmModel, PayloadRLS
-from sim_bus.offline import simulate
-from sim_bus.physics import Payload, simulation_config
+from armid.daq.payload_service import EstimateStream
+from armid.identify import excitation as ex
+from armid.identify.identification import declared_effects, structural_base
+from armid.identify.payload import ArmModel, PayloadRLS
+from armid.io.rig_file import load_rig
+from armid.sim_bus.offline import simulate
+from armid.sim_bus.physics import Payload, simulation_config
 
 RIG = Path(__file__).resolve().parent.parent / "config" / "rigs" / "sim.yaml"
 
@@ -45,26 +45,25 @@ def main(seconds: float = 20.0) -> None:
     plan = ex.plan(d, np.asarray(rig.simulation["initial_position"], float), ex.Limits.of(robot), periods=max(1, int(seconds / 5)))
     run = simulate(robot, simulation_config(rig.simulation, 6), plan.evaluate, plan.duration_s,
                    payloads=[(plan.duration_s / 2, Payload(2.0, (0.02, -0.03, 0.08)))])
-    kt = np.array([j.torque_constant for j in robot.joints])
     duration = float(run.t[-1] - run.t[0])
 
     seq, t, valid = np.arange(run.t.size), run.t, np.ones((run.t.size, 6), bool)
-    EstimateStream(PayloadRLS(arm), kt).feed_arrays(seq[:400], t[:400], valid[:400], run.position[:400], run.current[:400])  # first calls
+    EstimateStream(PayloadRLS(arm)).feed_arrays(seq[:400], t[:400], valid[:400], run.position[:400], run.torque[:400])  # first calls
     # the reference run, in this process: the arm model and payload columns of every record in one
     # batch (the least any replay must do); the figures below are ratios to it, not wall-clock bounds
     start = time.perf_counter()
     arm.torque_and_payload_columns(run.position, np.zeros_like(run.position), np.zeros_like(run.position))
     reference_s = time.perf_counter() - start
 
-    stream = EstimateStream(PayloadRLS(arm), kt)
+    stream = EstimateStream(PayloadRLS(arm))
     start = time.perf_counter()
-    docs = stream.feed_arrays(seq, t, valid, run.position, run.current)  # what armid estimate --replay runs
+    docs = stream.feed_arrays(seq, t, valid, run.position, run.torque)  # what armid estimate --replay runs
     replay_s = time.perf_counter() - start
 
-    one = EstimateStream(PayloadRLS(arm), kt)
+    one = EstimateStream(PayloadRLS(arm))
     start = time.perf_counter()
     for k in range(0, run.t.size, 10):  # the live service keeping up: a batch per 10 records (20 ms at 2 ms)
-        one.feed_arrays(seq[k : k + 10], t[k : k + 10], valid[k : k + 10], run.position[k : k + 10], run.current[k : k + 10])
+        one.feed_arrays(seq[k : k + 10], t[k : k + 10], valid[k : k + 10], run.position[k : k + 10], run.torque[k : k + 10])
     live_s = time.perf_counter() - start
 
     n = run.t.size

@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from identify.dynamics import regressor
-from identify.identification import random_motion
-from identify.pinocchio_bridge import to_pinocchio
-from identify.robot_file import load_robot
+from armid.identify.dynamics import regressor
+from armid.identify.identification import random_motion
+from armid.identify.pinocchio_bridge import to_pinocchio
+from armid.io.robot_file import load_robot
 
 ROBOT = Path(__file__).resolve().parent.parent / "config" / "robots" / "puma560.yaml"
 

@@ -19,9 +19,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.interface import DriveFault, Driver, DriverError
-
-from .record_format import JointStateRecord
+from armid.drivers.interface import DriveFault, Driver, DriverError
+from armid.schema.joint_state import JointStateRecord
 
 Handler = Callable[[JointStateRecord], None]
 

@@ -23,7 +23,7 @@ from typing import Any
 
 import can
 
-from drivers.interface import Sample
+from armid.drivers.interface import Sample
 
 
 class BusLog:
@@ -75,7 +75,7 @@ class _Received(can.Listener):
 
 def replay_log(path: str | Path, rig: Any, timeout_s: float = 30.0) -> list[Sample]:
     """Decode ``path`` as the rig's driver would have: one sample per SYNC in the log."""
-    from drivers.canopen_driver import CanopenDriver
+    from armid.drivers.canopen_driver import CanopenDriver
 
     channel = f"armid-replay-{uuid.uuid4().hex[:8]}"
     listen_bus = can.Bus(interface="virtual", channel=channel)
@@ -84,7 +84,8 @@ def replay_log(path: str | Path, rig: Any, timeout_s: float = 30.0) -> list[Samp
     samples: list[Sample] = []
     try:
         driver.listen()
-        reader = threading.Thread(target=lambda: _drain(driver, samples, timeout_s), daemon=True)
+        stop = threading.Event()
+        reader = threading.Thread(target=lambda: _drain(driver, samples, stop), daemon=True)
         reader.start()
         syncs = 0
         for msg in can.LogReader(str(path)):
@@ -96,17 +97,26 @@ def replay_log(path: str | Path, rig: Any, timeout_s: float = 30.0) -> list[Samp
         deadline = time.monotonic() + timeout_s
         while len(samples) < syncs and time.monotonic() < deadline:
             time.sleep(0.01)
-        driver.close()
+        stop.set()
         reader.join(2.0)
+        driver.close()
     finally:
         player.shutdown()
         listen_bus.shutdown()
     return samples
 
 
-def _drain(driver: Any, samples: list[Sample], timeout_s: float) -> None:
+def _drain(driver: Any, samples: list[Sample], stop: threading.Event) -> None:
+    """Every sample the driver gives, until ``stop`` is set and none is left (never longer)."""
+    from armid.schema.errors import DriveFault, DriverError
+
     while True:
         try:
-            samples.append(driver.read(timeout=timeout_s))
+            samples.append(driver.read(timeout=0.1))
+        except DriveFault:
+            return
+        except DriverError:  # none within 0.1 s
+            if stop.is_set():
+                return
         except Exception:
             return

@@ -15,7 +15,6 @@ recorded to its own folder (``run.mcap`` and the raw frames in ``can.log``).
 
 from __future__ import annotations
 
-import platform
 import threading
 import time
 from collections.abc import Callable
@@ -25,16 +24,16 @@ from typing import Any
 
 import numpy as np
 
-from drivers.interface import DriveFault, Driver, DriverError
-from identify.errors import UsageError
-from identify.excitation import Limits, Plan
-from identify.robot import Robot
-from identify.spatial import Array
+from armid.drivers.interface import DriveFault, Driver, DriverError
+from armid.identify.control import ComputedTorque
+from armid.identify.errors import UsageError
+from armid.identify.excitation import Limits, Plan
+from armid.identify.robot import Robot
+from armid.schema import Array, versions
+from armid.schema.joint_state import JointStateRecord
 
 from .acquisition import Acquisition, Sink
 from .canlog import BusLog
-from .control import ComputedTorque
-from .record_format import JointStateRecord
 from .recorder import McapRecorder
 
 LOOP_BANDWIDTH_HZ = 2.0
@@ -207,24 +206,18 @@ class _Switch:
 class ExcitationSession:
     """Bus, drives and acquisition for a sequence of plans; ``with`` closes everything."""
 
-    def __init__(self, rig: Any, simulate: bool = True, tracking_limit_rad: float = 0.2, stream: Any = None,
-                 bus: Any = None, bandwidth_hz: float = LOOP_BANDWIDTH_HZ) -> None:
-
-        from drivers.canopen_driver import CanopenDriver
+    def __init__(self, rig: Any, driver: Driver | None = None, *, simulator: Any = None, tracking_limit_rad: float = 0.2,
+                 stream: Any = None, bus: Any = None, bandwidth_hz: float = LOOP_BANDWIDTH_HZ) -> None:
+        """``driver``: any :class:`Driver` (default: the one the rig names, from the registry,
+        on ``bus`` for CANopen). ``simulator``: the simulated hardware the caller started
+        (``armid.simulated``), closed with the session; its ``peer`` is :attr:`arm`."""
+        from armid.drivers import open_driver
 
         self.rig = rig
         self.robot: Robot = rig.robot
-        self.arm = None
-        self._buses: list[Any] = []
-        if simulate:
-            from drivers.rig import open_bus
-            from sim_bus.arm import SimulatedArm
-
-            arm_bus = open_bus(**rig.bus.kwargs())
-            self._buses.append(arm_bus)
-            self.arm = SimulatedArm(rig, bus=arm_bus)
-        self.driver = CanopenDriver(rig, bus=bus)
-        self.driver.paced_by_consumer = simulate  # the simulated arm never runs ahead of its control loop
+        self.simulator = simulator
+        self.arm = getattr(simulator, "peer", None)
+        self.driver = driver if driver is not None else open_driver(rig, **({"bus": bus} if bus is not None else {}))
         self.stream = stream
         self.limits = Limits.of(self.robot)
         armature = [u.reflected_inertia for u in (d.units for d in rig.drives)]
@@ -269,18 +262,19 @@ class ExcitationSession:
 
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
-        assert self.acquisition is not None and self.driver.network is not None and self.driver.network.notifier is not None
+        assert self.acquisition is not None
         if np.abs(plan.start - self.position).max() > 0.02:
             raise UsageError(f"{name}: the plan starts {np.abs(plan.start - self.position).max():.3f} rad from where the arm is")
         meta = {
             "robot": self.robot.name, "rig": self.rig.name, "rig_file": self.rig.source, "period_s": self.rig.period_s,
-            "pdo_plan": self.rig.pdo_plan, "drives": self.driver.drive_configuration,
+            "pdo_plan": None if self.rig.is_serial else self.rig.pdo_plan, "driver": self.rig.driver, "drives": self.driver.drive_configuration,
             "excitation": {"name": name, "lead_in_s": plan.lead_in_s, "periods": plan.periods, "settle_s": plan.settle_s,
                            "window_s": list(plan.excitation_window), **(metadata or {})},
             "versions": _versions(),
         }
-        recorder = McapRecorder(out / "run.mcap", [j.name for j in self.robot.joints], self.driver.torque_constants, meta)
-        can_log = BusLog(self.driver, out / "can.log")  # every frame on the bus, the master's included
+        recorder = McapRecorder(out / "run.mcap", [j.name for j in self.robot.joints], meta)
+        # every frame on a CAN bus, the master's included
+        can_log = BusLog(self.driver, out / "can.log") if getattr(self.driver, "network", None) is not None else None
         self._switch.recorder = recorder
         written_before = self._switch.count
         try:
@@ -309,7 +303,8 @@ class ExcitationSession:
             self._switch.recorder = None
             time.sleep(0.005)
             recorder.close()
-            can_log.stop()
+            if can_log is not None:
+                can_log.stop()
         if self.stream is not None:
             self.stream.event("stop", run=name, completed=self.control.stop_reason is None, reason=self.control.stop_reason)
         c = self.control
@@ -326,10 +321,8 @@ class ExcitationSession:
             if self.acquisition is not None:
                 self.acquisition.stop()
             self.driver.close()
-            if self.arm is not None:
-                self.arm.close()
-            for b in self._buses:
-                b.shutdown()
+            if self.simulator is not None:
+                self.simulator.close()
 
     def __enter__(self) -> ExcitationSession:
         self.start()
@@ -340,10 +333,5 @@ class ExcitationSession:
 
 
 def _versions() -> dict[str, str]:
-    import can
-    import canopen
-
-    import armid
-
-    return {"armid": getattr(armid, "__version__", "0.1.0"), "python": platform.python_version(), "python-can": can.__version__,
-            "canopen": getattr(canopen, "__version__", "?"), "numpy": np.__version__}
+    """The software that made a recording (installed metadata, ``importlib.metadata``)."""
+    return versions("python-can", "canopen", "numpy")

@@ -27,26 +27,24 @@ from typing import Any
 
 import numpy as np
 
-from identify.errors import RecordingError
-from identify.payload import PayloadRLS
-from identify.spatial import Array
+from armid.identify.errors import RecordingError
+from armid.identify.payload import PayloadRLS
+from armid.schema import Array
+from armid.schema.joint_state import JointStateRecord, check_encoding
 
-from .record_format import JointStateRecord, check_encoding
 from .stream import key
 
 
 class EstimateStream:
     """Records in sequence order -> the documents to publish (pure, no I/O)."""
 
-    def __init__(self, estimator: PayloadRLS, torque_constants: Array, publish_every: int = 10, strict_time: bool = False,
-                 source: str = "stream") -> None:
+    def __init__(self, estimator: PayloadRLS, publish_every: int = 10, strict_time: bool = False, source: str = "stream") -> None:
         """``strict_time``: a record whose time is not after the previous one is refused
         (:class:`RecordingError`, for a recording); otherwise it is dropped, counted in
         ``time_faults`` and the derivatives restart (a live stream whose clock stepped)."""
         if publish_every < 1:
             raise ValueError(f"publish_every must be at least 1, got {publish_every}")
         self.estimator = estimator
-        self.kt = np.asarray(torque_constants, float)
         self.publish_every = publish_every
         self.strict_time = strict_time
         self.source = source
@@ -64,19 +62,20 @@ class EstimateStream:
         self.estimator.restart_filter()
 
     def feed(self, records: Iterable[tuple[int, float, Array, Array, Array]]) -> list[dict[str, Any]]:
-        """(sequence, time, valid, position, measured current) per record; returns what to publish.
+        """(sequence, time, valid, position, torque) per record, SI (the driver applied the torque
+        constants); returns what to publish.
 
         The same as :meth:`feed_arrays` on the records stacked."""
         rows = list(records)
         if not rows:
             return []
-        seq, t, valid, q, current = zip(*rows)
+        seq, t, valid, q, torque = zip(*rows)
         return self.feed_arrays(np.array(seq, np.int64), np.array(t, float), np.array(valid, bool), np.array(q, float),
-                                np.array(current, float))
+                                np.array(torque, float))
 
-    def feed_arrays(self, seq: Array, t: Array, valid: Array, q: Array, current: Array) -> list[dict[str, Any]]:
+    def feed_arrays(self, seq: Array, t: Array, valid: Array, q: Array, torque: Array) -> list[dict[str, Any]]:
         """Records as arrays, in sequence order: sequence numbers (n,), times (n,) in s, valid
-        flags, positions and measured currents (n, N). Returns the documents to publish, one on
+        flags, positions and joint torques (n, N), SI. Returns the documents to publish, one on
         every record whose sequence number is a multiple of ``publish_every``.
 
         Runs of consecutive valid records go to the estimator in one batch each; a gap in
@@ -95,7 +94,7 @@ class EstimateStream:
         fault = ~(t > prev_t)
         gap = ~fault & (seq != prev_s + 1)
         bad = ~fault & ~valid.all(axis=1)
-        torque = np.asarray(current, float) * self.kt
+        torque = np.asarray(torque, float)
 
         def flush(a: int, b: int) -> None:
             if b <= a:
@@ -143,7 +142,7 @@ def _from_record(r: JointStateRecord) -> tuple[int, float, Array, Array, Array]:
     the estimator differentiates on time stamps, so live and replay see the same floats."""
     s = r.sample
     ns = int(round(s.time_s * 1e9))
-    return r.sequence, ns // 1_000_000_000 + 1e-9 * (ns % 1_000_000_000), s.valid, s.position, s.measured_current
+    return r.sequence, ns // 1_000_000_000 + 1e-9 * (ns % 1_000_000_000), s.valid, s.position, s.joint_torque()
 
 
 class PayloadService:

@@ -1,16 +1,24 @@
-"""MCAP recordings: the run's record, readable by Foxglove, PlotJuggler and ``armid identify``.
+"""MCAP recordings that the ROS 2 world opens: ``ros2 bag``, Foxglove, PlotJuggler, ``armid identify``.
 
-Channel ``/joint_state`` holds one JSON message per cycle shaped like
-``sensor_msgs/msg/JointState`` (header stamp, names, position, velocity, effort = measured
-current times the torque constant) plus what identification needs: the cycle counter,
-the sequence number, validity per joint, commanded and measured current. Metadata
-``armid.run`` holds robot, rig, drive configuration read back from the drives,
-excitation parameters and software versions.
+Two channels, both ROS 2 CDR with their ``ros2msg`` schemas (what rosbag2's MCAP storage
+writes), one message each per cycle with the same log time and MCAP sequence number:
 
-Crash safety: chunks are small (32 KiB, about 0.15 s at 2 ms) and the file is flushed to
-the operating system at least every 0.25 s, so a recorder killed at any instant leaves
-every completed chunk on disk: at most the last half second is lost. :func:`read_mcap`
-reads such a file up to where it breaks and says what it could not read.
+- ``/joint_states``: ``sensor_msgs/msg/JointState`` (header stamp, joint names, position,
+  velocity, effort = the driver's torque, N*m or N);
+- ``/armid/joint_state_extra``: ``armid_msgs/msg/JointStateExtra``, what identification
+  needs beside it: sequence and cycle counters, validity per joint, velocity freshness,
+  commanded and measured current (A), statusword.
+
+The schemas are :data:`armid.schema.joint_state.ROS2_MSGDEFS`. Metadata ``armid.run`` holds
+robot, rig, drive configuration read back from the drives, excitation parameters and
+software versions. Chunks are zstd-compressed; the summary indexes them.
+
+Crash safety: a chunk is closed after about 16 KiB of messages (about 35 cycles, 0.07 s at
+2 ms), never between a cycle's two messages, and at least every 0.25 s; each closed chunk is
+handed to the operating system at once. A recorder killed at any instant leaves every
+completed chunk on disk: at most the last quarter second is lost.
+:func:`armid.io.recordings.read_mcap_arrays` reads such a file up to where it breaks and
+says what it could not read.
 """
 
 from __future__ import annotations
@@ -20,81 +28,57 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
+from armid.schema.joint_state import (
+    EXTRA_TOPIC,
+    EXTRA_TYPE,
+    JOINT_STATE_TYPE,
+    JOINT_STATES_TOPIC,
+    ROS2_MSGDEFS,
+    JointStateRecord,
+    ros2_messages,
+)
 
-from identify.recordings import MCAP_TOPIC
-from identify.recordings import read_mcap_arrays as read_mcap  # noqa: F401  (the reader lives with the other readers)
-from identify.spatial import Array
-
-from .record_format import JointStateRecord
-
-CHUNK_BYTES = 32 * 1024
+CHUNK_BYTES = 16 * 1024
 FLUSH_S = 0.25
-TOPIC = MCAP_TOPIC
-SCHEMA_NAME = "armid.JointState"
-
-_SCHEMA = {
-    "type": "object",
-    "title": "sensor_msgs/msg/JointState (armid)",
-    "properties": {
-        "header": {"type": "object", "properties": {"stamp": {"type": "object", "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}},
-                                                     "frame_id": {"type": "string"}}},
-        "name": {"type": "array", "items": {"type": "string"}},
-        "position": {"type": "array", "items": {"type": "number"}},
-        "velocity": {"type": "array", "items": {"type": "number"}},
-        "effort": {"type": "array", "items": {"type": "number"}},
-        "sequence": {"type": "integer"},
-        "cycle": {"type": "integer"},
-        "valid": {"type": "array", "items": {"type": "boolean"}},
-        "velocity_fresh": {"type": "array", "items": {"type": "boolean"}},
-        "commanded_current": {"type": "array", "items": {"type": "number"}},
-        "measured_current": {"type": "array", "items": {"type": "number"}},
-        "status": {"type": "array", "items": {"type": "integer"}},
-    },
-}
+TOPIC = JOINT_STATES_TOPIC
+_RECORD_OVERHEAD = 9 + 22  # an MCAP message record's opcode, length and fixed fields
 
 
 class McapRecorder:
     """Write records to ``path``; ``close`` writes the summary (a killed recorder leaves none)."""
 
-    def __init__(self, path: str | Path, joint_names: list[str], torque_constants: Array, metadata: dict[str, Any]) -> None:
-        from mcap.writer import CompressionType, Writer
+    def __init__(self, path: str | Path, joint_names: list[str], metadata: dict[str, Any]) -> None:
+        from mcap.writer import CompressionType, IndexType, Writer
 
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(self.path, "wb")  # noqa: SIM115 - closed in close()
-        self._writer = Writer(self._file, chunk_size=CHUNK_BYTES, compression=CompressionType.NONE)
-        self._writer.start(profile="", library="armid")
-        schema = self._writer.register_schema(SCHEMA_NAME, "jsonschema", json.dumps(_SCHEMA).encode())
-        self._channel = self._writer.register_channel(TOPIC, "json", schema)
+        # chunks are closed here (whole cycles only), never by the writer's own size limit
+        # chunk indexes in the summary, no per-chunk message index: readers (rosbag2's, mcap's)
+        # find messages without them, and the file is its chunks, each checked by its CRC
+        self._writer = Writer(self._file, chunk_size=1 << 62, compression=CompressionType.ZSTD, index_types=IndexType.ALL & ~IndexType.MESSAGE)
+        self._writer.start(profile="ros2", library="armid")
+        self._channel = {}
+        for topic, kind in ((JOINT_STATES_TOPIC, JOINT_STATE_TYPE), (EXTRA_TOPIC, EXTRA_TYPE)):
+            schema = self._writer.register_schema(kind, "ros2msg", ROS2_MSGDEFS[kind].encode())
+            self._channel[topic] = self._writer.register_channel(topic, "cdr", schema)
         self._writer.add_metadata("armid.run", {k: v if isinstance(v, str) else json.dumps(v) for k, v in metadata.items()})
-        self.names = joint_names
-        self.kt = np.asarray(torque_constants, float)
+        self.names = list(joint_names)
         self._last_flush = time.monotonic()
+        self._chunk_bytes = 0
         self.count = 0
 
     def write(self, record: JointStateRecord) -> None:
-        s = record.sample
-        ns = int(round(s.time_s * 1e9))
-        msg = {
-            "header": {"stamp": {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}, "frame_id": ""},
-            "name": self.names,
-            "position": s.position.tolist(),
-            "velocity": s.velocity.tolist(),
-            "effort": (s.measured_current * self.kt).tolist(),
-            "sequence": record.sequence,
-            "cycle": s.cycle,
-            "valid": s.valid.tolist(),
-            "velocity_fresh": s.velocity_fresh.tolist(),
-            "commanded_current": s.commanded_current.tolist(),
-            "measured_current": s.measured_current.tolist(),
-            "status": s.status.tolist(),
-        }
-        self._writer.add_message(self._channel, ns, json.dumps(msg).encode(), ns, record.sequence % 2**32)
+        ns = int(round(record.sample.time_s * 1e9))
+        seq = record.sequence % 2**32
+        for topic, data in zip((JOINT_STATES_TOPIC, EXTRA_TOPIC), ros2_messages(record, self.names)):
+            self._writer.add_message(self._channel[topic], ns, data, ns, seq)
+            self._chunk_bytes += len(data) + _RECORD_OVERHEAD
         self.count += 1
         now = time.monotonic()
-        if now - self._last_flush >= FLUSH_S:
-            self._file.flush()
+        if self._chunk_bytes >= CHUNK_BYTES or now - self._last_flush >= FLUSH_S:
+            self._writer.flush()  # closes the chunk (a whole number of cycles) and hands it to the OS
+            self._chunk_bytes = 0
             self._last_flush = now
 
     def close(self) -> None:

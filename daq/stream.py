@@ -15,7 +15,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from .record_format import ENCODING, JointStateRecord
+from armid.schema.joint_state import ENCODING, JointStateRecord
 
 
 def session_config(listen: list[str] | None = None, connect: list[str] | None = None, config_file: str | None = None):  # type: ignore[no-untyped-def]

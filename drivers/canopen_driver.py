@@ -16,9 +16,7 @@ frame is in, or three periods after its SYNC with the missing joints marked inva
 
 from __future__ import annotations
 
-import gc
 import struct
-import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -28,13 +26,14 @@ import canopen
 import numpy as np
 from canopen.sdo import SdoAbortedError, SdoCommunicationError, SdoVariable
 
-from identify.spatial import Array
+from armid.schema import Array
 
-from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverError, HeartbeatLost, Sample
+from ..resources import config_file
+from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverError, HeartbeatLost, ProcessSettings, Sample
 from .pdo_plan import PLANS, PdoSpec, check_bus_budget
-from .rig import Rig, open_bus
+from .rig import Rig, current_of, open_bus, permille_of
 
-EDS = str(__import__("pathlib").Path(__file__).resolve().parent.parent / "config" / "drives" / "armid_cia402.eds")
+EDS = str(config_file("drives/armid_cia402.eds"))  # package data (armid.config)
 
 SYNC_COUNTER_OVERFLOW = 240
 CONTROLWORD_REFRESH = 25
@@ -126,6 +125,7 @@ class CanopenDriver(Driver):
         self._cycle = 0
         self._last = Sample.empty(0, 0.0, self.n_joints)
         self._emitted = Sample.empty(0, 0.0, self.n_joints)
+        self._settings = ProcessSettings()
         self.paced_by_consumer = False  # see _sync_loop; for an arm simulated in this process
         self._listen_only = False
         self._t0: float | None = None
@@ -172,10 +172,17 @@ class CanopenDriver(Driver):
 
     # --- start-up ---
     def start(self) -> None:
+        try:
+            self._start()
+        except BaseException:
+            self._settings.restore()  # a driver that did not start changes nothing process-wide
+            raise
+
+    def _start(self) -> None:
         r = self.rig
         # a thread waiting for the GIL waits up to the switch interval (5 ms by default):
         # more than two cycles. A 2 ms loop needs the interpreter to switch ten times faster.
-        sys.setswitchinterval(min(sys.getswitchinterval(), self.period_s / 10))
+        self._settings.fast_switching(self.period_s)  # put back by close()
         check_bus_budget(r.pdo_plan, r.n_joints, r.period_s, r.bus.bitrate, r.heartbeat_ms)
         if self._bus is None:
             kwargs = r.bus.kwargs()
@@ -204,8 +211,7 @@ class CanopenDriver(Driver):
         self.network.send_message(0, bytes([0x01, 0]))  # NMT start all
         # a full garbage collection walks every object of the process and stalls all threads
         # for many milliseconds; what exists after start-up is never garbage, so freeze it
-        gc.collect()
-        gc.freeze()
+        self._settings.freeze()
         if r.bus.interface == "socketcan":
             # the kernel's broadcast manager cycles 240 SYNC frames with counters 1..240; the
             # bus echoes each one back (receive_own_messages), and the echo opens its cycle
@@ -443,7 +449,7 @@ class CanopenDriver(Driver):
                     s.velocity[t.joint] = v / u.counts_per_rad
                     s.velocity_fresh[t.joint] = True
                 elif index == 0x6078:
-                    s.measured_current[t.joint] = v / 1000.0 * u.rated_current_a
+                    s.measured_current[t.joint] = current_of(v, u.rated_current_a)
                 elif index == 0x6041:
                     s.status[t.joint] = v
             if not any(j == t.joint for j, _ in target.expected):
@@ -517,9 +523,9 @@ class CanopenDriver(Driver):
             raise ValueError(f"torque command must be {self.n_joints} finite values, got {tau}")
         current = tau / self.torque_constants
         rated = np.array([u.rated_current_a for u in self.units])
-        permille = np.clip(np.round(current / rated * 1000.0), -32768, 32767).astype(np.int64)
+        permille = permille_of(current, rated).astype(np.int64)
         self._target = permille
-        self._commanded = permille / 1000.0 * rated
+        self._commanded = current_of(permille, rated)
         self._position_mode = False
 
     def command_position(self, position: Array) -> None:
@@ -566,6 +572,7 @@ class CanopenDriver(Driver):
         self.set_controlword(joints, 0x02)
 
     def close(self) -> None:
+        self._settings.restore()
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=1.0)

@@ -23,7 +23,6 @@ import os
 import queue
 import select
 import struct
-import sys
 import threading
 import time
 from collections import deque
@@ -32,20 +31,17 @@ from typing import Any
 
 import numpy as np
 
-from identify.spatial import Array
+from armid.schema import Array
+from armid.schema.errors import ServoLost  # noqa: F401  (re-exported)
 
 from . import dynamixel_protocol as dxl
 from .dynamixel_protocol import Address, ProtocolError, ReplyTimeout, StatusError
-from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverError, HeartbeatLost, Sample
+from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverError, ProcessSettings, Sample
 from .rig import Rig
 
 REBOOT_WAIT_S = 1.0  # a rebooting servo answers a ping again within this
 ONE_OFF_TIMEOUT_S = 0.02  # a one-off transaction's reply timeout, at least
 ONE_OFF_ATTEMPTS = 3
-
-
-class ServoLost(HeartbeatLost):
-    """A servo has not answered for ``silent_cycles`` cycles in a row."""
 
 
 class DynamixelDriver(Driver):
@@ -93,6 +89,7 @@ class DynamixelDriver(Driver):
         self._fail_run = np.zeros(self.n_joints, np.int64)
         self._silent = np.zeros(self.n_joints, bool)
         self.lost_cycles = np.zeros(self.n_joints, np.int64)
+        self._settings = ProcessSettings()
         self.errors_by_kind: dict[str, int] = {}
         self._clock = CycleClock(rig.period_s)
         self.noise_bytes = 0
@@ -214,7 +211,14 @@ class DynamixelDriver(Driver):
     # --- start-up ---
     def start(self) -> None:
         """Check the budget, open the port, configure every servo, start cycling (torque off)."""
-        sys.setswitchinterval(min(sys.getswitchinterval(), self.period_s / 10))
+        try:
+            self._start()
+        except BaseException:
+            self._settings.restore()  # a driver that did not start changes nothing process-wide
+            raise
+
+    def _start(self) -> None:
+        self._settings.fast_switching(self.period_s)  # put back by close()
         dxl.check_budget(self.budget)
         self._open()
         try:
@@ -488,6 +492,7 @@ class DynamixelDriver(Driver):
             self._requests.put((off, queue.Queue()))
 
     def close(self) -> None:
+        self._settings.restore()
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=1.0)

@@ -25,7 +25,16 @@ import struct
 from dataclasses import dataclass
 from enum import IntEnum
 
-from .interface import DriveConfigError, DriverError
+from armid.schema.errors import (  # noqa: F401  (re-exported: the protocol's errors)
+    CrcError,
+    DriveConfigError,
+    DriverError,
+    MalformedPacket,
+    PartialPacket,
+    ProtocolError,
+    ReplyTimeout,
+    SerialBudgetError,
+)
 
 HEADER = b"\xff\xff\xfd\x00"
 BROADCAST_ID = 0xFE
@@ -139,40 +148,12 @@ SERVO_MODELS = {m.name: m for m in (
 
 
 # --- errors ---
-class ProtocolError(DriverError):
-    """A reply that cannot be used: names the servo and what was wrong with the bytes."""
-
-    def __init__(self, message: str, servo_id: int | None = None) -> None:
-        self.servo_id = servo_id
-        super().__init__(message)
-
-
-class CrcError(ProtocolError):
-    """The CRC does not match the bytes: corrupted on the line."""
-
-
-class ReplyTimeout(ProtocolError):
-    """No reply (or not all of it) within the reply timeout."""
-
-
-class PartialPacket(ReplyTimeout):
-    """The reply started but stopped before its last byte."""
-
-
-class MalformedPacket(ProtocolError):
-    """Bytes that are not a packet of the kind expected (length, id, instruction)."""
-
-
 class StatusError(ProtocolError):
     """The servo answered with a non-zero error number (see STATUS_ERRORS)."""
 
     def __init__(self, servo_id: int, error: int) -> None:
         self.error = error
         super().__init__(f"servo {servo_id}: {status_error_meaning(error)} (error field 0x{error:02X})", servo_id)
-
-
-class SerialBudgetError(DriveConfigError):
-    """The cycle does not fit the period at this baud rate: the message gives the numbers."""
 
 
 # --- CRC and stuffing ---

@@ -10,36 +10,20 @@ of the wrong length, an unknown node, error frames) is an :class:`Event` in
 from __future__ import annotations
 
 import abc
+import gc
 import queue
+import sys
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from identify.errors import ArmidError
-from identify.spatial import Array
+from armid.schema import Array, Sample
+from armid.schema.errors import DriveConfigError, DriveFault, DriverError, HeartbeatLost
 
-
-class DriverError(ArmidError):
-    """The driver cannot go on (configuration refused, bus gone, timeout)."""
-
-
-class DriveConfigError(DriverError, ValueError):
-    """A drive refused or disagrees with the configuration: names node, object, problem."""
-
-
-class DriveFault(DriverError):
-    """A drive reported a fault (EMCY) or went silent; ``joint`` is 0-based."""
-
-    def __init__(self, joint: int, node_id: int, code: int, meaning: str, time_s: float | None = None) -> None:
-        self.joint, self.node_id, self.code, self.meaning = joint, node_id, code, meaning
-        self.time_s = time.time() if time_s is None else time_s
-        super().__init__(f"joint {joint + 1} (node {node_id}): fault 0x{code:04X}: {meaning}")
-
-
-class HeartbeatLost(DriveFault):
-    """No heartbeat from a drive within 3 of its periods."""
+__all__ = ["CycleClock", "DriveConfigError", "DriveFault", "Driver", "DriverError", "Event", "HeartbeatLost", "Sample"]
 
 
 @dataclass(frozen=True)
@@ -52,30 +36,62 @@ class Event:
     time_s: float = field(default_factory=time.time)
 
 
-@dataclass
-class Sample:
-    """One cycle of every joint, keyed by the cycle counter (not by arrival time).
+class ProcessSettings:
+    """Process-wide settings a 2 ms loop needs, held while any holder runs and put back as
+    they were when the last one lets go (:meth:`restore`, safe to call twice).
 
-    ``valid[j]`` is False when joint j's frames for this cycle did not arrive by the
-    deadline; its values are then the last known ones. ``velocity_fresh[j]`` is False when
-    the plan did not carry velocity this cycle (the value is the last reported one).
-    ``commanded_current`` is what was in force during the period that ends at this cycle.
+    - the interpreter's switch interval (5 ms by default: a thread waiting for the GIL would
+      wait more than two cycles) is lowered to a tenth of the period;
+    - what exists after start-up is frozen out of the garbage collector's full collections
+      (they walk every object and stall all threads for many milliseconds); unfrozen at the
+      end, unless the process had frozen objects of its own before (those stay its business).
     """
 
-    cycle: int
-    time_s: float
-    valid: Array
-    position: Array
-    velocity: Array
-    velocity_fresh: Array
-    commanded_current: Array
-    measured_current: Array
-    status: Array  # statusword per joint (0 when unknown)
+    _lock = threading.Lock()
+    _interval_holders = 0
+    _interval_before = 0.005
+    _freeze_holders = 0
+    _froze = False
 
-    @staticmethod
-    def empty(cycle: int, time_s: float, n: int) -> Sample:
-        z = np.zeros(n)
-        return Sample(cycle, time_s, np.zeros(n, bool), z.copy(), z.copy(), np.zeros(n, bool), z.copy(), z.copy(), np.zeros(n, np.int64))
+    def __init__(self) -> None:
+        self._interval = self._freeze = False
+
+    def fast_switching(self, period_s: float) -> None:
+        cls = type(self)
+        with cls._lock:
+            if not self._interval:
+                if cls._interval_holders == 0:
+                    cls._interval_before = sys.getswitchinterval()
+                cls._interval_holders += 1
+                self._interval = True
+            sys.setswitchinterval(min(sys.getswitchinterval(), period_s / 10))
+
+    def freeze(self) -> None:
+        cls = type(self)
+        gc.collect()
+        with cls._lock:
+            if not self._freeze:
+                if cls._freeze_holders == 0:
+                    cls._froze = gc.get_freeze_count() == 0
+                cls._freeze_holders += 1
+                self._freeze = True
+            if cls._froze:
+                gc.freeze()
+
+    def restore(self) -> None:
+        cls = type(self)
+        with cls._lock:
+            if self._interval:
+                self._interval = False
+                cls._interval_holders -= 1
+                if cls._interval_holders == 0:
+                    sys.setswitchinterval(cls._interval_before)
+            if self._freeze:
+                self._freeze = False
+                cls._freeze_holders -= 1
+                if cls._freeze_holders == 0 and cls._froze:
+                    gc.unfreeze()
+                    cls._froze = False
 
 
 class CycleClock:
@@ -107,6 +123,13 @@ class Driver(abc.ABC):
 
     n_joints: int
     period_s: float
+    paced_by_consumer: bool = False
+    """True when the driver's cycle waits for :meth:`acknowledge` (an arm simulated in this
+    process never runs ahead of its control loop); a driver that cannot pace ignores it."""
+    lost_cycles: Array
+    """Cycles lost per joint since :meth:`start` (the driver sets it up in ``__init__``)."""
+    drive_configuration: list[dict[str, int]]
+    """What each drive reported of its configuration at :meth:`start` (the recording's metadata)."""
 
     def __init__(self) -> None:
         self._events: deque[Event] = deque(maxlen=10_000)
@@ -176,7 +199,10 @@ class Driver(abc.ABC):
         self._events.append(Event(kind, message, joint))
 
     def _publish(self, sample: Sample) -> None:
-        """Hand a cycle's sample to :meth:`read`; a full backlog drops its oldest, with an event."""
+        """Hand a cycle's sample to :meth:`read`; a full backlog drops its oldest, with an event.
+
+        The one place the torque constant is applied: ``torque = measured_current * torque_constants``."""
+        sample.torque = sample.measured_current * self.torque_constants
         try:
             self._samples.put_nowait(sample)
         except queue.Full:

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from identify.errors import ArmidError
+from armid.schema.errors import BusBudgetError
 
 POSITION = (0x6064, 0, 32)
 VELOCITY = (0x606C, 0, 32)
@@ -34,10 +34,6 @@ CONTROLWORD = (0x6040, 0, 16)
 TARGET_TORQUE = (0x6071, 0, 16)
 
 MAX_LOAD = 0.80
-
-
-class BusBudgetError(ArmidError, ValueError):
-    """The PDO plan does not fit the bus: the message has the numbers and the options."""
 
 
 @dataclass(frozen=True)

@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from identify.pinocchio_bridge import to_pinocchio
-from identify.recordings import write_csv
-from identify.robot_file import load_robot
-from identify.trajectories import random_fourier_trajectory
+from armid.identify.pinocchio_bridge import to_pinocchio
+from armid.identify.trajectories import random_fourier_trajectory
+from armid.io.recordings import write_csv
+from armid.io.robot_file import load_robot
 
 HERE = Path(__file__).resolve().parent
 ROBOT = HERE.parent / "config" / "robots" / "puma560.yaml"

@@ -18,14 +18,14 @@ from pathlib import Path
 
 import numpy as np
 
-from daq.payload_service import EstimateStream
-from drivers.rig import load_rig
-from identify import excitation as ex
-from identify.identification import IdentifyOptions, identify
-from identify.payload import ArmModel, PayloadRLS, ReferenceRun
-from identify.preprocess import prepare
-from sim_bus.offline import simulate
-from sim_bus.physics import Payload, simulation_config
+from armid.daq.payload_service import EstimateStream
+from armid.identify import excitation as ex
+from armid.identify.identification import IdentifyOptions, identify
+from armid.identify.payload import ArmModel, PayloadRLS, ReferenceRun
+from armid.identify.preprocess import prepare
+from armid.io.rig_file import load_rig
+from armid.sim_bus.offline import simulate
+from armid.sim_bus.physics import Payload, simulation_config
 
 ROOT = str(Path(__file__).resolve().parent.parent)
 rig = load_rig(ROOT + '/config/rigs/sim.yaml')
@@ -74,7 +74,7 @@ for label, kw in [("none", dict(gain=False, offset=False, load=False)), ("gain",
         loaded, unloaded = jittered_100_hz(loaded), jittered_100_hz(unloaded)
     for ref in (None, ReferenceRun(arm, unloaded.t, unloaded.position, unloaded.torque)):
         est = PayloadRLS(arm, reference=ref)
-        st = EstimateStream(est, np.ones(6))
+        st = EstimateStream(est)
         docs = st.feed_arrays(np.arange(loaded.t.size), loaded.t, np.ones((loaded.t.size, 6), bool), loaded.position, loaded.torque)
         tt = np.array([x['record_time'] for x in docs])
         neg = sum(1 for x in docs if x['mass'] is not None and x['mass'] < 0)

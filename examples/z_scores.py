@@ -18,14 +18,14 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from armid.demo import true_parameters  # noqa: E402
-from drivers.rig import load_rig  # noqa: E402
-from identify import excitation as ex  # noqa: E402
-from identify.identification import IdentifyOptions, identify  # noqa: E402
-from identify.preprocess import PrepareOptions, prepare  # noqa: E402
-from identify.recordings import Recording  # noqa: E402
-from identify.single_link import single_link_sequence  # noqa: E402
-from sim_bus.offline import simulate  # noqa: E402
-from sim_bus.physics import simulation_config  # noqa: E402
+from armid.drivers.rig import load_rig  # noqa: E402
+from armid.identify import excitation as ex  # noqa: E402
+from armid.identify.identification import IdentifyOptions, identify  # noqa: E402
+from armid.identify.preprocess import PrepareOptions, prepare  # noqa: E402
+from armid.identify.single_link import single_link_sequence  # noqa: E402
+from armid.io.recordings import Recording  # noqa: E402
+from armid.sim_bus.offline import simulate  # noqa: E402
+from armid.sim_bus.physics import simulation_config  # noqa: E402
 
 RIG = ROOT / "config" / "rigs" / "sim.yaml"
 HOLD = np.array([0.0, 0.7854, -0.7854, 0.0, 0.0, 0.0])

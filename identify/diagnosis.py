@@ -684,7 +684,7 @@ def _refine_delays(robot: Robot, found: list[Finding], experiments: list[Prepare
         errors = [error(d) for d in grid]
         k = int(np.argmin(errors))
         lo, hi = sorted((grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]))
-        best = minimize_scalar(error, bounds=(lo, hi), method="bounded", options={"xatol": 1e-3 * abs(d0), "maxiter": 12})
+        best = minimize_scalar(error, bounds=(lo, hi), method="bounded", options={"xatol": 1e-3 * abs(d0), "maxiter": 6})
         f.parameters["delay_s"] = float(best.x) if best.fun <= errors[k] else float(grid[k])
 
 

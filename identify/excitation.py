@@ -36,7 +36,7 @@ from threadpoolctl import threadpool_limits
 from ._regressor_lanes import SERIAL_BELOW
 from .dynamics import regressor
 from .effects import effect_columns
-from .errors import ArmidError
+from .errors import TrajectoryLimitError
 from .identifiability import BaseParameters, base_parameters, preferred_order
 from .identification import declared_effects, stacked_regressor
 from .robot import Robot
@@ -59,14 +59,6 @@ def _one_blas_thread(fn: _F) -> _F:
             return fn(*args, **kwargs)
 
     return wrapper  # type: ignore[return-value]
-
-
-class TrajectoryLimitError(ArmidError, ValueError):
-    """A trajectory goes beyond a joint limit: names the joint, the limit, the value and the time."""
-
-    def __init__(self, joint: int, kind: str, value: float, limit: float, time_s: float, unit: str) -> None:
-        self.joint, self.kind, self.value, self.limit, self.time_s = joint, kind, value, limit, time_s
-        super().__init__(f"joint {joint + 1}: {kind} {value:.4g} {unit} beyond the limit {limit:.4g} {unit} at t = {time_s:.3f} s")
 
 
 @dataclass(frozen=True)

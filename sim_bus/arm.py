@@ -9,8 +9,6 @@ physics' state per SYNC for tests that compare what the driver read with the tru
 
 from __future__ import annotations
 
-import gc
-import sys
 import threading
 import time
 from collections import deque
@@ -20,7 +18,8 @@ import can
 import canopen
 import numpy as np
 
-from drivers.rig import Rig, open_bus
+from armid.drivers.interface import ProcessSettings
+from armid.drivers.rig import Rig, open_bus
 
 from .drive import SimulatedDrive
 from .physics import ArmPhysics, Measurement, simulation_config
@@ -61,9 +60,7 @@ class SimulatedArm:
 
     def __init__(self, rig: Rig, bus: can.BusABC | None = None, seed: int | None = None, log_size: int = 200_000) -> None:
         self.rig = rig
-        # a thread waiting for the GIL waits up to the switch interval (5 ms by default):
-        # more than two cycles. A 2 ms loop needs the interpreter to switch ten times faster.
-        sys.setswitchinterval(min(sys.getswitchinterval(), rig.period_s / 10))
+        self._settings = ProcessSettings()  # put back by close()
         sim = dict(rig.simulation)
         self.seed = int(sim.get("seed", 0) if seed is None else seed)
         self.config = simulation_config(sim, rig.n_joints, f"{rig.source}: simulation")
@@ -71,6 +68,9 @@ class SimulatedArm:
         self._own_bus = bus is None
         self.bus = bus if bus is not None else open_bus(**rig.bus.kwargs())
         self.network = canopen.Network(self.bus)
+        # a thread waiting for the GIL waits up to the switch interval (5 ms by default):
+        # more than two cycles. A 2 ms loop needs the interpreter to switch ten times faster.
+        self._settings.fast_switching(rig.period_s)
         self.network.connect()
         sync_timeout = float(sim.get("sync_timeout_s", 0.1))
         self.drives = [SimulatedDrive(d.node_id, d.joint, d.units, self.network, sync_timeout) for d in rig.drives]
@@ -80,8 +80,7 @@ class SimulatedArm:
         self.syncs = 0
         self._stop = threading.Event()
         self._watchdog = threading.Thread(target=self._watch, name="armid-sim-watchdog", daemon=True)
-        gc.collect()
-        gc.freeze()  # see CanopenDriver.start: keep full collections short while running
+        self._settings.freeze()  # see CanopenDriver.start: keep full collections short while running
         self._watchdog.start()
         self.step_seconds: deque[float] = deque(maxlen=100_000)
 
@@ -129,6 +128,7 @@ class SimulatedArm:
         }
 
     def close(self) -> None:
+        self._settings.restore()
         self._stop.set()
         self._watchdog.join(timeout=1.0)
         for d in self.drives:

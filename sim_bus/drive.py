@@ -17,19 +17,19 @@ from __future__ import annotations
 import struct
 import time
 from enum import Enum
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import canopen
 import numpy as np
 from canopen.objectdictionary import ODVariable
 
-from drivers.rig import DriveUnits
+from armid.drivers.rig import DriveUnits, current_of, permille_of
+from armid.resources import config_file
 
 if TYPE_CHECKING:
     from .physics import Measurement
 
-EDS = Path(__file__).resolve().parent.parent / "config" / "drives" / "armid_cia402.eds"
+EDS = config_file("drives/armid_cia402.eds")  # package data (armid.config)
 
 MODE_CSP = 8
 MODE_CST = 10
@@ -315,7 +315,7 @@ class SimulatedDrive:
         else:  # MODE_CST (and any other mode falls back to torque)
             permille = self.values.get((0x6071, 0), 0)
             demand = permille / 1000.0 * u.rated_motor_torque_nm * u.gear_ratio / u.torque_constant
-        limit = self.raw(0x6072) / 1000.0 * u.rated_current_a
+        limit = current_of(self.raw(0x6072), u.rated_current_a)
         if abs(demand) > limit:
             self.internal_limit = True
             demand = float(np.clip(demand, -limit, limit))
@@ -350,7 +350,7 @@ class SimulatedDrive:
         j = self.joint
         pos = int(np.clip(round(m.position[j] * u.counts_per_rad), -(2**31), 2**31 - 1))
         vel = int(np.clip(round(m.velocity[j] * u.counts_per_rad), -(2**31), 2**31 - 1))
-        cur = int(np.clip(round(m.current[j] / u.rated_current_a * 1000.0), -32768, 32767))
+        cur = int(permille_of(m.current[j], u.rated_current_a))
         self.values.update({(0x6064, 0): pos, (0x606C, 0): vel, (0x6078, 0): cur, (0x6077, 0): cur,
                             (0x6061, 0): self.raw(0x6060)})
         if self.state in POWERED:

@@ -13,11 +13,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from daq.control import ComputedTorque
-from drivers.rig import DriveUnits
-from identify.recordings import Recording
-from identify.robot import Robot
-from identify.spatial import Array
+from armid.drivers.rig import DriveUnits, current_of, permille_of
+from armid.identify.control import ComputedTorque
+from armid.identify.recordings import Recording
+from armid.identify.robot import Robot
+from armid.schema import Array
 
 from .physics import ArmPhysics, Payload, SimulationConfig
 
@@ -71,8 +71,8 @@ def simulate(robot: Robot, config: SimulationConfig, reference, duration_s: floa
         while schedule and schedule[0][0] <= t[k]:
             physics.attach_payload(schedule.pop(0)[1])
         tau = control(q_meas, qd_meas, q_ref[k], qd_ref[k], qdd_ref[k])
-        permille = np.clip(np.round(tau / kt / rated * 1000.0), -32768, 32767)
-        m = physics.step(permille / 1000.0 * rated)
+        permille = permille_of(tau / kt, rated)
+        m = physics.step(current_of(permille, rated))
         q_meas = np.round(m.position * counts) / counts
         qd_meas = np.round(m.velocity * counts) / counts
         out_q[k], out_qd[k], true_q[k] = q_meas, qd_meas, m.true_position

@@ -25,9 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from identify.pinocchio_bridge import to_pinocchio
-from identify.robot import Robot
-from identify.spatial import Array
+from armid.identify.pinocchio_bridge import to_pinocchio
+from armid.identify.robot import Robot
+from armid.schema import Array
 
 EFFECT_FIELDS = ("coulomb", "viscous", "stribeck", "stribeck_velocity", "rotor_inertia", "torque_gain", "cogging",
                  "cogging_period", "cogging_phase", "spring", "spring_rest", "offset", "delay_s", "load_friction")
@@ -109,7 +109,7 @@ class SimulationConfig:
 
 def simulation_config(data: dict[str, Any] | None, n_joints: int, where: str = "simulation") -> SimulationConfig:
     """Parse the ``simulation:`` mapping of a rig file (see ``config/rigs/sim.yaml``)."""
-    from identify.errors import RobotFileError
+    from armid.identify.errors import RobotFileError
 
     data = dict(data or {})
     effects = [dict() for _ in range(n_joints)]

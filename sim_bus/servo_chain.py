@@ -30,9 +30,10 @@ from typing import Any
 
 import numpy as np
 
-from drivers import dynamixel_protocol as dxl
-from drivers.dynamixel_protocol import ALERT, Address, Instruction
-from drivers.rig import Rig
+from armid.drivers import dynamixel_protocol as dxl
+from armid.drivers.dynamixel_protocol import ALERT, Address, Instruction
+from armid.drivers.rig import Rig
+from armid.schema.errors import RigFileError, SimulationError, UsageError
 
 from .physics import ArmPhysics, Measurement, simulation_config
 
@@ -137,7 +138,7 @@ class SimulatedServoChain:
 
     def __init__(self, rig: Rig, seed: int | None = None) -> None:
         if rig.serial is None:
-            raise ValueError(f"{rig.source}: not a serial rig (bus.interface: dynamixel)")
+            raise RigFileError(rig.source, "bus.interface", "not a serial rig (bus.interface: dynamixel)")
         self.rig = rig
         self.baudrate = rig.serial.baudrate
         sim = dict(rig.simulation)
@@ -172,9 +173,9 @@ class SimulatedServoChain:
         FAULTS). ``hardware_error`` sets Hardware Error Status to ``bits`` (default:
         overload) and turns torque off, until a Reboot."""
         if kind not in FAULTS:
-            raise ValueError(f"unknown fault {kind!r}; known: {', '.join(FAULTS)}")
+            raise UsageError(f"unknown fault {kind!r}; known: {', '.join(FAULTS)}")
         if servo_id not in self._by_id:
-            raise ValueError(f"no servo {servo_id} in the chain ({sorted(self._by_id)})")
+            raise UsageError(f"no servo {servo_id} in the chain ({sorted(self._by_id)})")
         servo = self._by_id[servo_id]
         with self._lock:
             if kind == "hardware_error":
@@ -372,7 +373,7 @@ class ServoChainProcess:
         import subprocess
         import sys
 
-        args = [sys.executable, "-m", "sim_bus.servo_chain", str(rig_file)] + ([] if seed is None else ["--seed", str(seed)])
+        args = [sys.executable, "-m", "armid.sim_bus.servo_chain", str(rig_file)] + ([] if seed is None else ["--seed", str(seed)])
         self._process = subprocess.Popen(args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1)
         self.port: str = self._reply(start_timeout)["port"]
 
@@ -384,10 +385,10 @@ class ServoChainProcess:
         line = self._process.stdout.readline() if ready else ""
         if not line:
             self._process.kill()
-            raise RuntimeError(f"the simulated servo chain did not answer within {timeout} s (exit code {self._process.poll()})")
+            raise SimulationError(f"the simulated servo chain did not answer within {timeout} s (exit code {self._process.poll()})")
         doc = json.loads(line)
         if "error" in doc:
-            raise ValueError(doc["error"])
+            raise SimulationError(f"the simulated servo chain: {doc['error']}")
         return doc
 
     def _ask(self, *message: Any) -> Any:
@@ -430,8 +431,7 @@ def serve(rig_file: str, seed: int | None = None) -> None:
     import json
     import sys
 
-    from drivers.rig import load_rig
-
+    from armid.io.rig_file import load_rig
     def say(doc: dict[str, Any]) -> None:
         sys.stdout.write(json.dumps(doc) + "\n")
         sys.stdout.flush()

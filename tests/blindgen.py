@@ -415,7 +415,7 @@ def size_effect(rng: np.random.Generator, arm: Arm, traj, t: np.ndarray, name: s
     elif name == "rotor_inertia":
         p["ia"] = [size * r / _rms(qdd[:, j]) for r, j in zip(rms, joints)]
     elif name == "torque_gain":
-        p["gain"] = [1.0 + sign() * size for _ in joints]
+        p["gain"] = [1.0 + sign() * min(size, 0.75) for _ in joints]  # a gain of 0 is a dead sensor (refused as bad input), not an effect
     elif name == "cogging":
         k = [int(rng.integers(4, 40)) for _ in joints]
         p["period_rad"] = [2 * math.pi / kk for kk in k]

@@ -1,13 +1,23 @@
-"""Shared fixtures: random robots (standard and modified DH, with a prismatic joint)."""
+"""Shared fixtures: random robots (standard and modified DH, with a prismatic joint), and an
+autouse guard that fails a test which leaks a python-can bus, a Zenoh session or a thread,
+or leaves a process-wide setting changed (switch interval, frozen objects, signal handlers)."""
 
 from __future__ import annotations
 
+import gc
+import signal
+import sys
+import threading
+import time
+import weakref
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
-from identify.robot import Inertial, Joint, JointLimits, JointType, Robot, dh_joint, inertia_entries, mdh_joint
+from armid.identify.robot import Inertial, Joint, JointLimits, JointType, Robot, dh_joint, inertia_entries, mdh_joint
 
 ROOT = Path(__file__).resolve().parent.parent
 ROBOTS = ROOT / "config" / "robots"
@@ -40,3 +50,84 @@ def random_motion(n_samples: int, n_joints: int, seed: int) -> tuple[np.ndarray,
 def any_robot(request: pytest.FixtureRequest) -> Robot:
     convention, n, prismatic, seed = request.param
     return random_robot(n, convention, prismatic, seed)
+
+
+# --- leaks -------------------------------------------------------------------------------
+_BUSES: weakref.WeakSet[Any] = weakref.WeakSet()
+_SESSIONS: list[Any] = []  # zenoh.Session takes no weak reference: closed ones are dropped after each test
+_LONG_LIVED_THREADS = ("armid-regressor",)  # identify's regressor pool: one per process, by design
+_THREAD_GRACE_S = 3.0
+
+
+def _track_buses_and_sessions() -> None:
+    import can
+    import zenoh
+
+    if getattr(can.BusABC.__init__, "_armid_tracked", False):
+        return
+    original_init = can.BusABC.__init__
+
+    def init(self: Any, *args: Any, **kwargs: Any) -> None:
+        _BUSES.add(self)
+        original_init(self, *args, **kwargs)
+
+    init._armid_tracked = True  # type: ignore[attr-defined]
+    can.BusABC.__init__ = init  # type: ignore[method-assign]
+    original_open = zenoh.open
+
+    def open_session(*args: Any, **kwargs: Any) -> Any:
+        session = original_open(*args, **kwargs)
+        _SESSIONS.append(session)
+        return session
+
+    zenoh.open = open_session
+
+
+def _process_settings() -> dict[str, Any]:
+    return {"sys.getswitchinterval()": sys.getswitchinterval(), "gc.get_freeze_count()": gc.get_freeze_count(),
+            "SIGINT handler": signal.getsignal(signal.SIGINT), "SIGTERM handler": signal.getsignal(signal.SIGTERM)}
+
+
+@pytest.fixture(autouse=True)
+def no_leaks() -> Iterator[None]:
+    """Fail a test that leaves a bus open, a Zenoh session open, a thread running or a
+    process-wide setting changed (python-can's and zenoh-python's test suites do the same)."""
+    _track_buses_and_sessions()
+    buses, sessions = set(map(id, _BUSES)), len(_SESSIONS)
+    threads = set(threading.enumerate())
+    settings = _process_settings()
+    yield
+    problems = []
+    for bus in list(_BUSES):
+        if id(bus) not in buses and not getattr(bus, "_is_shutdown", True):
+            problems.append(f"a python-can bus left open: {bus!r}")
+            bus.shutdown()
+    for session in _SESSIONS[sessions:]:
+        if not session.is_closed():
+            problems.append("a Zenoh session left open")
+            session.close()
+    _SESSIONS[:] = [s for s in _SESSIONS if not s.is_closed()]
+    deadline = time.monotonic() + _THREAD_GRACE_S
+    for t in set(threading.enumerate()) - threads:
+        if isinstance(t, threading._DummyThread) or t.name.startswith(_LONG_LIVED_THREADS):  # foreign (Rust) threads
+            continue
+        t.join(max(0.0, deadline - time.monotonic()))
+        if t.is_alive():
+            problems.append(f"a thread still running {_THREAD_GRACE_S:g} s after the test: {t.name}")
+    after = _process_settings()
+    for name, value in settings.items():
+        if after[name] != value:
+            problems.append(f"{name} changed: {value!r} -> {after[name]!r}")
+    if after["sys.getswitchinterval()"] != settings["sys.getswitchinterval()"]:
+        # put the process back, so that one leak does not fail every test after it
+        from armid.drivers.interface import ProcessSettings
+
+        sys.setswitchinterval(settings["sys.getswitchinterval()"])
+        ProcessSettings._interval_holders = 0
+    if after["gc.get_freeze_count()"] != settings["gc.get_freeze_count()"] and settings["gc.get_freeze_count()"] == 0:
+        from armid.drivers.interface import ProcessSettings
+
+        gc.unfreeze()
+        ProcessSettings._freeze_holders, ProcessSettings._froze = 0, False
+    if problems:
+        pytest.fail("the test leaks:\n" + "\n".join(problems), pytrace=False)

@@ -23,6 +23,7 @@ CLEAN = blindgen.blind_specs("clean", 20)
 CASES = [0, 1, 3, 4, 12, 15, 16, 19]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("index", CASES)
 def test_clean_blind_case_is_predicted_at_the_noise_floor(index: int, tmp_path: Path) -> None:
     case = blindgen.make_case(out_dir=tmp_path / "case", **CLEAN[index])
@@ -40,6 +41,7 @@ def test_clean_blind_case_is_predicted_at_the_noise_floor(index: int, tmp_path: 
     assert doc["validation"]["left_out"] <= 0.01 * doc["validation"]["input_samples"]
 
 
+@pytest.mark.slow
 def test_without_the_chosen_filter_a_1khz_log_is_far_from_its_floor(tmp_path: Path) -> None:
     """The bar above is not met by default: a 1 kHz log without velocity, unfiltered."""
     case = blindgen.make_case(out_dir=tmp_path / "case", **CLEAN[3])

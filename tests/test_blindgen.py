@@ -178,7 +178,7 @@ def test_kinematics_match_matrix_products_and_baseline(convention, seed, tmp_pat
 
 def test_robot_file_is_what_armid_loads(tmp_path):
     """The YAML follows the robot-file schema (armid's loader accepts it, modeled values 20-30 % off)."""
-    from identify.robot_file import load_robot
+    from armid.io.robot_file import load_robot
 
     case = make_case(11, tmp_path, n_joints=6, noise="low", duration_s=2.0, valid_duration_s=2.0,
                      declare=[{"effect": "coulomb_friction", "joint": None}])

@@ -15,13 +15,14 @@ import can
 import numpy as np
 import pytest
 
-from daq.control import ComputedTorque
-from drivers.canopen_driver import CanopenDriver
-from drivers.interface import DriveConfigError, DriveFault, HeartbeatLost
-from drivers.pdo_plan import BusBudgetError, bus_load, check_bus_budget, frame_bits
-from drivers.rig import RigFileError, load_rig, rig_from_dict
-from sim_bus.arm import SimulatedArm
-from sim_bus.drive import EMCY_POSITION_LIMIT, State, next_state
+from armid.drivers.canopen_driver import CanopenDriver
+from armid.drivers.interface import DriveConfigError, DriveFault, HeartbeatLost
+from armid.drivers.pdo_plan import BusBudgetError, bus_load, check_bus_budget, frame_bits
+from armid.identify.control import ComputedTorque
+from armid.io.rig_file import load_rig, rig_from_dict
+from armid.schema.errors import RigFileError
+from armid.sim_bus.arm import SimulatedArm
+from armid.sim_bus.drive import EMCY_POSITION_LIMIT, State, next_state
 
 ROOT = Path(__file__).resolve().parent.parent
 SIM_RIG = ROOT / "config" / "rigs" / "sim.yaml"
@@ -37,8 +38,9 @@ class _Bench:
     def __init__(self) -> None:
         self.channel = f"armid-test-{uuid.uuid4().hex[:8]}"
         self.rig = _rig(self.channel)
-        self.arm = SimulatedArm(self.rig, bus=can.Bus(interface="virtual", channel=self.channel))
-        self.driver = CanopenDriver(self.rig, bus=can.Bus(interface="virtual", channel=self.channel))
+        self.buses = [can.Bus(interface="virtual", channel=self.channel) for _ in range(2)]  # passed in: ours to shut down
+        self.arm = SimulatedArm(self.rig, bus=self.buses[0])
+        self.driver = CanopenDriver(self.rig, bus=self.buses[1])
         self.driver.start()
         self.control = ComputedTorque(self.rig.robot, q_nominal=self.arm.physics.position)
 
@@ -56,6 +58,8 @@ class _Bench:
     def close(self) -> None:
         self.driver.close()
         self.arm.close()
+        for bus in self.buses:
+            bus.shutdown()
 
 
 @pytest.fixture
@@ -115,6 +119,7 @@ def _check_against_simulator(samples: list, log: dict, rig) -> None:  # type: ig
     assert compared >= 0.9 * len(samples)
 
 
+@pytest.mark.slow
 def test_virtual_bus_10_s_six_axes_no_lost_cycle(bench: _Bench) -> None:
     bench.hold(50)
     bench.driver.enable()
@@ -214,15 +219,18 @@ def test_bad_frames_do_not_crash_the_driver_and_are_reported(bench: _Bench) -> N
 def test_drive_that_disagrees_with_the_rig_is_refused() -> None:
     channel = f"armid-test-{uuid.uuid4().hex[:8]}"
     rig = _rig(channel)
-    arm = SimulatedArm(rig, bus=can.Bus(interface="virtual", channel=channel))
+    buses = [can.Bus(interface="virtual", channel=channel) for _ in range(2)]
+    arm = SimulatedArm(rig, bus=buses[0])
     arm.drive(3).node.data_store[0x6091][1] = struct.pack("<I", 50_000)  # gear 50 in the drive
-    driver = CanopenDriver(rig, bus=can.Bus(interface="virtual", channel=channel))
+    driver = CanopenDriver(rig, bus=buses[1])
     try:
         with pytest.raises(DriveConfigError, match=r"joint 4 \(node 4\): 0x6091 gear ratio is 50 in the drive, 76 in"):
             driver.start()
     finally:
         driver.close()
         arm.close()
+        for bus in buses:
+            bus.shutdown()
 
 
 def _multicast_available() -> str | None:
@@ -234,6 +242,7 @@ def _multicast_available() -> str | None:
         return f"no UDP sockets: {err}"
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(_multicast_available() is not None, reason=str(_multicast_available()))
 def test_udp_multicast_two_processes_10_s(tmp_path: Path) -> None:
     group = f"239.74.{np.random.default_rng().integers(1, 250)}.{np.random.default_rng().integers(1, 250)}"
@@ -289,7 +298,8 @@ def test_socketcan_vcan0() -> None:
     except OSError as err:
         pytest.skip(f"no vcan0 interface here ({err}); `ip link add dev vcan0 type vcan && ip link set up vcan0` enables this test")
     rig = _rig("vcan0", "socketcan")
-    arm = SimulatedArm(rig, bus=can.Bus(interface="socketcan", channel="vcan0"))
+    arm_bus = can.Bus(interface="socketcan", channel="vcan0")
+    arm = SimulatedArm(rig, bus=arm_bus)
     driver = CanopenDriver(rig)
     try:
         driver.start()
@@ -297,4 +307,5 @@ def test_socketcan_vcan0() -> None:
     finally:
         driver.close()
         arm.close()
+        arm_bus.shutdown()
     assert all(s.valid.all() for s in samples)

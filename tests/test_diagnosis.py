@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from identify.diagnosis import diagnose
-from identify.preprocess import PrepareOptions, prepare
-from identify.robot import DeclaredEffect, Robot
-from identify.robot_file import load_robot
-from identify.trajectories import random_fourier_trajectory
-from sim_bus.offline import simulate
-from sim_bus.physics import JointEffects, SimulationConfig
+from armid.identify.diagnosis import diagnose
+from armid.identify.preprocess import PrepareOptions, prepare
+from armid.identify.robot import DeclaredEffect, Robot
+from armid.identify.trajectories import random_fourier_trajectory
+from armid.io.robot_file import load_robot
+from armid.sim_bus.offline import simulate
+from armid.sim_bus.physics import JointEffects, SimulationConfig
 
 ROOT = Path(__file__).resolve().parent.parent
 PUMA = load_robot(ROOT / "config" / "robots" / "puma560.yaml")
@@ -136,8 +136,8 @@ def test_after_is_identify_with_the_findings_declared() -> None:
     a lab that declares what diagnose found gets the same predictions, sample for sample."""
     import warnings
 
-    from identify.diagnosis import findings_model
-    from identify.identification import identify
+    from armid.identify.diagnosis import findings_model
+    from armid.identify.identification import identify
 
     rng = np.random.default_rng(7)
     undeclared, _ = CASES["cogging"](rng)

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 from conftest import ROBOTS
 
-from identify.differentiation import five_point_derivative
-from identify.errors import RecordingError
-from identify.filtering import lowpass
-from identify.preprocess import PrepareOptions, prepare
-from identify.recordings import Recording, read_recording, write_csv
-from identify.robot_file import load_robot
+from armid.identify.differentiation import five_point_derivative
+from armid.identify.errors import RecordingError
+from armid.identify.filtering import lowpass
+from armid.identify.preprocess import PrepareOptions, prepare
+from armid.io.recordings import Recording, read_recording, write_csv
+from armid.io.robot_file import load_robot
 
 
 def test_five_point_filter_is_exact_on_parabolas():  # type: ignore[no-untyped-def]

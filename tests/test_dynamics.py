@@ -7,10 +7,10 @@ import pinocchio as pin
 import pytest
 from conftest import ROBOTS, random_motion, random_robot
 
-from identify import dynamics as dyn
-from identify.pinocchio_bridge import KHOSLA_TO_PINOCCHIO_ORDER, parameter_map, to_pinocchio
-from identify.robot import Inertial, change_link_frame, inertial_from_parameters, link_parameters
-from identify.robot_file import load_robot
+from armid.identify import dynamics as dyn
+from armid.identify.pinocchio_bridge import KHOSLA_TO_PINOCCHIO_ORDER, parameter_map, to_pinocchio
+from armid.identify.robot import Inertial, change_link_frame, inertial_from_parameters, link_parameters
+from armid.io.robot_file import load_robot
 
 
 def _pin_reference(robot, q, qd, qdd):  # type: ignore[no-untyped-def]
@@ -156,7 +156,7 @@ def test_shape_errors_name_the_array():  # type: ignore[no-untyped-def]
 
 def test_the_regressor_kernels_sine_and_cosine_match_libm() -> None:
     """The kernel's own branch-free sincos (so that its lanes vectorise) against numpy's."""
-    from identify._regressor_lanes import _sincos
+    from armid.identify._regressor_lanes import _sincos
 
     rng = np.random.default_rng(5)
     x = np.concatenate([np.linspace(-20.0, 20.0, 40_001), rng.uniform(-1e5, 1e5, 20_000),
@@ -173,7 +173,7 @@ def test_simulated_sensors_report_position_and_velocity_at_one_instant() -> None
     a rigid body about a vertical axis, the other joint braked)."""
     from dataclasses import replace
 
-    from sim_bus.physics import ArmPhysics, SimulationConfig
+    from armid.sim_bus.physics import ArmPhysics, SimulationConfig
 
     robot = replace(load_robot(ROBOTS / "planar2.yaml"), gravity=np.array([0.0, 0.0, -9.81]))
     physics = ArmPhysics(robot, SimulationConfig(substeps=2), 0.002)

@@ -13,17 +13,18 @@ import can
 import numpy as np
 import pytest
 
-from daq.acquisition import Acquisition, Sink
-from daq.control import ComputedTorque
-from daq.recorder import McapRecorder
-from drivers import dynamixel_protocol as dxl
-from drivers.canopen_driver import CanopenDriver
-from drivers.dynamixel_driver import DynamixelDriver, ServoLost
-from drivers.interface import DriveConfigError, DriveFault, DriverError
-from drivers.rig import RigFileError, load_rig, rig_from_dict
-from identify.recordings import read_recording
-from sim_bus.arm import SimulatedArm
-from sim_bus.servo_chain import ServoChainProcess
+from armid.daq.acquisition import Acquisition, Sink
+from armid.daq.recorder import McapRecorder
+from armid.drivers import dynamixel_protocol as dxl
+from armid.drivers.canopen_driver import CanopenDriver
+from armid.drivers.dynamixel_driver import DynamixelDriver, ServoLost
+from armid.drivers.interface import DriveConfigError, DriveFault, DriverError
+from armid.identify.control import ComputedTorque
+from armid.io.recordings import read_recording
+from armid.io.rig_file import load_rig, rig_from_dict
+from armid.schema.errors import RigFileError
+from armid.sim_bus.arm import SimulatedArm
+from armid.sim_bus.servo_chain import ServoChainProcess
 
 ROOT = Path(__file__).resolve().parent.parent
 DXL_RIG = ROOT / "config" / "rigs" / "sim_dynamixel.yaml"
@@ -303,7 +304,7 @@ def _acquire(driver: object, rig: object, path: Path) -> tuple[list, np.ndarray]
     """The DAQ as `armid record` runs it: acquisition thread, inline control law, MCAP sink."""
     robot = rig.robot  # type: ignore[attr-defined]
     records: list = []  # type: ignore[type-arg]
-    recorder = McapRecorder(path, [j.name for j in robot.joints], driver.torque_constants, {"robot": robot.name})  # type: ignore[attr-defined]
+    recorder = McapRecorder(path, [j.name for j in robot.joints], {"robot": robot.name})  # type: ignore[attr-defined]
     q_ref: list[np.ndarray] = []
     control = ComputedTorque(robot, bandwidth_hz=3.0, q_nominal=np.asarray(rig.simulation["initial_position"]))  # type: ignore[attr-defined]
 
@@ -331,10 +332,15 @@ def test_the_same_acquisition_code_runs_on_both_driver_families(family: str, tmp
     if family == "canopen":
         channel = f"armid-test-{uuid.uuid4().hex[:8]}"
         rig = load_rig(CAN_RIG).with_bus(channel=channel)
-        arm = SimulatedArm(rig, bus=can.Bus(interface="virtual", channel=channel))
-        driver: object = CanopenDriver(rig, bus=can.Bus(interface="virtual", channel=channel))
+        buses = [can.Bus(interface="virtual", channel=channel) for _ in range(2)]
+        arm = SimulatedArm(rig, bus=buses[0])
+        driver: object = CanopenDriver(rig, bus=buses[1])
         driver.paced_by_consumer = True  # type: ignore[attr-defined]
-        close = arm.close
+
+        def close() -> None:
+            arm.close()
+            for bus in buses:
+                bus.shutdown()
     else:
         rig = load_rig(DXL_RIG)
         driver = DynamixelDriver(rig, port=chain.port)

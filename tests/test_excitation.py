@@ -11,17 +11,18 @@ import numpy as np
 import pytest
 
 from armid.cli import main
+from armid.daq.excite import ExcitationSession
 from armid.demo import true_parameters
-from daq.excite import ExcitationSession
-from drivers.rig import load_rig
-from identify import excitation as ex
-from identify.identification import IdentifyOptions, identify
-from identify.preprocess import PrepareOptions, prepare
-from identify.recordings import Recording, read_mcap_arrays
-from identify.robot_file import load_robot
-from identify.single_link import single_link_sequence
-from sim_bus.offline import simulate
-from sim_bus.physics import simulation_config
+from armid.identify import excitation as ex
+from armid.identify.identification import IdentifyOptions, identify
+from armid.identify.preprocess import PrepareOptions, prepare
+from armid.identify.single_link import single_link_sequence
+from armid.io.recordings import Recording, read_mcap_arrays
+from armid.io.rig_file import load_rig
+from armid.io.robot_file import load_robot
+from armid.sim_bus.offline import simulate
+from armid.sim_bus.physics import simulation_config
+from armid.simulated import excitation_session
 
 ROOT = Path(__file__).resolve().parent.parent
 RIG = ROOT / "config" / "rigs" / "sim.yaml"
@@ -57,6 +58,7 @@ def _truth(names: list[str]) -> np.ndarray:
     return true_parameters(load_rig(RIG), names)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 3, 7])
 def test_single_link_sequence_and_whole_arm_recover_the_combinations_within_their_standard_deviations(seed: int) -> None:
     """The rig's simulated arm (friction, rotor inertia, quantisation, current noise), off the bus.
@@ -114,7 +116,7 @@ def test_single_link_sequence_and_whole_arm_recover_the_combinations_within_thei
 
 def _session(tmp_path: Path) -> ExcitationSession:
     rig = load_rig(RIG).with_bus(channel=f"armid-ex-{uuid.uuid4().hex[:8]}")
-    return ExcitationSession(rig, simulate=True)
+    return excitation_session(rig, simulate=True)
 
 
 def test_excitation_on_the_bus_runs_records_and_holds(tmp_path: Path) -> None:

@@ -17,9 +17,8 @@ import pytest
 from conftest import ROBOTS, SHARED, random_robot
 
 from armid.cli import main
-from armid.urdf_export import write_urdf
-from identify.effects import effect_columns
-from identify.feasible import (
+from armid.identify.effects import effect_columns
+from armid.identify.feasible import (
     check_link,
     feasible_estimate,
     feasible_prior,
@@ -27,12 +26,13 @@ from identify.feasible import (
     predict,
     pseudo_inertia,
 )
-from identify.identification import identify
-from identify.pinocchio_bridge import to_pinocchio
-from identify.preprocess import Prepared, Segment
-from identify.robot import DeclaredEffect, Inertial, Robot, inertia_entries, link_parameters
-from identify.robot_file import load_robot
-from identify.trajectories import random_fourier_trajectory
+from armid.identify.identification import identify
+from armid.identify.pinocchio_bridge import to_pinocchio
+from armid.identify.preprocess import Prepared, Segment
+from armid.identify.robot import DeclaredEffect, Inertial, Robot, inertia_entries, link_parameters
+from armid.identify.trajectories import random_fourier_trajectory
+from armid.io.robot_file import load_robot
+from armid.urdf_export import write_urdf
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -152,7 +152,7 @@ def test_feasible_is_at_least_as_close_to_the_truth() -> None:
 
 
 def _true_value(name: str, truth: np.ndarray, friction: tuple[np.ndarray, np.ndarray]) -> float:
-    from identify.robot import parameter_names
+    from armid.identify.robot import parameter_names
 
     names = parameter_names(6)
     if name in names:
@@ -270,8 +270,8 @@ def test_kuka_lwr4_feasible() -> None:
     -0.7 kg m^2 on joints 1, 2, 7: no rotor) closes it (2.09 %): the recordings carry a
     joint-local torque against each joint's acceleration that least squares absorbs as
     negative inertias. That pair keeps its regression guard (README, feasible section)."""
-    from identify.preprocess import prepare
-    from identify.recordings import read_recording
+    from armid.identify.preprocess import prepare
+    from armid.io.recordings import read_recording
 
     robot = load_robot(ROBOTS / "kuka_lwr4.yaml")
     data = SHARED / "data/kuka_lwr4"
@@ -308,7 +308,7 @@ def test_bad_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str
     bad.write_text(text[:cut] + text[cut:].split("\n", 1)[1])
     robot = load_robot(bad)
     data = tmp_path / "d.csv"
-    from identify.recordings import write_csv
+    from armid.io.recordings import write_csv
 
     seg = _robot_data(load_robot(ROBOTS / "planar2.yaml"), 400, 3).segments[0]
     write_csv(data, seg.t, {"q": seg.q, "qd": seg.qd, "qdd": seg.qdd, "tau": seg.tau})
@@ -328,7 +328,7 @@ def test_diagnose_feasible_takes_linear_findings(tmp_path: Path) -> None:
     """``diagnose --feasible``: friction the robot file does not declare is found, joins the
     feasible model as a signed effect, and the feasible model is physical; its held-out
     error is that of a model with the friction, not the declared one's."""
-    from identify.recordings import write_csv
+    from armid.io.recordings import write_csv
 
     robot = load_robot(ROBOTS / "planar2.yaml")
     paths = []
@@ -359,9 +359,9 @@ def test_demo_rig_data_feasible_within_ten_percent() -> None:
     controller, velocity from the encoders, acceleration from the 5-point filter."""
     import yaml
 
-    from identify.preprocess import prepare
-    from sim_bus.offline import simulate
-    from sim_bus.physics import simulation_config
+    from armid.identify.preprocess import prepare
+    from armid.sim_bus.offline import simulate
+    from armid.sim_bus.physics import simulation_config
 
     rig = yaml.safe_load((ROOT / "config/rigs/sim.yaml").read_text())
     config = simulation_config(rig["simulation"], 6)
@@ -385,14 +385,14 @@ def test_solution_is_optimal_along_feasible_directions() -> None:
     """Independently of the solver: the objective (data term plus entropic divergence) does
     not fall along any segment toward another physical parameter set (the feasible set is
     convex, so such segments stay in it), for random directions and step lengths."""
-    from identify.feasible import divergence, feasible_prior
+    from armid.identify.feasible import divergence, feasible_prior
 
     truth_robot, truth, model_robot = _feasible_arm(3)
     rng = np.random.default_rng(3)
     friction = (rng.uniform(0.1, 1.0, 6), rng.uniform(0.1, 1.0, 6))
     result = identify(model_robot, [_simulate(truth_robot, truth, 300, 3, 0.05, friction)])
     fr = feasible_estimate(result)
-    from identify.feasible import base_projection
+    from armid.identify.feasible import base_projection
 
     p = base_projection(result.base, len(result.names))
     priors = [feasible_prior(model_robot.modeled_parameters()[10 * i : 10 * i + 10])[0] for i in range(6)]
@@ -416,7 +416,7 @@ def test_solution_is_optimal_along_feasible_directions() -> None:
 def test_interior_lift_and_massless_prior() -> None:
     """A solver's answer a rounding error outside the cone is lifted inside by the least
     convex combination with the prior; a link modeled as massless gets a usable prior."""
-    from identify.feasible import _strictly_feasible
+    from armid.identify.feasible import _strictly_feasible
 
     j0 = pseudo_inertia(_body(2.0, (0.0, 0.1, 0.0), (0.02, 0.03, 0.04)))
     point = link_from_pseudo_inertia(np.diag([0.01, 0.02, 0.0, 1.0]) - 1e-10 * np.eye(4))
@@ -431,7 +431,7 @@ def test_box_lmi_closed_form() -> None:
     """tr(B_k J) = E[(u_k - x_k)(x_k - l_k)] over the mass: a solid box of uniform density
     inside the bounding box (closed form: Var + (u - c)(c - l) per axis) is inside; the
     same body moved half out is not, and the check names the axis."""
-    from identify.feasible import box_matrices, check_box
+    from armid.identify.feasible import box_matrices, check_box
 
     size, com = np.array([0.1, 0.2, 0.3]), np.array([0.0, 0.05, 0.1])
     body = link_parameters(Inertial(2.0, tuple(com), tuple(inertia_entries(np.diag(2.0 / 12 * np.array(

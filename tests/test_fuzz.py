@@ -241,9 +241,9 @@ def test_bad_mcap(case: str, tmp_path: Path, capsys: pytest.CaptureFixture[str])
 
 def _read_as_identify_does(path: Path) -> Any:
     """What ``armid identify`` does before preprocessing: read, then the plausibility checks."""
-    from identify.plausibility import check_recording
-    from identify.recordings import read_recording
-    from identify.robot_file import load_robot
+    from armid.identify.plausibility import check_recording
+    from armid.io.recordings import read_recording
+    from armid.io.robot_file import load_robot
 
     rec = read_recording(path, load_robot(PUMA))
     assert check_recording(rec.t, rec.q, rec.qd, rec.tau, rec.source) == []
@@ -344,15 +344,15 @@ def test_bad_robot(case: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 
 
 def test_urdf_robot_repeating_its_urdf_is_accepted(tmp_path: Path) -> None:
-    from identify.robot_file import load_robot
+    from armid.io.robot_file import load_robot
 
     same = load_robot(_ur5(tmp_path / "same.yaml", "revolute"))
     assert [j.type.value for j in same.joints] == ["revolute"] * 6
 
 
 def test_triangle_violating_inertia_is_a_warning(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from identify.errors import ImplausibleDataWarning
-    from identify.robot_file import load_robot
+    from armid.identify.errors import ImplausibleDataWarning
+    from armid.io.robot_file import load_robot
 
     with pytest.warns(ImplausibleDataWarning, match=r"joints\[2\]\.inertial\.inertia: .* break the triangle inequality"):
         load_robot(PUMA)  # the published PUMA 560 values (links 1 and 3)
@@ -428,8 +428,7 @@ def test_unknown_interface_override(command: str, tmp_path: Path, capsys: pytest
 
 
 def test_unbroken_rig_loads(tmp_path: Path) -> None:
-    from drivers.rig import load_rig
-
+    from armid.io.rig_file import load_rig
     assert load_rig(_rig(tmp_path / "rig.yaml", lambda d: None)).n_joints == 6
 
 
@@ -605,8 +604,8 @@ def test_end_to_end_one_line_and_debug_traceback(tmp_path: Path) -> None:
 # -- the plausibility API (identify/plausibility.py) -----------------------------------------
 
 def test_plausibility_api_warns_on_what_may_be_right_and_refuses_garbage() -> None:
-    from identify.errors import RecordingError
-    from identify.plausibility import check_recording, velocity_ratio
+    from armid.identify.errors import RecordingError
+    from armid.identify.plausibility import check_recording, velocity_ratio
 
     assert check_recording(T, Q, QD, TAU, "ex.csv") == []
     assert velocity_ratio(T, Q, QD) == pytest.approx(1.0, abs=0.01)

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from conftest import ROBOTS
 
-from identify.errors import PoorExcitationWarning
-from identify.identifiability import excitation
-from identify.identification import structural_base
-from identify.robot import Robot
-from identify.robot_file import load_robot
+from armid.identify.errors import PoorExcitationWarning
+from armid.identify.identifiability import excitation
+from armid.identify.identification import structural_base
+from armid.identify.robot import Robot
+from armid.io.robot_file import load_robot
 
 
 def _classes(base):  # type: ignore[no-untyped-def]
@@ -62,8 +62,8 @@ def test_table2_style_mass_combination_on_a_wrist():  # type: ignore[no-untyped-
 
 
 def test_values_map_through_the_regrouping():  # type: ignore[no-untyped-def]
-    from identify.dynamics import regressor
-    from identify.identification import random_motion
+    from armid.identify.dynamics import regressor
+    from armid.identify.identification import random_motion
 
     robot = load_robot(ROBOTS / "scara_mdh.yaml")
     base = structural_base(robot)

@@ -12,11 +12,11 @@ import pytest
 from conftest import ROBOTS, SHARED
 
 from armid.cli import main
-from identify.errors import RobotFileError
-from identify.pinocchio_bridge import to_pinocchio
-from identify.recordings import write_csv
-from identify.robot_file import load_robot
-from identify.trajectories import random_fourier_trajectory
+from armid.identify.errors import RobotFileError
+from armid.identify.pinocchio_bridge import to_pinocchio
+from armid.identify.trajectories import random_fourier_trajectory
+from armid.io.recordings import write_csv
+from armid.io.robot_file import load_robot
 
 
 def _simulate(robot_file, path, seed, noise=0.0, with_qdd=True, duration=8.0):  # type: ignore[no-untyped-def]

@@ -19,11 +19,11 @@ import numpy as np
 import pytest
 
 from armid.cli import main
-from daq.record_format import JointStateRecord
-from daq.recorder import McapRecorder
-from drivers.interface import Sample
-from identify.recordings import _McapScan, read_mcap_arrays, read_recording
-from identify.robot_file import load_robot
+from armid.daq.recorder import McapRecorder
+from armid.drivers.interface import Sample
+from armid.io.recordings import _McapScan, read_mcap_arrays, read_recording
+from armid.io.robot_file import load_robot
+from armid.schema.joint_state import JointStateRecord
 
 ROOT = Path(__file__).resolve().parent.parent
 PUMA = ROOT / "config" / "robots" / "puma560.yaml"
@@ -38,13 +38,13 @@ def intact(tmp_path_factory: pytest.TempPathFactory) -> Path:
     rec = read_recording(EXAMPLE, robot)
     kt = np.array([j.torque_constant for j in robot.joints])
     path = tmp_path_factory.mktemp("mcap") / "run.mcap"
-    recorder = McapRecorder(path, [j.name for j in robot.joints], kt, {"robot": robot.name})
+    recorder = McapRecorder(path, [j.name for j in robot.joints], {"robot": robot.name})
     n = robot.n_joints
     assert rec.qd is not None
     for k in range(rec.n_samples):
         current = rec.tau[k] / kt
         recorder.write(JointStateRecord(k, Sample(k, float(rec.t[k]), np.ones(n, bool), rec.q[k], rec.qd[k], np.ones(n, bool),
-                                                  current, current, np.full(n, 0x27))))
+                                                  current, current, np.full(n, 0x27), rec.tau[k])))
     recorder.close()
     return path
 

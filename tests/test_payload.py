@@ -19,15 +19,13 @@ import numpy as np
 import pytest
 
 from armid.cli import main
+from armid.daq.payload_service import EstimateStream, PayloadService, wait_for
+from armid.daq.stream import Stream, session_config
 from armid.demo import true_parameters
-from daq.excite import ExcitationSession
-from daq.payload_service import EstimateStream, PayloadService, wait_for
-from daq.stream import Stream, session_config
-from drivers.rig import load_rig
-from identify import excitation as ex
-from identify.differentiation import five_point_derivative
-from identify.identification import declared_effects, stacked_regressor, structural_base
-from identify.payload import (
+from armid.identify import excitation as ex
+from armid.identify.differentiation import five_point_derivative
+from armid.identify.identification import declared_effects, stacked_regressor, structural_base
+from armid.identify.payload import (
     ArmModel,
     PayloadRLS,
     ReferenceRun,
@@ -38,9 +36,11 @@ from identify.payload import (
     pseudo_inertia,
     rls_update,
 )
-from identify.recordings import read_mcap_arrays
-from sim_bus.offline import simulate
-from sim_bus.physics import Payload, simulation_config
+from armid.io.recordings import read_mcap_arrays
+from armid.io.rig_file import load_rig
+from armid.sim_bus.offline import simulate
+from armid.sim_bus.physics import Payload, simulation_config
+from armid.simulated import excitation_session
 
 ROOT = Path(__file__).resolve().parent.parent
 RIG = ROOT / "config" / "rigs" / "sim.yaml"
@@ -167,7 +167,7 @@ def test_payload_attached_and_removed_is_tracked_within_2_s_offline() -> None:
     t_on, t_off = plan.lead_in_s + 3.0, plan.lead_in_s + 7.0
     run = simulate(arm.robot, cfg, plan.evaluate, plan.duration_s, payloads=[(t_on, PAYLOAD), (t_off, None)], seed=9)
     est = PayloadRLS(arm)
-    stream = EstimateStream(est, np.ones(6), publish_every=10)
+    stream = EstimateStream(est, publish_every=10)
     docs = stream.feed((k, float(run.t[k]), np.ones(6, bool), run.position[k], run.torque[k]) for k in range(run.t.size))
     times = np.array([d["record_time"] for d in docs])
     assert len(docs) >= run.t.size // 10 - 1  # 50 Hz
@@ -190,6 +190,7 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
+@pytest.mark.slow
 def test_live_estimates_over_zenoh_reach_another_process_and_agree_with_replay(tmp_path: Path) -> None:
     import zenoh
 
@@ -202,12 +203,11 @@ def test_live_estimates_over_zenoh_reach_another_process_and_agree_with_replay(t
     assert sub.stdout is not None and sub.stdout.readline().strip() == "ready"
     publisher = zenoh.open(session_config(listen=[stream_endpoint]))
     estimator = zenoh.open(session_config(connect=[stream_endpoint, estimates_endpoint]))
-    kt = np.array([j.torque_constant for j in arm.robot.joints])
-    service = PayloadService(estimator, rig.robot.name, EstimateStream(PayloadRLS(arm), kt), max_backlog_s=1e9)
+    service = PayloadService(estimator, rig.robot.name, EstimateStream(PayloadRLS(arm)), max_backlog_s=1e9)
     stream = Stream(publisher, rig.robot.name, "excite", lambda: {})
     cycles: dict[str, int] = {}
     try:
-        with ExcitationSession(rig, simulate=True, stream=stream) as s:
+        with excitation_session(rig, simulate=True, stream=stream) as s:
             assert s.arm is not None
             arm_sim = s.arm
 
@@ -272,8 +272,7 @@ def test_the_service_falls_behind_by_time_not_by_record_count() -> None:
     ``max_backlog_s`` of the records' own time: 300 records at 1 kHz (0.3 s) are caught up
     with, 80 records at 100 Hz (0.8 s) are skipped. Real Zenoh sessions, peer to peer on
     loopback; the worker is held inside its publishing callback while the records queue."""
-    from daq.record_format import JointStateRecord
-    from drivers.interface import Sample
+    from armid.schema.joint_state import JointStateRecord, Sample
 
     arm, _, _ = _arm_and_design()
     robot = arm.robot.name
@@ -289,7 +288,7 @@ def test_the_service_falls_behind_by_time_not_by_record_count() -> None:
             release.wait(30)
             release.clear()
 
-    service = PayloadService(estimator, robot, EstimateStream(PayloadRLS(arm), np.ones(6), publish_every=1), max_backlog_s=0.5,
+    service = PayloadService(estimator, robot, EstimateStream(PayloadRLS(arm), publish_every=1), max_backlog_s=0.5,
                              on_estimate=on_estimate)
     stream = Stream(publisher, robot, "test", lambda: {})
     start = np.asarray(load_rig(RIG).simulation["initial_position"], float)
@@ -300,7 +299,8 @@ def test_the_service_falls_behind_by_time_not_by_record_count() -> None:
             state["t"] += step
             t = state["t"]
             q = start + 0.2 * np.sin(2 * np.pi * 0.5 * t + np.arange(6))
-            s = Sample(state["seq"], t, np.ones(6, bool), q, np.zeros(6), np.ones(6, bool), np.zeros(6), np.zeros(6), np.zeros(6, np.int64))
+            s = Sample(state["seq"], t, np.ones(6, bool), q, np.zeros(6), np.ones(6, bool), np.zeros(6), np.zeros(6), np.zeros(6, np.int64),
+                       torque=np.zeros(6))
             stream.publish(JointStateRecord(state["seq"], s))
             state["seq"] += 1
 
@@ -494,8 +494,8 @@ def robustness_runs(gain: bool = True, offset: bool = True, load: bool = True) -
     arm with the model errors; then the same trajectory with 2 kg attached 3 s in, estimated
     alone and against an unloaded run of it (reference mode). Returns the published documents
     and the attach time."""
-    from identify.identification import IdentifyOptions, identify
-    from identify.preprocess import prepare
+    from armid.identify.identification import IdentifyOptions, identify
+    from armid.identify.preprocess import prepare
 
     arm0, plan, cfg0 = _arm_and_design()
     cfg = _with_errors(cfg0, gain, offset, load)
@@ -508,7 +508,7 @@ def robustness_runs(gain: bool = True, offset: bool = True, load: bool = True) -
     unloaded = simulate(robot, cfg, plan.evaluate, plan.duration_s, seed=10)  # type: ignore[arg-type]
     out: dict[str, list[dict]] = {}
     for name, ref in (("alone", None), ("reference", ReferenceRun(arm, unloaded.t, unloaded.position, unloaded.torque))):
-        stream = EstimateStream(PayloadRLS(arm, reference=ref), np.ones(6))
+        stream = EstimateStream(PayloadRLS(arm, reference=ref))
         out[name] = stream.feed((k, float(loaded.t[k]), np.ones(6, bool), loaded.position[k], loaded.torque[k]) for k in range(loaded.t.size))
     out["t_on"] = [{"t": t_on}]
     return out
@@ -579,6 +579,7 @@ def test_the_users_command_line_on_100_hz_logs_with_jittered_stamps(tmp_path: Pa
             assert np.linalg.norm(np.array(d["com"]) - PAYLOAD.com) <= com_tol, (extra, dt, d["com"])
 
 
+@pytest.mark.slow
 def test_the_demo_payload_phase_from_a_cold_start(tmp_path: Path) -> None:
     """Issue 19: the demo's payload phase in a fresh process with an empty numba cache
     (nothing compiled before it starts, and the estimator compiles nothing). Events on the

@@ -22,7 +22,7 @@ from typing import Any
 import pytest
 
 from armid.cli import main
-from daq.stream import session_config
+from armid.daq.stream import session_config
 
 ROOT = Path(__file__).resolve().parent.parent
 LAB = ROOT / "config" / "zenoh" / "lab.json5"

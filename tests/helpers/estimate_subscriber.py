@@ -12,7 +12,7 @@ import threading
 
 import zenoh
 
-from daq.stream import key, session_config
+from armid.daq.stream import key, session_config
 
 robot, endpoint, out, seconds = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4])
 docs: list[dict] = []

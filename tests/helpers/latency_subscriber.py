@@ -12,8 +12,8 @@ import time
 
 import zenoh
 
-from daq.record_format import JointStateRecord
-from daq.stream import key, session_config
+from armid.daq.stream import key, session_config
+from armid.schema.joint_state import JointStateRecord
 
 robot, endpoint, out, seconds = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4])
 rows: list[tuple[int, float]] = []

@@ -13,7 +13,7 @@ import uuid
 from pathlib import Path
 
 from armid.demo import DEFAULT_RIG, run_payload
-from drivers.rig import load_rig
+from armid.io.rig_file import load_rig
 
 
 def main() -> None:
@@ -22,7 +22,7 @@ def main() -> None:
     out = Path(sys.argv[2])
     rig = load_rig(DEFAULT_RIG).with_bus(channel=f"armid-phase-{uuid.uuid4().hex[:8]}")
     result = run_payload(rig, arm, trajectory, out, None, warm=sys.argv[3] == "warm")
-    from identify import _regressor_lanes
+    from armid.identify import _regressor_lanes
 
     result["regressor_kernel_compiled"] = bool(_regressor_lanes.regressor_kernel.signatures)
     result.pop("report", None)

@@ -12,8 +12,8 @@ import time
 
 import zenoh
 
-from daq.record_format import JointStateRecord, check_encoding
-from daq.stream import key, session_config
+from armid.daq.stream import key, session_config
+from armid.schema.joint_state import JointStateRecord, check_encoding
 
 robot, endpoint, out, seconds = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4])
 slow = float(sys.argv[5]) if len(sys.argv) > 5 else 0.0

@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from identify.pinocchio_bridge import to_pinocchio
-from identify.robot import Robot
-from identify.spatial import Array
+from .pinocchio_bridge import to_pinocchio
+from .robot import Robot
+from .spatial import Array
 
 
 class ComputedTorque:

@@ -20,9 +20,20 @@ from typing import Any
 
 import numpy as np
 
-from .effects import CATALOGUE, FIXED, LINEAR_EFFECTS, SETTINGS
-from .errors import ImplausibleDataWarning, RobotFileError
-from .robot import DeclaredEffect, Inertial, Joint, JointLimits, JointType, Robot, dh_joint, inertia_entries, inertia_matrix, mdh_joint
+from armid.identify.effects import CATALOGUE, FIXED, LINEAR_EFFECTS, SETTINGS
+from armid.identify.errors import ImplausibleDataWarning, RobotFileError
+from armid.identify.robot import (
+    DeclaredEffect,
+    Inertial,
+    Joint,
+    JointLimits,
+    JointType,
+    Robot,
+    dh_joint,
+    inertia_entries,
+    inertia_matrix,
+    mdh_joint,
+)
 
 CONVENTIONS = ("dh", "mdh")
 TOP_LEVEL = {"name", "gravity", "convention", "urdf", "joints", "effects", "description"}

@@ -1,0 +1,139 @@
+"""Dependencies point one way: every import of every module, read from the source (ast).
+
+Layers, bottom to top (``armid/__init__.py`` draws them)::
+
+    armid.schema, armid.resources     imports nothing of armid's
+    armid.identify                    schema
+    armid.drivers                     schema, resources
+    armid.io                          schema, identify, drivers (the rig's types)
+    armid.daq                         schema, identify, io, drivers
+    armid.sim_bus                     schema, identify, io, drivers, resources (a peer on the bus)
+    armid (cli, demo, report, ...)    anything
+
+Only the top layer (or a test) starts the simulator: nothing below imports ``armid.sim_bus``.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+FOLDERS = {"armid": "armid", "armid.identify": "identify", "armid.daq": "daq", "armid.drivers": "drivers",
+           "armid.sim_bus": "sim_bus", "armid.config": "config"}
+ALLOWED = {
+    "schema": {"schema"},
+    "identify": {"schema", "identify"},
+    "drivers": {"schema", "drivers"},
+    "io": {"schema", "identify", "drivers", "io"},
+    "daq": {"schema", "identify", "io", "drivers", "daq"},
+    "sim_bus": {"schema", "identify", "io", "drivers", "sim_bus"},
+    "app": {"schema", "identify", "io", "drivers", "daq", "sim_bus", "app"},
+}
+IO_LIBRARIES = {"yaml", "mcap", "mcap_ros2", "zenoh", "can", "canopen", "serial", "matplotlib"}
+
+
+def layer(module: str) -> str:
+    parts = module.split(".")
+    if parts[0] != "armid":
+        raise ValueError(module)
+    if len(parts) == 1:
+        return "app"
+    second = parts[1]
+    if second in ("schema", "resources", "config"):
+        return "schema"
+    if second in ("identify", "drivers", "io", "daq", "sim_bus"):
+        return second
+    return "app"
+
+
+def modules() -> list[tuple[str, Path]]:
+    out = []
+    for package, folder in FOLDERS.items():
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            rel = path.relative_to(ROOT / folder).with_suffix("")
+            parts = [p for p in rel.parts if p != "__init__"]
+            name = ".".join([package, *parts])
+            if package == "armid" and parts and parts[0] in ("identify", "daq", "drivers", "sim_bus"):
+                continue
+            out.append((name, path))
+    return out
+
+
+def imports(module: str, path: Path) -> list[tuple[str, int]]:
+    """Every module ``module`` imports (function-level imports too), absolute, with its line."""
+    tree = ast.parse(path.read_text(), str(path))
+    is_package = path.name == "__init__.py"
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out += [(a.name, node.lineno) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = module.split(".")
+                base = base if is_package else base[:-1]
+                base = base[: len(base) - (node.level - 1)]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            out.append((target, node.lineno))
+            if node.level and not node.module:  # "from . import x": x may be a module
+                out += [(f"{target}.{a.name}", node.lineno) for a in node.names]
+    return out
+
+
+def test_every_package_is_found() -> None:
+    names = {m for m, _ in modules()}
+    for expected in ("armid.schema.errors", "armid.schema.joint_state", "armid.identify.dynamics", "armid.io.recordings",
+                     "armid.drivers.interface", "armid.daq.recorder", "armid.sim_bus.arm", "armid.cli"):
+        assert expected in names
+
+
+def test_imports_point_one_way() -> None:
+    wrong = []
+    for module, path in modules():
+        own = layer(module)
+        for target, line in imports(module, path):
+            if target.split(".")[0] != "armid":
+                continue
+            if target in ("armid",) and own != "app":
+                wrong.append(f"{path.relative_to(ROOT)}:{line}: {module} ({own}) imports the top-level package armid")
+                continue
+            other = layer(target)
+            if other not in ALLOWED[own]:
+                wrong.append(f"{path.relative_to(ROOT)}:{line}: {module} ({own}) imports {target} ({other})")
+    assert not wrong, "imports against the direction:\n" + "\n".join(wrong)
+
+
+def test_identify_imports_no_io_library() -> None:
+    wrong = []
+    for module, path in modules():
+        if layer(module) != "identify":
+            continue
+        for target, line in imports(module, path):
+            if target.split(".")[0] in IO_LIBRARIES:
+                wrong.append(f"{path.relative_to(ROOT)}:{line}: {module} imports {target}")
+    assert not wrong, "\n".join(wrong)
+
+
+def test_the_checker_sees_a_wrong_import(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.py"
+    bad.write_text("def f():\n    from ..io.recordings import read_recording\n    import yaml\n")
+    found = imports("armid.identify.bad", bad)
+    assert ("armid.io.recordings", 2) in found and ("yaml", 3) in found
+    assert layer("armid.io.recordings") not in ALLOWED["identify"]
+
+
+def test_every_package_is_installed() -> None:
+    """Each folder with an ``__init__.py`` is a package the wheel lists (``pyproject.toml``)."""
+    import tomllib
+
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = set()
+    for package, folder in FOLDERS.items():
+        for init in (ROOT / folder).rglob("__init__.py"):
+            parts = init.parent.relative_to(ROOT / folder).parts
+            if package == "armid" and parts and parts[0] in ("identify", "daq", "drivers", "sim_bus"):
+                continue
+            found.add(".".join([package, *parts]))
+    assert found == listed, (sorted(found - listed), sorted(listed - found))
