@@ -196,12 +196,17 @@ class _Switch:
     def __init__(self) -> None:
         self.recorder: McapRecorder | None = None
         self.count = 0
+        self.first_sequence: int | None = None  # of the current recording: the stream's subscribers cut the run by these
+        self.last_sequence: int | None = None
 
     def __call__(self, record: JointStateRecord) -> None:
         recorder = self.recorder
         if recorder is not None:
             recorder.write(record)
             self.count += 1
+            if self.first_sequence is None:
+                self.first_sequence = record.sequence
+            self.last_sequence = record.sequence
 
 
 class ExcitationSession:
@@ -281,6 +286,7 @@ class ExcitationSession:
         }
         recorder = McapRecorder(out / "run.mcap", [j.name for j in self.robot.joints], self.driver.torque_constants, meta)
         can_log = BusLog(self.driver, out / "can.log")  # every frame on the bus, the master's included
+        self._switch.first_sequence = self._switch.last_sequence = None
         self._switch.recorder = recorder
         written_before = self._switch.count
         try:
@@ -290,7 +296,10 @@ class ExcitationSession:
                 self.enabled = True
             active = self.control.start(plan)
             if self.stream is not None:
-                self.stream.event("start", run=name, duration_s=plan.duration_s)
+                from .experiment_stream import experiment_description
+
+                self.stream.event("start", run=name, duration_s=plan.duration_s,
+                                  experiment=experiment_description(name, plan, self.robot.n_joints, meta))
             while not active.done.wait(0.2):
                 if progress is not None:
                     progress(active.cycles * self.rig.period_s, self.control)
@@ -310,9 +319,12 @@ class ExcitationSession:
             time.sleep(0.005)
             recorder.close()
             can_log.stop()
-        if self.stream is not None:
-            self.stream.event("stop", run=name, completed=self.control.stop_reason is None, reason=self.control.stop_reason)
         c = self.control
+        if self.stream is not None:  # the records the recording holds, by sequence number, and where the excitation lies
+            self.stream.event("stop", run=name, completed=c.stop_reason is None, reason=c.stop_reason, stop_cycle=c.stop_cycle,
+                              records=self._switch.count - written_before, first_sequence=self._switch.first_sequence,
+                              last_sequence=self._switch.last_sequence, first_cycle=active.first_cycle or 0,
+                              window_s=list(plan.excitation_window), cycles=active.cycles)
         return RunReport(name, c.stop_reason is None, c.stop_reason, c.stop_cycle, active.cycles, self._switch.count - written_before,
                          active.first_cycle or 0, c.max_error.tolist(), c.peak_torque.tolist(), c.saturated.tolist(), str(out / "run.mcap"),
                          plan.excitation_window)
