@@ -494,26 +494,31 @@ def _excite_run(args: argparse.Namespace, rig: Any, robot: Any, n: int, simulate
 
     from .experiments import Experiment, design_experiments, run_experiments
 
+    if start is None:  # the pose the drives report; the drives are let be while this process designs
+        with ExcitationSession(rig, simulate=False, tracking_limit_rad=args.tracking_limit) as probe:
+            start = probe.position
+    if trajectory is not None:
+        traj, moving = trajectory
+        limits = ex.Limits.of(robot)
+        p = ex.plan(traj, start, limits, periods=args.periods)
+        ex.check_plan(robot, p, rig.period_s, limits)
+        design = ex.Design(traj, moving, tuple(range(n)), [], [], 0, float("nan"), float("nan"), {})
+        experiments = [Experiment(Path(args.trajectory).stem, design, p)]
+    else:
+        whole = [("whole", args.periods)] if not links or args.whole else []
+        experiments = design_experiments(robot, start, links, whole, rig.period_s, link_frequency_hz=args.frequency or 0.5,
+                                          link_periods=args.periods, whole_frequency_hz=args.frequency or 0.2, seed=args.seed,
+                                          log=lambda m: console.print(f"  {m}"))
+    _write_json(out / "designs.json", {e.name: e.design.to_json() for e in experiments})
+    console.print(f"armid excite: {len(experiments)} trajectories checked against every limit; recording to {out}")
+    if args.dry_run:
+        return 0
+    # designing can keep this process busy for tens of seconds: only now the drives run with it
     with ExcitationSession(rig, simulate=simulate, tracking_limit_rad=args.tracking_limit, stream=stream) as session:
         holder["session"] = session
-        if start is None or np.abs(start - session.position).max() > 0.02:
-            start = session.position
-        if trajectory is not None:
-            traj, moving = trajectory
-            limits = ex.Limits.of(robot)
-            p = ex.plan(traj, start, limits, periods=args.periods)
-            ex.check_plan(robot, p, rig.period_s, limits)
-            design = ex.Design(traj, moving, tuple(range(n)), [], [], 0, float("nan"), float("nan"), {})
-            experiments = [Experiment(Path(args.trajectory).stem, design, p)]
-        else:
-            whole = [("whole", args.periods)] if not links or args.whole else []
-            experiments = design_experiments(robot, start, links, whole, rig.period_s, link_frequency_hz=args.frequency or 0.5,
-                                              link_periods=args.periods, whole_frequency_hz=args.frequency or 0.2, seed=args.seed,
-                                              log=lambda m: console.print(f"  {m}"))
-        _write_json(out / "designs.json", {e.name: e.design.to_json() for e in experiments})
-        console.print(f"armid excite: {len(experiments)} trajectories checked against every limit; recording to {out}")
-        if args.dry_run:
-            return 0
+        moved = float(np.abs(start - session.position).max())
+        if moved > 0.02:
+            raise UsageError(f"the arm is {moved:.3f} rad from the pose the trajectories were designed from: it moved; run again")
         from .live import RateLine, acquisition_counts, enabled
 
         rate = RateLine()
@@ -778,6 +783,10 @@ def _serve(args: argparse.Namespace) -> int:
             robot_path = shipped
     robot = load_robot(robot_path)
     _inputs_read()
+    try:  # never slow acquisition on the same machine: the arithmetic runs at a lower priority
+        os.nice(5)
+    except OSError:
+        pass
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

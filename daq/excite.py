@@ -97,6 +97,9 @@ class ExcitationControl:
         self.saturated = np.zeros(n, np.int64)
         self._invalid_run = np.zeros(n, np.int64)
         self.skipped = 0  # samples supervised but not commanded from (a newer one was waiting)
+        # lost frames stop the arm once the drives are enabled; before that (the trajectories are
+        # being designed, which can stall this process for longer than 3 cycles) they are only counted
+        self.armed = False
         self.last_record: JointStateRecord | None = None
         self._lock = threading.Lock()
 
@@ -134,7 +137,7 @@ class ExcitationControl:
         if self.stop_reason:
             return
         self._invalid_run = np.where(s.valid, 0, self._invalid_run + 1)
-        if (self._invalid_run >= LOST_CYCLES_STOP).any():
+        if self.armed and (self._invalid_run >= LOST_CYCLES_STOP).any():
             j = int(np.argmax(self._invalid_run))
             return self._stop(f"joint {j + 1}: no frames for {LOST_CYCLES_STOP} cycles", s.cycle)
         with self._lock:
@@ -257,6 +260,10 @@ class ExcitationSession:
         if self.control.hold is None:
             raise DriverError("no sample from the drives within 2 s of starting")
 
+    def _invalid_run_reset(self) -> None:
+        self.control._invalid_run[:] = 0
+        self.control.armed = True
+
     def _on_fault(self, fault: DriveFault) -> None:
         self.control.fault(fault)
         if self.stream is not None:
@@ -292,6 +299,7 @@ class ExcitationSession:
         try:
             if not self.enabled:
                 # enable first, holding the pose: the plan's clock starts once the drives follow
+                self._invalid_run_reset()
                 self.driver.enable()
                 self.enabled = True
             active = self.control.start(plan)

@@ -81,11 +81,12 @@ class Stream:
         self._events = session.declare_publisher(key(robot, "events"), encoding=zenoh.Encoding.APPLICATION_JSON)
         self._token = session.liveliness().declare_token(key(robot, f"alive/{component}"))
         self._status = status
+        self.component = component
         self._queryable = session.declare_queryable(key(robot, "status"), self._on_query)
         self.published = 0
 
     def _on_query(self, query: Any) -> None:
-        query.reply(key(self.robot, "status"), json.dumps(self._status()))
+        query.reply(key(self.robot, "status"), json.dumps({"component": self.component, **self._status()}))
 
     def publish(self, record: JointStateRecord) -> None:
         self._pub.put(record.pack())
