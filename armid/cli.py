@@ -205,13 +205,16 @@ def _identify(args: argparse.Namespace) -> int:
 def _feasible(args: argparse.Namespace, robot: Any, result: Any, validation: list[Any], doc: dict[str, Any]) -> str | None:
     """``--feasible`` / ``--urdf``: the physically consistent estimate into ``doc["feasible"]``
     and, with ``--urdf OUT``, the identified inertials written back as a URDF."""
-    if not (args.feasible or args.urdf):
+    if not (args.feasible or args.urdf or args.bounding_box):
         return None
     from identify.feasible import feasible_estimate
 
-    from .urdf_export import effect_values, write_urdf
+    from .urdf_export import collision_boxes, effect_values, write_urdf
 
-    fr = feasible_estimate(result, validation or None)
+    boxes = collision_boxes(robot) if args.bounding_box else None
+    if boxes is not None and all(b is None for b in boxes):
+        raise IdentificationError(f"--bounding-box: {robot.source} gives no link a box (no URDF, or only meshes)")
+    fr = feasible_estimate(result, validation or None, boxes=boxes)
     doc["feasible"] = fr.to_json()
     if args.urdf:
         write_urdf(args.urdf, robot, fr.phi, effect_values(doc["feasible"]))
@@ -243,7 +246,7 @@ def _diagnose(args: argparse.Namespace) -> int:
     diag = diagnose(robot, experiments, validation)
     doc = diag.to_json()
     feasible_line = None
-    if args.feasible or args.urdf:
+    if args.feasible or args.urdf or args.bounding_box:
         feasible_line = _diagnosed_feasible(args, robot, diag, experiments, validation, doc)
     for out in (args.json, args.predictions):
         if out:
@@ -256,7 +259,7 @@ def _diagnose(args: argparse.Namespace) -> int:
     if args.report:
         from .report import write_diagnosis_report
 
-        write_diagnosis_report(diag, robot.name, Path(args.report))
+        write_diagnosis_report(diag, robot.name, Path(args.report), doc.get("feasible"))
     for f in diag.found:
         print(f.sentence())
     if not diag.found:
@@ -270,36 +273,18 @@ def _diagnose(args: argparse.Namespace) -> int:
 
 
 def _diagnosed_feasible(args: argparse.Namespace, robot: Any, diag: Any, experiments: list[Any], validation: list[Any], doc: dict[str, Any]) -> str | None:
-    """The feasible estimate of the declared model plus every finding that is a declarable
-    (linear) effect; findings that are not (delay, gain, cogging, tilt, ...) are named as
-    left out."""
-    from dataclasses import replace
+    """The feasible estimate of the model diagnose ends with: the declared model plus every
+    finding (identify.diagnosis.findings_model), the same fit as its 'after'."""
+    from identify.diagnosis import findings_model
+    from identify.identification import identify
 
-    from identify.effects import LINEAR_EFFECTS, SETTINGS
-    from identify.identification import IdentifyOptions, identify
-    from identify.robot import DeclaredEffect
-
-    def where(f: Any) -> str:
-        return f"{f.effect}@{'arm' if f.joint is None else f.joint + 1}"
-
-    declarable = set(LINEAR_EFFECTS) | set(SETTINGS)
-    added, declared = [], []
-    for f in diag.found:
-        if f.effect in declarable and f.joint is not None:
-            added.append(f)
-            declared.append(DeclaredEffect(f.effect, f.joint + 1))
-        elif f.effect == "coulomb_friction" and f.joint is None:  # friction on every joint it covers
-            added.append(f)
-            joints = sorted({int(k[2:]) for k in f.parameters if k.startswith("fc")})
-            declared += [DeclaredEffect(e, j) for j in joints for e in ("coulomb_friction", "viscous_friction", "torque_offset")]
-    left_out = [where(f) for f in diag.found if f not in added]
-    model = replace(robot, effects=tuple(robot.effects) + tuple(declared))
+    model, options = findings_model(robot, diag.found)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PoorExcitationWarning)
-        result = identify(model, experiments, validation, IdentifyOptions())
+        result = identify(model, experiments, validation, options)
     line = _feasible(args, model, result, validation, doc)
-    doc["feasible"]["model"] = {"declared": doc.get("declared", []), "added_findings": [where(f) for f in added],
-                                "left_out_findings": left_out}
+    doc["feasible"]["model"] = {"declared": doc.get("declared", []),
+                                "added_findings": [f"{f.effect}@{'arm' if f.joint is None else f.joint + 1}" for f in diag.found]}
     return line
 
 
@@ -617,7 +602,7 @@ def load_trajectory(path: str | Path, n_joints: int, period_s: float) -> tuple[A
     return FourierTrajectory(q0, a, b, float(hz)), tuple(j - 1 for j in moving_doc)
 
 
-def _replay_records(path: Path, robot: Any, kt: np.ndarray, period_s: float | None) -> tuple[list[tuple[Any, ...]], list[str]]:
+def _replay_records(path: Path, robot: Any, kt: np.ndarray, period_s: float | None) -> tuple[tuple[np.ndarray, ...], list[str]]:
     """(sequence, time, valid, position, current) of a recording (MCAP or CSV), in order, on
     the recording's own time stamps; time must increase (a CSV names its line)."""
     from identify.recordings import read_mcap_arrays, read_recording
@@ -631,7 +616,8 @@ def _replay_records(path: Path, robot: Any, kt: np.ndarray, period_s: float | No
         if a["position"].shape[1] != robot.n_joints:
             raise RecordingError(str(path), f"{a['position'].shape[1]} joints recorded, robot {robot.name} has {robot.n_joints}")
         t = np.asarray(a["t"], float)
-        records = list(zip(a["sequence"].tolist(), t.tolist(), a["valid"], a["position"], a["measured_current"]))
+        records = (np.asarray(a["sequence"], np.int64), t, np.asarray(a["valid"], bool).reshape(t.size, -1),
+                   np.asarray(a["position"], float), np.asarray(a["measured_current"], float))
     else:
         rec = read_recording(path, robot)
         notes, t = list(rec.notes), np.asarray(rec.t, float)
@@ -640,8 +626,8 @@ def _replay_records(path: Path, robot: Any, kt: np.ndarray, period_s: float | No
             k = int(back[0]) + 1
             raise RecordingError(str(path), f"line {k + 2}: time {t[k]:.6g} s is not after the line before ({t[k - 1]:.6g} s): "
                                             "time must increase (a reversed or shuffled log?)")
-        ones = np.ones(robot.n_joints, bool)
-        records = [(k, float(t[k]), ones, rec.q[k], rec.tau[k] / kt) for k in range(rec.n_samples)]
+        records = (np.arange(rec.n_samples, dtype=np.int64), t, np.ones((rec.n_samples, robot.n_joints), bool), np.asarray(rec.q, float),
+                   np.asarray(rec.tau, float) / kt)
     if t.size >= 2 and period_s is not None:
         step = float(np.median(np.diff(t)))
         if abs(step - period_s) > 0.1 * period_s:
@@ -721,10 +707,9 @@ def _estimate(args: argparse.Namespace) -> int:
         ref_records, ref_notes = _replay_records(Path(args.reference), robot, kt, args.period)
         for note in ref_notes:
             print(f"{args.reference}: {note}", file=sys.stderr)
-        keep = [r for r in ref_records if np.all(r[2])]
+        keep = ref_records[2].all(axis=1)
         try:
-            reference = ReferenceRun(arm, np.array([r[1] for r in keep]), np.array([r[3] for r in keep]),
-                                     np.array([r[4] for r in keep]) * kt)
+            reference = ReferenceRun(arm, ref_records[1][keep], ref_records[3][keep], ref_records[4][keep] * kt)
         except ValueError as err:
             raise RecordingError(args.reference, str(err)) from None
     estimator = PayloadRLS(arm, forgetting=args.forgetting, reference=reference)
@@ -738,7 +723,7 @@ def _estimate(args: argparse.Namespace) -> int:
     try:
         if args.replay:
             start = time.perf_counter()
-            docs = stream.feed(records)
+            docs = stream.feed_arrays(*records)
             for d in docs:
                 out.write(json.dumps(d, allow_nan=False) + "\n")
             seconds = time.perf_counter() - start
@@ -973,6 +958,9 @@ def _feasible_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--feasible", action="store_true",
                    help="also the physically consistent estimate (pseudo-inertia PSD, friction >= 0) and a consistency report in the JSON")
     p.add_argument("--urdf", metavar="OUT", help="write the physically consistent model as a URDF (implies --feasible)")
+    p.add_argument("--bounding-box", action="store_true",
+                   help="keep each link's mass inside the box of its URDF collision geometry (links with a mesh or without geometry: "
+                        "no box; implies --feasible)")
 
 
 def build_parser() -> argparse.ArgumentParser:

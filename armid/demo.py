@@ -199,7 +199,7 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0) -> int:
         doc = {"rig": rig.name, "single_link": seq.to_json(), "whole_arm": whole_doc, "comparison": comparison, "truth_check": truth,
                "diagnosis": diagnosis.to_json(), "payload": payload, "runs": [r.to_json() for r in reports]}
         write_json(out / "demo.json", doc)
-        _write_report(out, rig, experiments, reports, seq, whole, comparison, truth, diagnosis, prepared, payload)
+        _write_report(out, rig, experiments, reports, seq, whole, comparison, truth, diagnosis, prepared, payload, whole_doc)
     s, w = truth["single_link"], truth["whole_arm"]
     console.print(f"single-link sequence: {s['within_3_sigma']} of {s['combinations']} combinations within 3 sigma of the truth "
                   f"(max |z| {s['max_abs_z']:.2f}); whole arm: {w['within_3_sigma']} of {w['combinations']} (max |z| {w['max_abs_z']:.2f}); "
@@ -347,13 +347,13 @@ def _plot_payload(out: Path, t: np.ndarray, estimates: list[dict[str, Any]], tru
 
 def _write_report(out: Path, rig: Rig, experiments: list[Any], reports: list[Any], seq: SequenceResult, whole: IdentificationResult,
                   comparison: list[dict[str, Any]], truth: dict[str, Any], diagnosis: Any, prepared: dict[str, Any],
-                  payload: dict[str, Any]) -> None:
+                  payload: dict[str, Any], whole_doc: dict[str, Any]) -> None:
     from .report import write_diagnosis_report, write_report
 
     def f(x: float | None, d: int = 5) -> str:
         return "—" if x is None else f"{x:.{d}g}"
 
-    write_report(whole, whole.to_json(), [s for s in prepared["whole_b"].segments], out / "whole_arm", "validation run whole_b")
+    write_report(whole, whole_doc, [s for s in prepared["whole_b"].segments], out / "whole_arm", "validation run whole_b")
     write_diagnosis_report(diagnosis, rig.robot.name, out / "diagnosis")
     lines = [f"# armid demo: {rig.name}", "",
              f"Simulated {rig.robot.name} on a {rig.bus.interface} CAN bus, {len(rig.drives)} CiA 402 drives, {rig.period_s * 1000:g} ms SYNC. "

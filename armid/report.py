@@ -15,6 +15,46 @@ def _fmt(x: float | None, digits: int = 5) -> str:
     return "—" if x is None else f"{x:.{digits}g}"
 
 
+def _percent(x: float | None) -> str:
+    return "—" if x is None else f"{100 * x:.4g} %"
+
+
+def feasible_section(feasible: dict[str, Any]) -> list[str]:
+    """The consistency report (markdown lines) of ``FeasibleResult.to_json()``: which links of
+    the least-squares estimate break which condition of a rigid body and by how much, and the
+    physically consistent estimate's errors beside the unconstrained one's."""
+    ls, fe = feasible["least_squares"], feasible["feasible"]
+    lines = ["## Physical consistency", ""]
+    bad = [link for link in ls["links"] if not link["consistent"]]
+    lines.append("Least squares (its base estimate completed with the modeled values by the least change): "
+                 + (f"**links {', '.join(str(link['link']) for link in bad)} are not a physical body.**" if bad else "every link is a physical body.")
+                 + " Feasible estimate: " + ("every link is a physical body" if fe["consistent"] else "**NOT every link is a physical body**")
+                 + f" (pseudo-inertia positive semidefinite); {feasible['distance_from_least_squares']:.3g} sigma from least squares "
+                 f"in the data's metric; solver {feasible['status']} in {feasible['iterations']} iterations, {feasible['seconds']:.2f} s.")
+    lines += ["", "| link | least squares: mass kg | smallest pseudo-inertia eigenvalue kg m^2 | what it breaks, by how much | "
+                  "feasible: mass kg | smallest eigenvalue kg m^2 | divergence from modeled |", "|---|---|---|---|---|---|---|"]
+    for a, b, d in zip(ls["links"], fe["links"], feasible["divergence"]):
+        broken = "; ".join(a["violations"]) or "nothing"
+        lines.append(f"| {a['link']} | {_fmt(a['mass'], 4)} | {_fmt(a['pseudo_inertia_min_eigenvalue'], 3)} | {broken} | "
+                     f"{_fmt(b['mass'], 4)} | {_fmt(b['pseudo_inertia_min_eigenvalue'], 3)} | {_fmt(d, 3)} |")
+    lines += ["", "| relative error | least squares | feasible | feasible / least squares |", "|---|---|---|---|"]
+    for key, label in (("fit", "identification data (the equations as fitted)"), ("validation", "held-out (validation) data")):
+        x, y = ls.get(key), fe.get(key)
+        if x and y:
+            lines.append(f"| {label} | {_percent(x['relative_error'])} | {_percent(y['relative_error'])} | {y['relative_error'] / x['relative_error']:.3f} |")
+    if not ls.get("validation"):
+        lines.append("| held-out (validation) data | — | — | no `--validate` data |")
+    if feasible["prior_notes"]:
+        lines += [""] + [f"- prior: {n}" for n in feasible["prior_notes"]]
+    boxes = feasible.get("bounding_boxes")
+    if boxes:
+        held = [f"{i + 1} ({', '.join(f'{a:.3g}..{b:.3g}' for a, b in zip(box['lower'], box['upper']))} m)" for i, box in enumerate(boxes) if box]
+        lines += ["", f"Each link's mass kept in the box of its URDF collision geometry (x, y, z in the link frame): links {'; '.join(held)}; "
+                      f"links {', '.join(str(i + 1) for i, box in enumerate(boxes) if not box) or 'none'} without a box."]
+    lines += ["", f"Regulariser: {feasible['regularization']['kind']}, weight {feasible['regularization']['weight']:g}."]
+    return lines
+
+
 def write_report(result: IdentificationResult, doc: dict[str, Any], segments: list[Segment], out_dir: Path, title: str) -> Path:
     """Write ``report.md`` and one PNG per joint (measured vs predicted, residual)."""
     import matplotlib
@@ -64,16 +104,19 @@ def write_report(result: IdentificationResult, doc: dict[str, Any], segments: li
             lines.append(f"| {e['effect']} | {e['joint']} | {params} |")
     if doc["preprocessing"]:
         lines += ["", "## What was done to the data", ""] + [f"- {n}" for n in doc["preprocessing"]]
+    if doc.get("feasible"):
+        lines += [""] + feasible_section(doc["feasible"])
     lines += ["", f"## Torques ({title})", ""] + [f"![joint {k + 1}]({p})" for k, p in enumerate(plots)]
     path = out_dir / "report.md"
     path.write_text("\n".join(lines) + "\n")
     return path
 
 
-def write_diagnosis_report(diag: Any, robot_name: str, out_dir: Path) -> Path:
+def write_diagnosis_report(diag: Any, robot_name: str, out_dir: Path, feasible: dict[str, Any] | None = None) -> Path:
     """``diagnosis.md``: one sentence per finding, before/after errors, and per joint the
     held-out residual against velocity (friction), position (cogging, spring, tilt),
-    acceleration (rotor inertia) and time (drift), before and after."""
+    acceleration (rotor inertia) and time (drift), before and after; with ``feasible``
+    (``diagnose --feasible``), the consistency report of the model with the findings."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -113,6 +156,8 @@ def write_diagnosis_report(diag: Any, robot_name: str, out_dir: Path) -> Path:
               "## Error per joint", "", "| joint | RMS before | RMS after | relative before | relative after |", "|---|---|---|---|---|"]
     for j in range(tau.shape[1]):
         lines.append(f"| {j + 1} | {b['rms'][j]:.4g} | {a['rms'][j]:.4g} | {100 * b['relative'][j]:.3g} % | {100 * a['relative'][j]:.3g} % |")
+    if feasible:
+        lines += [""] + feasible_section(feasible)
     lines += ["", "## Residual against velocity, position, acceleration and time", ""]
     lines += [f"![joint {k + 1}]({p})" for k, p in enumerate(plots)]
     path = out_dir / "diagnosis.md"

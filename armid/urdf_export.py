@@ -191,3 +191,85 @@ def write_urdf(path: str | Path, robot: Robot, phi: Array, effects: dict[tuple[s
 def effect_values(doc: dict[str, Any]) -> dict[tuple[str, int], float]:
     """(effect, joint) -> value from a feasible JSON document's ``effects``."""
     return {(e["effect"], int(e["joint"])): float(e["value"]) for e in doc.get("effects", [])}
+
+
+def _rotation_rpy(roll: float, pitch: float, yaw: float) -> Array:
+    """``Rz(yaw) Ry(pitch) Rx(roll)`` (URDF ``rpy``)."""
+    cr, sr, cp, sp, cy, sy = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw)
+    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                     [-sp, cp * sr, cp * cr]])
+
+
+def _transform(el: ET.Element | None) -> Array:
+    """4x4 of an ``<origin xyz rpy>`` (identity when absent)."""
+    t = np.eye(4)
+    origin = None if el is None else el.find("origin")
+    if origin is not None:
+        t[:3, 3] = [float(x) for x in origin.get("xyz", "0 0 0").split()]
+        t[:3, :3] = _rotation_rpy(*(float(x) for x in origin.get("rpy", "0 0 0").split()))
+    return t
+
+
+def _shape_box(geometry: ET.Element, placement: Array) -> tuple[Array, Array] | None:
+    """Axis-aligned box (in the frame ``placement`` maps into) holding one URDF primitive;
+    None for a mesh (its extent is in a file this package does not read)."""
+    r, c = placement[:3, :3], placement[:3, 3]
+    shape = next(iter(geometry), None)
+    if shape is None:
+        return None
+    if shape.tag == "box":
+        half = np.abs(r) @ (0.5 * np.array([float(x) for x in shape.get("size", "0 0 0").split()]))
+    elif shape.tag == "sphere":
+        half = np.full(3, float(shape.get("radius", "0")))
+    elif shape.tag == "cylinder":  # axis z of its own frame
+        radius, length = float(shape.get("radius", "0")), float(shape.get("length", "0"))
+        axis = r[:, 2]
+        half = np.abs(axis) * 0.5 * length + radius * np.sqrt(np.maximum(1.0 - axis**2, 0.0))
+    else:
+        return None
+    return c - half, c + half
+
+
+def collision_boxes(robot: Robot) -> list[tuple[Array, Array] | None]:
+    """Per link, the axis-aligned box (lower, upper corners in m, link frame) that holds the
+    URDF's ``<collision>`` geometry of the joint's child link and of every link welded to it
+    (``<visual>`` where a link has no collision element). None for a link with a mesh (not
+    read here), without geometry, or for a robot described by DH rows (no geometry at all).
+    The physically consistent fit can keep each link's mass inside its box
+    (:func:`identify.feasible.box_matrices`)."""
+    source = _urdf_path(robot)
+    if source is None:
+        return [None] * robot.n_joints
+    try:
+        root = ET.parse(source).getroot()
+    except (OSError, ET.ParseError) as err:
+        raise RobotFileError(str(source), "", f"cannot read the URDF ({err})") from err
+    links = {el.get("name"): el for el in root.findall("link")}
+    joints = {el.get("name"): el for el in root.findall("joint")}
+    welded: dict[str, list[tuple[str, Array]]] = {}
+    for j in joints.values():
+        if j.get("type") == "fixed":
+            welded.setdefault(_attr(j, "parent"), []).append((_attr(j, "child"), _transform(j)))
+    out: list[tuple[Array, Array] | None] = []
+    for joint in robot.joints:
+        el = joints.get(joint.name)
+        if el is None:
+            raise RobotFileError(str(source), joint.name, "no such joint in the URDF")
+        stack, corners, ok = [(_attr(el, "child"), np.eye(4))], [], True
+        while stack and ok:
+            name, placement = stack.pop()
+            link = links.get(name)
+            if link is None:
+                continue
+            shapes = link.findall("collision") or link.findall("visual")
+            for shape in shapes:
+                geometry = shape.find("geometry")
+                box = None if geometry is None else _shape_box(geometry, placement @ _transform(shape))
+                if box is None:
+                    ok = False
+                    break
+                corners += list(box)
+            stack += [(child, placement @ t) for child, t in welded.get(name, [])]
+        out.append((np.min(corners, axis=0), np.max(corners, axis=0)) if ok and corners else None)
+    return out

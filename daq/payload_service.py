@@ -7,8 +7,9 @@ and publishes ``armid/<robot>/estimate/payload`` (JSON, ``null`` for what is unk
 at 2 ms). It holds the liveliness token ``armid/<robot>/alive/payload_estimator`` and
 answers ``armid/<robot>/status``. The subscriber callback only queues bytes; a worker
 thread does the estimation, so the stream is never held up. When the worker falls more
-than ``max_backlog`` records behind it skips to the newest, restarts the derivative filter
-and says how many it skipped; a gap in the sequence numbers does the same.
+than ``max_backlog_s`` of the arm's time behind (the records' own time stamps: the same
+threshold at 100 Hz and at 1 kHz) it skips to the newest, restarts the derivative filter
+and says how many records it skipped; a gap in the sequence numbers does the same.
 
 :class:`EstimateStream` is the part shared with replay: records in, the estimate documents
 that would be published out. ``armid estimate --replay`` runs it on a recording, so its
@@ -59,55 +60,81 @@ class EstimateStream:
     def skip(self, count: int) -> None:
         """``count`` records will not be seen: the derivatives start again after them."""
         self.skipped += count
+        self.last_sequence = None  # skipped, not lost: the next record's number is no gap
         self.estimator.restart_filter()
 
     def feed(self, records: Iterable[tuple[int, float, Array, Array, Array]]) -> list[dict[str, Any]]:
         """(sequence, time, valid, position, measured current) per record; returns what to publish.
 
+        The same as :meth:`feed_arrays` on the records stacked."""
+        rows = list(records)
+        if not rows:
+            return []
+        seq, t, valid, q, current = zip(*rows)
+        return self.feed_arrays(np.array(seq, np.int64), np.array(t, float), np.array(valid, bool), np.array(q, float),
+                                np.array(current, float))
+
+    def feed_arrays(self, seq: Array, t: Array, valid: Array, q: Array, current: Array) -> list[dict[str, Any]]:
+        """Records as arrays, in sequence order: sequence numbers (n,), times (n,) in s, valid
+        flags, positions and measured currents (n, N). Returns the documents to publish, one on
+        every record whose sequence number is a multiple of ``publish_every``.
+
         Runs of consecutive valid records go to the estimator in one batch each; a gap in
-        the sequence numbers or an invalid record restarts the derivative filter."""
+        the sequence numbers or an invalid record restarts the derivative filter; a record
+        whose time is not after the one before is refused (``strict_time``) or dropped and
+        counted in ``time_faults`` (the clock stepped: the derivatives restart)."""
         out: list[dict[str, Any]] = []
-        run: list[tuple[int, float, Array, Array]] = []
+        n = int(np.size(t))
+        if n == 0:
+            return out
+        seq = np.asarray(seq, np.int64)
+        t = np.asarray(t, float)
+        valid = np.asarray(valid, bool).reshape(n, -1)
+        prev_t = np.concatenate([[-np.inf if self.last_time is None else self.last_time], t[:-1]])
+        prev_s = np.concatenate([[seq[0] - 1 if self.last_sequence is None else self.last_sequence], seq[:-1]])
+        fault = ~(t > prev_t)
+        gap = ~fault & (seq != prev_s + 1)
+        bad = ~fault & ~valid.all(axis=1)
+        torque = np.asarray(current, float) * self.kt
 
-        def flush() -> None:
-            if not run:
+        def flush(a: int, b: int) -> None:
+            if b <= a:
                 return
-            seqs = [x[0] for x in run]
+            marks = np.flatnonzero(seq[a:b] % self.publish_every == 0)
+            snaps: list[dict[str, Any]] = []
+            extra: list[dict[str, Any]] = []
 
-            def publish(k: int) -> None:
-                doc = self.estimator.estimate()
-                doc.update({"sequence": int(seqs[k]), "record_time": float(run[k][1]), "skipped": self.skipped, "lost": self.lost,
-                            "invalid": self.invalid, "time_faults": self.time_faults})
+            def publish(k: int) -> None:  # the state now; the documents (and their projections) after the batch
+                snaps.append(self.estimator.snapshot())
+                extra.append({"sequence": int(seq[a + k]), "record_time": float(t[a + k]), "skipped": self.skipped, "lost": self.lost,
+                              "invalid": self.invalid, "time_faults": self.time_faults})
+
+            self.estimator.partial_fit(t[a:b], q[a:b], torque[a:b], marks.tolist(), publish)
+            for doc, more in zip(self.estimator.estimates(snaps), extra):
+                doc.update(more)
                 out.append(doc)
 
-            self.estimator.partial_fit(np.array([x[1] for x in run]), np.array([x[2] for x in run]), np.array([x[3] for x in run]),
-                                       [k for k, sq in enumerate(seqs) if sq % self.publish_every == 0], publish)
-            run.clear()
-
-        for seq, t, valid, q, current in records:
-            if self.last_time is not None and not t > self.last_time:
+        start = 0
+        for k in np.flatnonzero(fault | gap | bad).tolist():
+            flush(start, k)
+            start = k + 1
+            if fault[k]:
                 if self.strict_time:
-                    flush()
-                    raise RecordingError(self.source, f"record {seq}: time {t:.6g} s is not after the previous record's "
-                                                      f"{self.last_time:.6g} s (time going backwards or repeated); refused")
-                flush()
+                    raise RecordingError(self.source, f"record {seq[k]}: time {t[k]:.6g} s is not after the previous record's "
+                                                      f"{prev_t[k]:.6g} s (time going backwards or repeated); refused")
                 self.time_faults += 1  # the clock stepped: go on from its new time
                 self.estimator.restart_filter()
-                self.last_sequence, self.last_time = seq, t
                 continue
-            self.last_time = t
-            if self.last_sequence is not None and seq != self.last_sequence + 1:
-                flush()
-                self.lost += max(0, seq - self.last_sequence - 1)
+            if gap[k]:
+                self.lost += max(0, int(seq[k] - prev_s[k] - 1))
                 self.estimator.restart_filter()
-            self.last_sequence = seq
-            if not np.all(valid):
-                flush()
+                start = k
+            if bad[k]:
                 self.invalid += 1
                 self.estimator.restart_filter()
-                continue
-            run.append((seq, t, q, current * self.kt))
-        flush()
+                start = k + 1
+        flush(start, n)
+        self.last_sequence, self.last_time = int(seq[-1]), float(t[-1])
         return out
 
 
@@ -122,14 +149,17 @@ def _from_record(r: JointStateRecord) -> tuple[int, float, Array, Array, Array]:
 class PayloadService:
     """Run an :class:`EstimateStream` on a Zenoh session until :meth:`close`."""
 
-    def __init__(self, session: Any, robot: str, stream: EstimateStream, max_backlog: int = 250,
+    def __init__(self, session: Any, robot: str, stream: EstimateStream, max_backlog_s: float = 0.5,
                  on_estimate: Callable[[dict[str, Any]], None] | None = None) -> None:
         import zenoh
 
+        if not max_backlog_s > 0:
+            raise ValueError(f"max_backlog_s must be a positive number of seconds, got {max_backlog_s}")
         self.session = session
         self.robot = robot
         self.stream = stream
-        self.max_backlog = max_backlog
+        self.max_backlog_s = max_backlog_s
+        self.behind = 0  # times the worker fell behind and skipped
         self.on_estimate = on_estimate
         self._pending: deque[bytes] = deque()
         self._wake = threading.Event()
@@ -162,7 +192,7 @@ class PayloadService:
         st = self.stream
         doc = {"component": "payload_estimator", "updates": st.estimator.n_updates_ if hasattr(st.estimator, "n_updates_") else 0,
                "published": self.published, "skipped": st.skipped, "lost": st.lost, "invalid": st.invalid,
-               "backlog": len(self._pending), "last": self.last}
+               "backlog": len(self._pending), "behind": self.behind, "last": self.last}
         query.reply(key(self.robot, "status"), json.dumps(doc))
 
     def _run(self) -> None:
@@ -174,11 +204,13 @@ class PayloadService:
                 batch.append(self._pending.popleft())
             if not batch:
                 continue
-            if len(batch) > self.max_backlog:
-                self.stream.skip(len(batch) - 1)  # behind: the newest record only
-                batch = batch[-1:]
             try:
                 records = [_from_record(JointStateRecord.unpack(b)) for b in batch]
+                if records[-1][1] - records[0][1] > self.max_backlog_s:
+                    # behind by more than max_backlog_s of the arm's time: the newest record only
+                    self.behind += 1
+                    self.stream.skip(len(records) - 1)
+                    records = records[-1:]
                 for doc in self.stream.feed(records):
                     self._pub.put(json.dumps(doc))
                     self.published += 1

@@ -59,8 +59,8 @@ def _coulomb(q: Array, qd: Array, qdd: Array, velocity: float) -> Array:
     return smooth_sign(qd, velocity)[:, None]
 
 
-def _stribeck(q: Array, qd: Array, qdd: Array, velocity: float) -> Array:
-    return (smooth_sign(qd, 0.01) * np.exp(-((qd / velocity) ** 2)))[:, None]
+def _stribeck(q: Array, qd: Array, qdd: Array, velocity: float, smoothing: float) -> Array:
+    return (smooth_sign(qd, smoothing) * np.exp(-((qd / velocity) ** 2)))[:, None]
 
 
 def _offset(q: Array, qd: Array, qdd: Array) -> Array:
@@ -71,10 +71,22 @@ def _rotor(q: Array, qd: Array, qdd: Array) -> Array:
     return qdd[:, None]
 
 
+def _spring(q: Array, qd: Array, qdd: Array) -> Array:
+    return q[:, None]
+
+
+def _cogging(q: Array, qd: Array, qdd: Array, period: float) -> Array:
+    """A torque periodic in the joint's own position (cogging, a gear's or a cable's ripple):
+    ``a sin(2 pi q / period) + b cos(2 pi q / period)``."""
+    x = 2.0 * np.pi * q / period
+    return np.column_stack([np.sin(x), np.cos(x)])
+
+
 LINEAR_EFFECTS: dict[str, tuple[tuple[str, ...], ColumnFunction]] = {
     "viscous_friction": (("fv",), _viscous),
     "torque_offset": (("offset",), _offset),
     "rotor_inertia": (("ia",), _rotor),
+    "spring": (("ks",), _spring),
 }
 """Effects that are linear in their parameters: name -> (parameter names, columns)."""
 
@@ -100,19 +112,28 @@ CATALOGUE = (
 """Every effect name INTERFACES.md fixes."""
 
 
+FIXED: dict[str, str] = {"cogging": "period_rad"}
+"""Effects linear given one fixed parameter that a robot file (or the diagnosis) must give:
+cogging's period in the joint's position (rad, or m for a prismatic joint)."""
+
+
 def linear_effect(name: str, joint: int, **setting: float) -> LinearEffect:
     """The effect ``name`` on 0-based ``joint``; ``KeyError`` if it is not linear.
 
     ``coulomb_friction`` takes ``velocity`` (0: ``sign(qd)``); ``stribeck_friction`` takes
-    ``velocity`` (the Stribeck velocity ``v_s``: ``fs tanh(qd/0.01) exp(-(qd/v_s)^2)``, the
-    friction above Coulomb's at low speed).
+    ``velocity`` (the Stribeck velocity ``v_s``: ``fs sign(qd) exp(-(qd/v_s)^2)``, the
+    friction above Coulomb's at low speed) and ``smoothing`` (the sign's smoothing velocity,
+    as Coulomb's: the identification sets it to the same joint's Coulomb smoothing); ``cogging`` needs ``period_rad``.
     """
     if name == "coulomb_friction":
         v = float(setting.get("velocity", 0.0))
         return LinearEffect(name, joint, ("fc",), partial(_coulomb, velocity=v), (("velocity", v),))
     if name == "stribeck_friction":
-        vs = float(setting.get("velocity", 0.1))
-        return LinearEffect(name, joint, ("fs",), partial(_stribeck, velocity=vs), (("velocity", vs),))
+        vs, smoothing = float(setting.get("velocity", 0.1)), float(setting.get("smoothing", 0.0))
+        return LinearEffect(name, joint, ("fs",), partial(_stribeck, velocity=vs, smoothing=smoothing), (("velocity", vs), ("smoothing", smoothing)))
+    if name == "cogging":
+        period = float(setting["period_rad"])
+        return LinearEffect(name, joint, ("cog_a", "cog_b"), partial(_cogging, period=period), (("period_rad", period),))
     params, fn = LINEAR_EFFECTS[name]
     return LinearEffect(name, joint, params, fn)
 

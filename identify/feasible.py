@@ -28,6 +28,11 @@ choice), it is invariant to the frame the link is described in, and it is a barr
 ``J`` stays strictly positive definite, so every mass is strictly positive. It only decides
 what the data cannot see; the data term dominates every excited direction.
 
+Optionally (``boxes``: ``armid --bounding-box`` takes them from the URDF's collision
+geometry) each link's mass also stays inside an axis-aligned box of its link frame, three
+linear constraints on ``J`` (:func:`box_matrices`): the centre of mass inside the box and
+the second moments, hence the inertia, bounded by the box's.
+
 Solver: cvxpy with Clarabel (an open interior-point solver for SDP and exponential cones),
 both wheels on every platform from the package registry. The problem is convex: one 4x4
 PSD cone per link, the log-det terms as exponential cones, a second-order cone for the
@@ -147,9 +152,50 @@ def check_link(phi_link: Array, link: int) -> LinkCheck:
     return LinkCheck(link, m, eig, out)
 
 
-def check_parameters(phi: Array, n_links: int) -> list[LinkCheck]:
-    """:func:`check_link` for every link of a standard parameter vector (10 N + k,)."""
-    return [check_link(phi[10 * i : 10 * i + 10], i + 1) for i in range(n_links)]
+Box = tuple[Array, Array]
+"""Lower and upper corners (3,) each, m, in the link frame, of a box that holds a link."""
+
+
+def box_matrices(box: Box) -> Array:
+    """(3, 4, 4) ``B_k`` with ``tr(B_k J) = E[(u_k - x_k)(x_k - l_k)]``, integrated over the
+    link's mass (Wensing, Kim and Slotine 2017, the box as three slabs): non-negative when
+    all the mass lies in ``l <= x <= u``. With ``J >= 0`` it keeps the centre of mass in the
+    box and bounds the second moment, hence the inertia, by the box's.
+
+    .. math:: \\mathrm{tr}(B_k J) = -\\Sigma_{kk} + (u_k + l_k) h_k - u_k l_k m \\ge 0
+    """
+    lo, hi = (np.asarray(x, dtype=float) for x in box)
+    out = np.zeros((3, 4, 4))
+    for k in range(3):
+        out[k, k, k] = -1.0
+        out[k, k, 3] = out[k, 3, k] = 0.5 * (hi[k] + lo[k])
+        out[k, 3, 3] = -hi[k] * lo[k]
+    return out
+
+
+def check_box(phi_link: Array, box: Box) -> list[str]:
+    """Which slab of the box the link's mass leaves (:func:`box_matrices`), by how much."""
+    j = pseudo_inertia(phi_link)
+    tol = 1e-8 * float(np.abs(np.linalg.eigvalsh(j)).max())
+    out = []
+    lo, hi = box
+    for k, b in enumerate(box_matrices(box)):
+        value = float(np.sum(b * j))
+        if value < -tol:
+            com = j[k, 3] / j[3, 3] if j[3, 3] > 0 else float("nan")
+            out.append(f"mass outside its bounding box along {'xyz'[k]} (E[(u - x)(x - l)] = {value:.3g} kg m^2; "
+                       f"centre of mass {com:.3g} m, box {lo[k]:.3g} to {hi[k]:.3g} m)")
+    return out
+
+
+def check_parameters(phi: Array, n_links: int, boxes: list[Box | None] | None = None) -> list[LinkCheck]:
+    """:func:`check_link` for every link of a standard parameter vector (10 N + k,), and
+    :func:`check_box` where a link has a box."""
+    checks = [check_link(phi[10 * i : 10 * i + 10], i + 1) for i in range(n_links)]
+    for i, box in enumerate(boxes or []):
+        if box is not None:
+            checks[i].violations.extend(check_box(phi[10 * i : 10 * i + 10], box))
+    return checks
 
 
 def feasible_prior(phi0_link: Array, floor: float = PRIOR_FLOOR, fallback: Array | None = None) -> tuple[Array, str | None]:
@@ -220,7 +266,7 @@ def divergence(j: Array, j0: Array) -> float:
 
 
 def feasible_fit(r: Array, beta_ls: Array, projection: Array, phi_prior: Array, n_links: int,
-                 signed: Array | None = None, options: FeasibleOptions | None = None) -> FeasibleFit:
+                 signed: Array | None = None, options: FeasibleOptions | None = None, boxes: list[Box | None] | None = None) -> FeasibleFit:
     """Physically consistent ``phi`` whose base projection is closest to ``beta_ls`` in the
     metric ``r`` (module docstring).
 
@@ -231,6 +277,7 @@ def feasible_fit(r: Array, beta_ls: Array, projection: Array, phi_prior: Array, 
     projection : (p, n) base projection ``P``; columns ``10 N..n`` are effects.
     phi_prior : (n,) modeled standard parameters (links' values are the prior).
     signed : (n - 10 N,) boolean, effect parameters that must be >= 0.
+    boxes : per link, None or the box that must hold its mass (:func:`box_matrices`).
     """
     import cvxpy as cp
 
@@ -267,6 +314,9 @@ def feasible_fit(r: Array, beta_ls: Array, projection: Array, phi_prior: Array, 
     for j, j0 in zip(js, priors):
         reg += cp.trace(np.linalg.inv(j0) @ j) - cp.log_det(j)
     constraints = [j >> 0 for j in js]
+    for j, box in zip(js, boxes or []):
+        if box is not None:
+            constraints += [cp.trace(b @ j) >= 0 for b in box_matrices(box)]
     if eff is not None and signed.any():
         constraints.append(eff[np.flatnonzero(signed)] >= 0)
     problem = cp.Problem(cp.Minimize(data + options.regularization / scale * reg), constraints)
@@ -285,7 +335,7 @@ def feasible_fit(r: Array, beta_ls: Array, projection: Array, phi_prior: Array, 
     beta = projection @ value
     div = np.array([divergence(pseudo_inertia(value[10 * i : 10 * i + 10]), j0) for i, j0 in enumerate(priors)])
     stats = problem.solver_stats
-    return FeasibleFit(value, beta, float(np.linalg.norm(r @ (beta - beta_ls))), div, check_parameters(value, n_links), notes,
+    return FeasibleFit(value, beta, float(np.linalg.norm(r @ (beta - beta_ls))), div, check_parameters(value, n_links, boxes), notes,
                        int(stats.num_iters or 0), time.perf_counter() - start, problem.status == cp.OPTIMAL, str(problem.status))
 
 
@@ -320,7 +370,8 @@ def completed_least_squares(beta_ls: Array, projection: Array, phi_prior: Array)
     return phi0 + np.linalg.lstsq(projection, beta_ls - projection @ phi0, rcond=None)[0]
 
 
-__all__ = ["FeasibleFit", "FeasibleOptions", "FeasibleResult", "LinkCheck", "factor_summary", "feasible_estimate", "predict", "base_projection", "check_link", "check_parameters",
+__all__ = ["Box", "FeasibleFit", "FeasibleOptions", "FeasibleResult", "LinkCheck", "factor_summary", "feasible_estimate", "predict", "base_projection",
+           "box_matrices", "check_box", "check_link", "check_parameters",
            "completed_least_squares", "feasible_fit", "feasible_prior", "link_from_pseudo_inertia", "pseudo_inertia", "weighted_factor"]
 
 
@@ -354,6 +405,7 @@ class FeasibleResult:
     metric: Array  # (p, p) R of the weighted base regressor: ||R (beta - beta_ls)|| is the fit's distance
     least_squares_validation: dict[str, Any] | None = None
     validation: dict[str, Any] | None = None
+    boxes: list[Box | None] | None = None
 
     @property
     def phi(self) -> Array:
@@ -374,6 +426,8 @@ class FeasibleResult:
             "regularization": {"kind": "entropic: log-det divergence of each link's pseudo-inertia from the modeled one "
                                        "(Lee, Wensing and Park 2019)", "weight": self.options.regularization},
             "solver": "cvxpy with Clarabel (SDP: pseudo-inertia PSD cones, log-det as exponential cones)",
+            "bounding_boxes": None if self.boxes is None else [None if b is None else {"lower": [float(x) for x in b[0]], "upper": [float(x) for x in b[1]]}
+                                                                for b in self.boxes],
             "status": self.fit.message, "converged": self.fit.converged, "iterations": self.fit.iterations, "seconds": self.fit.seconds,
             "prior_notes": self.fit.prior_notes,
             "distance_from_least_squares": self.fit.distance,
@@ -400,9 +454,12 @@ class FeasibleResult:
         return text
 
 
-def feasible_estimate(result: Any, validation: list[Any] | None = None, options: FeasibleOptions | None = None) -> FeasibleResult:
+def feasible_estimate(result: Any, validation: list[Any] | None = None, options: FeasibleOptions | None = None,
+                      boxes: list[Box | None] | None = None) -> FeasibleResult:
     """The physically consistent estimate of an :class:`~identify.identification.IdentificationResult`
-    (``identify(...)``'s return), with its held-out error on ``validation`` (``Prepared`` list)."""
+    (``identify(...)``'s return), with its held-out error on ``validation`` (``Prepared`` list);
+    with ``boxes`` (per link, None or lower and upper corners in the link frame), each link's
+    mass also stays in its box."""
     if result.factors is None:
         raise IdentificationError("this identification result carries no regressor factors; run identify() again")
     options = options or FeasibleOptions()
@@ -415,10 +472,12 @@ def feasible_estimate(result: Any, validation: list[Any] | None = None, options:
     signed = np.array([e in SIGNED_EFFECTS for e, _, _, _ in labels], bool)
     r = weighted_factor(result.factors, result.estimate.joint_sigma, result.estimate.weighting)
     beta_ls = result.estimate.beta
-    fit = feasible_fit(r, beta_ls, projection, prior, n_links, signed, options)
-    ls_checks = check_parameters(completed_least_squares(beta_ls, projection, prior), n_links)
+    if boxes is not None and len(boxes) != n_links:
+        raise IdentificationError(f"{len(boxes)} bounding boxes for {n_links} links")
+    fit = feasible_fit(r, beta_ls, projection, prior, n_links, signed, options, boxes)
+    ls_checks = check_parameters(completed_least_squares(beta_ls, projection, prior), n_links, boxes)
     out = FeasibleResult(robot.name, names, result.base.expressions(), labels, n_links, fit, options, ls_checks,
-                         factor_summary(result.factors, beta_ls), factor_summary(result.factors, fit.beta), r)
+                         factor_summary(result.factors, beta_ls), factor_summary(result.factors, fit.beta), r, boxes=boxes)
     if validation:
         from .metrics import summary
 

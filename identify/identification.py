@@ -36,6 +36,12 @@ class IdentifyOptions:
     # velocity reversal (|qd| < |qdd| 0.025 s): sign(qd) is wrong there (pre-sliding, and a
     # filtered torque smooths the Coulomb step), as in identify.single_link and diagnosis
     exclude_reversals: bool = False
+    # a drive's torque gain and a sensor's delay, per joint, as the diagnosis finds them:
+    # joint j measures ``torque_scale[j] * tau_j(t - delay_s[j])`` of the model's torque, and
+    # reports its position ``motion_delay_s[j]`` late (q_j(t - d) at t)
+    torque_scale: tuple[float, ...] | None = None
+    delay_s: tuple[float, ...] | None = None
+    motion_delay_s: tuple[float, ...] | None = None
 
 
 def declared_effects(robot: Robot) -> list[LinearEffect]:
@@ -43,7 +49,7 @@ def declared_effects(robot: Robot) -> list[LinearEffect]:
     out = []
     for eff in robot.effects:
         joints = range(robot.n_joints) if eff.joint is None else [eff.joint - 1]
-        setting = {k: float(v) for k, v in eff.options.items() if k == "velocity"}
+        setting = {k: float(v) for k, v in eff.options.items() if k in ("velocity", "period_rad")}
         out += [linear_effect(eff.effect, j, **setting) for j in joints]
     return out
 
@@ -108,6 +114,9 @@ class IdentificationResult:
     # per-joint R factors of [W_j | tau_j] over the base columns: the data's metric for
     # anything fitted after least squares (identify.feasible), without the data
     factors: JointFactors | None = None
+    torque_scale: Array | None = None  # IdentifyOptions.torque_scale / delay_s / motion_delay_s, per joint
+    delay_s: Array | None = None
+    motion_delay_s: Array | None = None
 
     def predict(self, segment: Segment) -> Array:
         """Torques (n, N) the identified model predicts for a segment's motion (its grid)."""
@@ -116,7 +125,8 @@ class IdentificationResult:
     def predict_motion(self, q: Array, qd: Array, qdd: Array) -> Array:
         """Torques (n, N) the model predicts at each sample of a motion."""
         w = stacked_regressor(self.robot, self.effects, q, qd, qdd)
-        return (w[:, self.base.independent] @ self.estimate.beta).reshape(q.shape[0], -1)
+        tau = (w[:, self.base.independent] @ self.estimate.beta).reshape(q.shape[0], -1)
+        return tau if self.torque_scale is None else tau * self.torque_scale
 
     def predict_stamps(self, segments: list[Segment]) -> tuple[Array, Array, Array]:
         """Time stamps, raw measured torque and the model's torque at every input sample the
@@ -124,8 +134,14 @@ class IdentificationResult:
         st = [s.at_stamps for s in segments]
         t = np.concatenate([s.t for s in st])
         tau = np.concatenate([s.tau for s in st])
-        tau_hat = np.concatenate([s.as_measured(self.predict_motion(s.q, s.qd, s.qdd)) for s in st])
+        tau_hat = np.concatenate([s.as_measured(self.predict_times(s.t, s.q, s.qd, s.qdd)) for s in st])
         return t, tau, tau_hat
+
+    def predict_times(self, t: Array, q: Array, qd: Array, qdd: Array) -> Array:
+        """Torques (n, N) at the times ``t`` of a motion, with the delays the model has."""
+        q, qd, qdd = (_advanced(x, t, self.motion_delay_s) for x in (q, qd, qdd))
+        tau = self.predict_motion(q, qd, qdd)
+        return tau if self.delay_s is None else _measured_torque(tau, t, None, self.delay_s)
 
     def parameter_values(self) -> tuple[Array, Array]:
         """Value and std per standard parameter; NaN where it has no unique value."""
@@ -207,17 +223,54 @@ def _num(x: float) -> float | None:
     return None if not np.isfinite(x) else float(x)
 
 
-def equations(robot: Robot, effects: list[LinearEffect], seg: Segment) -> Array:
+def _model_torque(tau: Array, t: Array, scale: Array | None, delay: Array | None) -> Array:
+    """The measured torque brought back to the model's: undo each joint's gain, and read each
+    joint's torque ``delay`` later (it reports the model's torque of that long ago)."""
+    out = np.array(tau, dtype=float, copy=True)
+    if delay is not None:
+        for j in np.flatnonzero(delay):
+            out[:, j] = np.interp(t + delay[j], t, out[:, j])
+    if scale is not None:
+        out /= scale
+    return out
+
+
+def _measured_torque(tau_model: Array, t: Array, scale: Array | None, delay: Array | None) -> Array:
+    """The inverse of :func:`_model_torque`: what joint j's sensor shows of the model's torque."""
+    out = np.array(tau_model, dtype=float, copy=True)
+    if scale is not None:
+        out *= scale
+    if delay is not None:
+        for j in np.flatnonzero(delay):
+            out[:, j] = np.interp(t - delay[j], t, out[:, j])
+    return out
+
+
+def _advanced(x: Array, t: Array, delay: Array | None) -> Array:
+    """Each joint's column read ``delay[j]`` later: the motion a late position report hides."""
+    if delay is None or not np.any(delay):
+        return x
+    out = np.array(x, dtype=float, copy=True)
+    for j in np.flatnonzero(delay):
+        out[:, j] = np.interp(t + delay[j], t, x[:, j])
+    return out
+
+
+def equations(robot: Robot, effects: list[LinearEffect], seg: Segment, scale: Array | None = None, delay: Array | None = None,
+              motion_delay: Array | None = None) -> Array:
     """(n_eq, N, p+1): the regressor's columns and the torque of one segment, both through
-    the segment's parallel filter (low-pass, edges, decimation): eq. (18) as least squares sees it."""
+    the segment's parallel filter (low-pass, edges, decimation): eq. (18) as least squares sees it.
+    ``scale``/``delay`` (per joint) undo a found drive gain and sensor delay on the torque."""
     nj = robot.n_joints
     n_cols = 10 * nj + sum(len(e.parameter_names) for e in effects)
     filt = seg.parallel
+    tau_all = seg.tau if scale is None and delay is None else _model_torque(seg.tau, seg.t, scale, delay)
+    q, qd, qdd = (_advanced(x, seg.t, motion_delay) for x in (seg.q, seg.qd, seg.qdd))
     if filt.cutoff_hz is None:  # no low-pass: the kept samples only, straight into place
         idx = filt.kept(seg.n_samples)
-        q, qd, qdd, tau = seg.q[idx], seg.qd[idx], seg.qdd[idx], seg.tau[idx]
+        q, qd, qdd, tau = q[idx], qd[idx], qdd[idx], tau_all[idx]
     else:
-        q, qd, qdd, tau = seg.q, seg.qd, seg.qdd, seg.tau
+        tau = tau_all
     m = np.empty((q.shape[0], nj, n_cols + 1))
     regressor(robot, q, qd, qdd, out=m[:, :, : 10 * nj])
     if effects:
@@ -228,7 +281,8 @@ def equations(robot: Robot, effects: list[LinearEffect], seg: Segment) -> Array:
     return np.stack([filt.apply(m[:, j, :]) for j in range(nj)], axis=1)
 
 
-def _system(robot: Robot, effects: list[LinearEffect], segments: list[Segment]) -> Array:
+def _system(robot: Robot, effects: list[LinearEffect], segments: list[Segment], scale: Array | None = None, delay: Array | None = None,
+            motion_delay: Array | None = None) -> Array:
     """The equations of all segments, joint by joint: (N, p+1, n); row ``k`` of ``[j]`` is
     column ``k`` of ``[W_j | tau_j]``, the layout LAPACK factors without a transpose."""
     nj = robot.n_joints
@@ -236,7 +290,7 @@ def _system(robot: Robot, effects: list[LinearEffect], segments: list[Segment]) 
     system = np.empty((nj, n_cols + 1, sum(s.n_equations for s in segments)))
     start = 0
     for seg in segments:
-        eq = equations(robot, effects, seg)
+        eq = equations(robot, effects, seg, scale, delay, motion_delay)
         system[:, :, start : start + eq.shape[0]] = eq.transpose(1, 2, 0)
         start += eq.shape[0]
     return system
@@ -247,21 +301,22 @@ def _equation_motion(segments: list[Segment], name: str) -> Array:
     return np.concatenate([s.parallel.apply(getattr(s, name)) for s in segments])
 
 
-def _equation_column(segments: list[Segment], effect: LinearEffect) -> Array:
+def _equation_column(segments: list[Segment], effect: LinearEffect, motion_delay: Array | None = None) -> Array:
     """An effect's one column through each segment's parallel filter, concatenated."""
     out = []
     for seg in segments:
         filt = seg.parallel
+        q, qd, qdd = (_advanced(x, seg.t, motion_delay) for x in (seg.q, seg.qd, seg.qdd))
         if filt.cutoff_hz is None:
             idx = filt.kept(seg.n_samples)
-            out.append(effect.columns(seg.q[idx], seg.qd[idx], seg.qdd[idx])[:, 0])
+            out.append(effect.columns(q[idx], qd[idx], qdd[idx])[:, 0])
         else:
-            out.append(filt.apply(effect.columns(seg.q, seg.qd, seg.qdd)[:, 0]))
+            out.append(filt.apply(effect.columns(q, qd, qdd)[:, 0]))
     return np.concatenate(out)
 
 
 def _search_settings(system: Array, names: list[str], effects: list[LinearEffect], searched: set[tuple[str, int]],
-                     segments: list[Segment], columns: Array) -> tuple[list[LinearEffect], list[str]]:
+                     segments: list[Segment], columns: Array, motion_delay: Array | None = None) -> tuple[list[LinearEffect], list[str]]:
     """Each searched effect's fixed parameter from its grid (``SETTINGS``), joint by joint:
     the value whose columns leave the least residual of the whole least-squares fit (one
     sweep of coordinate descent; only the joint's own triangle is refactored per try)."""
@@ -282,15 +337,24 @@ def _search_settings(system: Array, names: list[str], effects: list[LinearEffect
             continue
         j = e.joint
         key, grid = SETTINGS[e.effect]
+        # a Stribeck term on the same joint shares Coulomb's smoothing of sign(qd)
+        follow = [(m, names.index(f.labels()[0])) for m, f in enumerate(effects)
+                  if e.effect == "coulomb_friction" and f.effect == "stribeck_friction" and f.joint == j]
         best, best_rss, best_r = e, np.inf, r[j]
         for value in grid:
             trial = e.with_setting(**{key: value})
-            system[j][col] = _equation_column(segments, trial)
+            system[j][col] = _equation_column(segments, trial, motion_delay)
+            for m, c in follow:
+                system[j][c] = _equation_column(segments, effects[m].with_setting(smoothing=value), motion_delay)
             rj = _triangle(system[j][keep])
             score = rss(r[:j] + [rj] + r[j + 1 :])
             if score < best_rss * (1 - 1e-9):
                 best, best_rss, best_r = trial, score, rj
-        system[j][col] = _equation_column(segments, best)
+        system[j][col] = _equation_column(segments, best, motion_delay)
+        chosen = dict(best.setting)[key]
+        for m, c in follow:
+            effects[m] = effects[m].with_setting(smoothing=chosen)
+            system[j][c] = _equation_column(segments, effects[m], motion_delay)
         r[j] = best_r
         effects[k] = best
         notes.append(f"{e.effect} on joint {j + 1}: {key} {dict(best.setting)[key]:g} (grid {', '.join(f'{v:g}' for v in grid)})")
@@ -331,7 +395,10 @@ def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     segments = [s for p in experiments for s in p.segments]
     if not segments:
         raise IdentificationError("no usable samples in the identification data")
-    system = _system(robot, effects, segments)
+    scale = None if options.torque_scale is None else np.asarray(options.torque_scale, float)
+    delay = None if options.delay_s is None else np.asarray(options.delay_s, float)
+    motion_delay = None if options.motion_delay_s is None else np.asarray(options.motion_delay_s, float)
+    system = _system(robot, effects, segments, scale, delay, motion_delay)
     if options.exclude_reversals:
         qd = _equation_motion(segments, "qd")
         qdd = _equation_motion(segments, "qdd")
@@ -343,7 +410,7 @@ def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     # with reversals left out, a Coulomb model's smoothing has nothing to show itself on
     searched = set() if options.exclude_reversals else _searched(robot)
     if searched:
-        effects, found = _search_settings(system, names, effects, searched, segments, base.independent)
+        effects, found = _search_settings(system, names, effects, searched, segments, base.independent, motion_delay)
         notes.append("chosen on the data: " + "; ".join(found))
     factors = _factors(system, base.independent)
     with warnings.catch_warnings(record=True) as caught:
@@ -369,7 +436,8 @@ def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     if options.covariance == "batch_means":
         est, block = _robust(system, base.independent, tau - tau_hat, est, factors, options.weighting)
         notes.append(f"standard deviations: batch-means sandwich over blocks of {block} samples (four times the residual's correlation length)")
-    result = IdentificationResult(robot, names, effects, base, est, exc, sum(p.n_stamps for p in experiments), fit, notes=notes, factors=factors)
+    result = IdentificationResult(robot, names, effects, base, est, exc, sum(p.n_stamps for p in experiments), fit, notes=notes, factors=factors,
+                                  torque_scale=scale, delay_s=delay, motion_delay_s=motion_delay)
     # the errors anyone can check: the model at each input sample against the raw torque
     _, tau_raw, tau_hat_raw = result.predict_stamps(segments)
     result.fit = summary(tau_raw, tau_hat_raw)

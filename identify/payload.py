@@ -6,25 +6,34 @@ the last link only adds to that link's ten parameters, so (eq. 18)
 .. math:: \\tau - M(q, \\dot q, \\ddot q)\\,\\phi_{arm} = M_{:,N}(q, \\dot q, \\ddot q)\\,\\phi_p
 
 with ``M_{:,N}`` the regressor columns of link N (every joint's row) and ``phi_p`` the
-payload's ``m, m s, I`` about the last link's frame. Each sample gives N equations; RLS
-folds them in one sample at a time (:func:`rls_update`).
+payload's ``m, m s, I`` about the last link's frame. Each sample gives N equations; the
+equations of each ``BLOCK_S`` (10 ms) of the arm's time are folded in together, in
+information form (:func:`rls_update` is the one-sample form of the same update).
 
-- **The record's own clock.** Velocity and acceleration come from positions by the 5-point
-  least-squares slope (Khosla 5.1) applied twice, computed on the records' time stamps
-  (``sum((t - tbar) x) / sum((t - tbar)^2)``, which is the 5-point filter when the steps are
-  equal): no configured period enters. Above 500 Hz the windows take every k-th record
-  (points at least 2 ms apart). Each equation refers to the sample 4 k records back, so the
-  estimator runs live. A step more than 1.5 times longer or shorter than the
-  one before (a rate change, a gap) restarts the derivatives, counted in ``rate_changes_``.
+- **The record's own clock.** Position, velocity and acceleration are the degree-4
+  least-squares polynomial through the records within ``HALF_WINDOW_S`` (50 ms) of each
+  record, on their time stamps (:func:`local_polynomial`): a window of fixed *time*, so the
+  filter's bias does not grow with the sample period (the 5-point filter applied twice
+  spanned 80 ms at 10 ms and biased the mass by 1 %). The torque is filtered alike. Each
+  equation is made once every record of its window has come (50 ms late), the same however
+  the records are batched. A step ``GAP_RATIO`` times the typical one is a gap (the
+  derivatives restart); the typical step moving by ``RATE_CHANGE_RATIO`` is a rate change,
+  counted in ``rate_changes_``; jitter is neither. No configured period enters.
+- **Honest covariance.** RLS takes its equations as independent; records 1 ms apart are
+  not. Each joint's innovations' correlation time ``tau`` is measured from their
+  autocorrelation (``correlation_time_``), and each equation counts for its share
+  ``dt / tau`` of it: the effective sample size of a correlated series. The covariance is
+  then that of the independent samples the motion gave, at any record rate, and the
+  chi-square test below counts its degrees of freedom the same way.
 - **Forgetting** is a factor per 2 ms of the arm's time (``forgetting ** (dt / 2 ms)``),
   and applies only while the arm moves: at rest the equations carry no new information
   about most directions and forgetting would inflate the covariance (wind-up). The
   covariance is never let grow past its prior.
-- **Gross errors and payload changes.** Before an update the normalized innovation squared
-  per equation is tested: beyond ``GROSS_NIS`` (5 sigma rms) the update is not taken (a
-  stalled first cycle, a glitch). A change of payload shows as a window of
-  ``change_window`` samples averaging over ``change_threshold``: the covariance is reset to
-  the prior and the estimate moves to the new payload at once.
+- **Gross errors and payload changes.** Before an update each equation's normalized
+  innovation squared is tested: beyond ``GROSS_NIS`` (5 sigma rms) it is not taken (a
+  stalled first cycle, a glitch). A change of payload shows as the innovations of the last
+  ``change_window_s`` averaging over ``change_threshold``: the covariance is reset to the
+  prior and the estimate moves to the new payload at once.
 - **Noise** of each joint's equation is tracked from the innovations (time constant
   ``noise_time_constant_s`` of the arm's time, outliers clipped at 3 sigma), starting from
   the identification's per-joint sigma.
@@ -32,7 +41,8 @@ folds them in one sample at a time (:func:`rls_update`).
   onto the payloads that can exist (mass >= 0 and the pseudo-inertia
   ``[[tr(I)/2 1 - I, m s], [m s^T, m]]`` positive semidefinite; Wensing et al. 2017), in the
   metric of the estimate's covariance: directions the data pin down move least. The
-  unconstrained estimate is kept beside it.
+  unconstrained estimate is kept beside it. A replay projects all its estimates in one
+  batch (:func:`project_feasible_many`).
 - **Converged** means: the mass (and, with a mass, the centre of mass) excited, their
   standard deviations below ``MASS_STD_KG + MASS_STD_REL m`` and ``COM_STD_M``, and the
   whitened innovations of the last ``CONSISTENCY_WINDOW_S`` no larger than their covariance
@@ -44,6 +54,7 @@ folds them in one sample at a time (:func:`rls_update`).
 
 from __future__ import annotations
 
+import json
 from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -64,18 +75,30 @@ payload of up to a few kg within half a metre of the flange."""
 PARAMETER_NAMES = ("m", "msx", "msy", "msz", "Ixx", "Ixy", "Ixz", "Iyy", "Iyz", "Izz")
 FORGETTING_STEP_S = 0.002
 """The forgetting factor is given per this much of the arm's time (0.998: a memory of 1 s)."""
-RATE_CHANGE_RATIO = 1.5
-"""A step this many times longer or shorter than the previous one restarts the derivatives."""
+HALF_WINDOW_S, POLY_DEGREE, MIN_WINDOW_POINTS = 0.05, 4, 7
+"""Derivatives: the degree-4 least-squares polynomial through the records within 50 ms of
+each one (at least 7 of them: records at 100 Hz and faster)."""
+GAP_RATIO, RATE_MEDIAN, RATE_CHANGE_RATIO = 3.0, 9, 1.5
+"""A step 3 times the median of the 9 before it is a gap (the derivatives restart); the
+median of 9 steps moving by 1.5 times is a rate change (counted)."""
+BLOCK_S = 0.01
+"""The equations of each 10 ms of the arm's time are folded in together."""
+CHANGE_WINDOW_S = 0.05
+"""A new payload shows as innovations too large over this much of the arm's time."""
 GROSS_NIS = 25.0
 """Normalized innovation squared per equation beyond which an update is not taken (5 sigma rms)."""
 MASS_STD_KG, MASS_STD_REL, COM_STD_M = 0.02, 0.02, 0.005
 """Converged needs std(mass) <= 0.02 kg + 2 % of the mass and std(centre of mass) <= 5 mm per axis."""
+PUBLISH_ATOL = 1e-3
+"""Tolerance of the projection of what is published (:func:`project_feasible`)."""
 MIN_MASS_FOR_COM_KG = 0.1
 """Below this mass no centre of mass or inertia is reported (they are divided by the mass)."""
 CONSISTENCY_WINDOW_S = 1.0
-FILTER_CORRELATION = 9
-"""Records the twice-applied 5-point filter spans: innovations are correlated over about
-this many updates, so a window of n equations counts n / 9 independent degrees of freedom."""
+INITIAL_CORRELATION_S = HALF_WINDOW_S
+"""The innovations' correlation time until it is measured: about the derivative window's."""
+CORRELATION_MEMORY_S, CORRELATION_UPDATE_S, CORRELATION_MIN_S, CORRELATION_MAX_LAG_S = 3.0, 0.25, 1.0, 0.5
+"""Correlation times are measured on the last 3 s of innovations (once there is 1 s), every
+0.25 s of the arm's time, over lags up to 0.5 s."""
 
 
 def rls_update(theta: Array, p: Array, h: Array, y: Array, r: Array, forgetting: float = 1.0) -> tuple[Array, Array, Array, float]:
@@ -121,13 +144,18 @@ _BASIS = np.stack([pseudo_inertia(e) for e in np.eye(10)])  # the linear map phi
 _BASIS_FLAT = _BASIS.reshape(10, 16)
 
 
-def project_feasible(theta: Array, cov: Array, gap: float = 1e-5, start: Array | None = None) -> Array:
+def project_feasible(theta: Array, cov: Array, gap: float = 1e-5, start: Array | None = None, atol: float = 0.0,
+                     max_steps: int = 1200) -> Array:
     """The physically possible parameters nearest ``theta`` in the metric ``cov^-1``.
 
     Minimizes ``(x - theta)^T cov^-1 (x - theta) / 2`` subject to ``pseudo_inertia(x)``
     positive semidefinite (so mass >= 0 follows) by a log-barrier interior point method:
     Newton steps on ``f(x) - mu log det J(x)``, ``mu`` divided by 50 until the duality gap
-    ``4 mu`` is below ``gap`` of ``f``. Every iterate is strictly feasible, so the result is
+    ``4 mu`` is below ``gap`` of ``f`` or below ``atol``, and each centring stops once its
+    Newton decrement is below ``atol / 2`` (the estimator publishes with ``atol = 1e-3``:
+    half the Newton steps, the distance ``f`` within 0.01 of the tight answer's on a
+    replay of the simulated arm, and as feasible); at most ``max_steps`` Newton steps in all.
+    Every iterate is strictly feasible, so the result is
     physically possible even when the iterations stop early. ``theta`` is returned
     unchanged when it is feasible already. ``start``, a strictly feasible point near the
     answer (the last projection), starts the path late: a few Newton steps instead of tens.
@@ -153,10 +181,14 @@ def project_feasible(theta: Array, cov: Array, gap: float = 1e-5, start: Array |
         e_s = start - theta
         f_s = 0.5 * float(e_s @ weight @ e_s)
         if f_s < fx:  # the last answer: straight to the final barrier weight
-            x, e, fx, mu = np.array(start, float), e_s, f_s, max(f_s, 1e-300) * gap / 4.0
+            x, e, fx, mu = np.array(start, float), e_s, f_s, max(f_s * gap, atol, 1e-300) / 4.0
     chol = np.linalg.cholesky(pseudo(x))
+    steps = 0
     for _ in range(40):
         for _ in range(30):
+            steps += 1
+            if steps > max_steps:
+                return x
             ci = np.linalg.inv(chol)
             b = (ci.T @ ci) @ _BASIS  # (10, 4, 4): J^-1 A_k
             grad = weight @ e - mu * np.trace(b, axis1=1, axis2=2)
@@ -168,7 +200,7 @@ def project_feasible(theta: Array, cov: Array, gap: float = 1e-5, start: Array |
             decrement = -float(grad @ step)
             if not np.isfinite(decrement):
                 return x
-            if decrement <= 1e-10 * (fx + mu):
+            if decrement <= max(1e-10 * (fx + mu), 0.5 * atol):
                 break
             # the longest step that stays inside the cone, then backtracking (Armijo)
             lam = np.linalg.eigvalsh(ci @ pseudo(step) @ ci.T).min()
@@ -189,10 +221,110 @@ def project_feasible(theta: Array, cov: Array, gap: float = 1e-5, start: Array |
             else:
                 break
             x, e, fx, chol = trial, e_t, f_t, chol_t
-        if 4.0 * mu <= gap * max(fx, 1e-300):
+        if 4.0 * mu <= max(gap * fx, atol, 1e-300):
             break
         mu /= 50.0
     return x
+
+
+def project_feasible_many(thetas: Array, covs: Array, gap: float = 1e-5, atol: float = 0.0) -> Array:
+    """:func:`project_feasible` of many estimates at once (K, 10) with their covariances
+    (K, 10, 10): the same barrier method from the same cold start, each Newton step taken by
+    every unfinished problem in one batch of numpy calls. The answers do not depend on which
+    others share the batch (each problem's iterates are its own)."""
+    thetas = np.atleast_2d(np.asarray(thetas, float))
+    covs = np.asarray(covs, float).reshape(-1, 10, 10)
+    out = thetas.copy()
+    w, v = np.linalg.eigh(np.einsum("ka,aij->kij", thetas, _BASIS))
+    todo = np.flatnonzero(w.min(axis=1) < 0.0)
+    if todo.size == 0:
+        return out
+    th = thetas[todo]
+    cov = 0.5 * (covs[todo] + covs[todo].transpose(0, 2, 1))
+    tr = np.trace(cov, axis1=1, axis2=2)
+    weight = np.linalg.inv(cov + 1e-15 * tr[:, None, None] * np.eye(10))
+    weight = 0.5 * (weight + weight.transpose(0, 2, 1))
+    d = 1.0 / np.sqrt(np.maximum(np.diagonal(weight, axis1=1, axis2=2), 1e-300))
+    scale = np.maximum(np.abs(w[todo]).max(axis=1), 1e-12)
+    wc = np.maximum(w[todo], 1e-3 * scale[:, None])
+    vt = v[todo]
+    j0 = (vt * wc[:, None, :]) @ vt.transpose(0, 2, 1)
+    sigma = j0[:, :3, :3]
+    i3 = np.trace(sigma, axis1=1, axis2=2)[:, None, None] * np.eye(3) - sigma
+    x = np.concatenate([j0[:, 3, 3][:, None], j0[:, :3, 3], i3[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]]], axis=1)
+
+    def pseudo(y: Array) -> Array:
+        return (y @ _BASIS_FLAT).reshape(-1, 4, 4)
+
+    def f_of(y: Array) -> Array:
+        e = y - th[idx]
+        return 0.5 * np.einsum("ka,kab,kb->k", e, weight[idx], e)
+
+    idx = np.arange(th.shape[0])
+    fx = f_of(x)
+    mu = np.maximum(fx, 1e-300) / 4.0
+    chol = np.linalg.cholesky(pseudo(x))
+    active = np.ones(th.shape[0], bool)  # problems not yet done
+    centring = np.ones(th.shape[0], bool)  # problems still centring at their mu
+    for _ in range(40 * 30):
+        if not active.any():
+            break
+        k = np.flatnonzero(active & centring)
+        if k.size:
+            idx = k
+            ci = np.linalg.inv(chol[k])
+            jinv = ci.transpose(0, 2, 1) @ ci
+            b = jinv[:, None] @ _BASIS[None]  # (k, 10, 4, 4)
+            e = x[k] - th[k]
+            grad = np.einsum("kab,kb->ka", weight[k], e) - mu[k, None] * np.trace(b, axis1=2, axis2=3)
+            bf = b.reshape(k.size, 10, 16)
+            bt = b.transpose(0, 1, 3, 2).reshape(k.size, 10, 16)
+            hess = weight[k] + mu[k, None, None] * (bf @ bt.transpose(0, 2, 1))
+            dk = d[k]
+            step = -dk * np.linalg.solve(hess * dk[:, :, None] * dk[:, None, :], (dk * grad)[..., None])[..., 0]
+            dec = -np.einsum("ka,ka->k", grad, step)
+            bad = ~np.isfinite(dec)
+            active[k[bad]] = False
+            small = ~bad & (dec <= np.maximum(1e-10 * (fx[k] + mu[k]), 0.5 * atol))
+            centring[k[small]] = False
+            go = ~bad & ~small
+            if go.any():
+                kg, sg, cg, dg = k[go], step[go], ci[go], dec[go]
+                lam = np.linalg.eigvalsh(cg @ pseudo(sg) @ cg.transpose(0, 2, 1)).min(axis=1)
+                t = np.where(lam >= -1.0, 1.0, np.minimum(1.0, -0.99 / np.where(lam < 0, lam, -1.0)))
+                phi0 = fx[kg] - 2.0 * mu[kg] * np.log(np.diagonal(chol[kg], axis1=1, axis2=2)).sum(axis=1)
+                pending = np.ones(kg.size, bool)
+                while pending.any():
+                    p = np.flatnonzero(pending)
+                    trial = x[kg[p]] + t[p, None] * sg[p]
+                    jt = pseudo(trial)
+                    ok_pd = np.linalg.eigvalsh(jt).min(axis=1) > 0
+                    accept = np.zeros(p.size, bool)
+                    if ok_pd.any():
+                        q = p[ok_pd]
+                        ch = np.linalg.cholesky(jt[ok_pd])
+                        idx = kg[q]
+                        ft = f_of(trial[ok_pd])
+                        phi = ft - 2.0 * mu[kg[q]] * np.log(np.diagonal(ch, axis1=1, axis2=2)).sum(axis=1)
+                        good = phi <= phi0[q] - 0.25 * t[q] * dg[q]
+                        g = q[good]
+                        x[kg[g]], fx[kg[g]], chol[kg[g]] = trial[ok_pd][good], ft[good], ch[good]
+                        accept[np.flatnonzero(ok_pd)[good]] = True
+                    pending[p[accept]] = False
+                    t[p[~accept]] *= 0.5
+                    stuck = pending & (t <= 1e-12)
+                    centring[kg[stuck]] = False  # no progress at this mu: as good as it gets
+                    pending &= ~stuck
+        # problems done centring: stop, or a smaller mu
+        k = np.flatnonzero(active & ~centring)
+        if k.size:
+            done = 4.0 * mu[k] <= np.maximum(np.maximum(gap * fx[k], atol), 1e-300)
+            active[k[done]] = False
+            more = k[~done]
+            mu[more] /= 50.0
+            centring[more] = True
+    out[todo] = x
+    return out
 
 
 # --- the arm model, evaluated without compiled code (nothing to compile on a cold start) ---
@@ -248,94 +380,182 @@ class ArmModel:
         return self.torque_and_payload_columns(q, qd, qdd)[0]
 
 
-def slope_on_times(t: Array, x: Array) -> Array:
-    """Least-squares slope of ``x`` (k, ...) on its times ``t`` (k,): the 5-point filter of
-    Khosla 5.1 when the steps are equal, and right when they are not. Both are centred
-    first: time stamps are often seconds since 1970 (ulp 0.24 us), and ``sum(dt x)`` with
-    an uncentred ``x`` turns that rounding into velocity errors of percent."""
-    tr = t - t[0]
-    dt = tr - tr.mean()
-    return np.tensordot(dt, x - x.mean(axis=0), axes=(0, 0)) / float(dt @ dt)
+def local_polynomial(t: Array, x: Array, centres: Array | None = None, half_window_s: float = HALF_WINDOW_S,
+                     degree: int = POLY_DEGREE, span: tuple[float, float] | None = None,
+                     origin: float | None = None) -> tuple[Array, Array, Array, Array]:
+    """Value, first and second derivative of ``x`` (n, ...) at the times of ``centres``
+    (indices into ``t``; default all) from the least-squares polynomial of ``degree`` through
+    every record within ``half_window_s`` of the centre, on the records' own time stamps
+    (Savitzky-Golay over a fixed span of time, and right on uneven steps).
+
+    A window of fixed *time*, not of a fixed number of records: the filter's response, hence
+    its bias, is the same at 1 kHz and at 100 Hz. Degree 4 on +-50 ms gets a 1 Hz
+    acceleration within 2e-4 of its amplitude at 100 Hz to 1 kHz, jittered or not (the
+    twice-applied 5-point filter at 10 ms: 4.5e-3, which biased the payload's mass by 1 %). Returns ``(x0, x1, x2, ok)``; where ``ok`` is false (the window
+    runs past either end of ``span``, by default ``t[0], t[-1]``, or holds fewer than
+    ``MIN_WINDOW_POINTS`` records or fewer than two on a side) the values are NaN. Times are
+    taken relative to ``origin`` (default ``t[0]``): the same origin, the same windows to the
+    last bit however the records are batched.
+    """
+    t = np.asarray(t, float)
+    x = np.asarray(x, float)
+    n = t.size
+    centres = np.arange(n) if centres is None else np.asarray(centres, int)
+    shape = (centres.size, *x.shape[1:])
+    out = [np.full(shape, np.nan) for _ in range(3)]
+    ok = np.zeros(centres.size, bool)
+    if n == 0 or centres.size == 0:
+        return out[0], out[1], out[2], ok
+    t0 = float(t[0]) if origin is None else origin
+    first, last = (t[0], t[-1]) if span is None else span
+    first, last = first - t0, last - t0
+    t = t - t0  # stamps as seconds since 1970 keep their own rounding, not a billion seconds of it
+    xf = x.reshape(n, -1)
+    tc = t[centres]
+    lo = np.searchsorted(t, tc - half_window_s, "left")
+    hi = np.searchsorted(t, tc + half_window_s, "right")
+    ok = (tc - half_window_s >= first) & (tc + half_window_s <= last) & (hi - lo >= MIN_WINDOW_POINTS)
+    ok &= (centres - lo >= 2) & (hi - 1 - centres >= 2)
+    good = np.flatnonzero(ok)
+    if good.size == 0:
+        return out[0], out[1], out[2], ok
+    width = int((hi - lo)[good].max())
+    powers = np.arange(degree + 1)
+    chunk = max(1, 200_000 // (width * (degree + 1 + xf.shape[1])))
+    res = np.empty((good.size, 3, xf.shape[1]))
+    for a in range(0, good.size, chunk):
+        g = good[a : a + chunk]
+        j = lo[g, None] + np.arange(width)[None, :]
+        inside = j < hi[g, None]
+        j = np.minimum(j, n - 1)
+        s = np.where(inside, (t[j] - tc[g, None]) / half_window_s, 0.0)
+        v = (s[..., None] ** powers) * inside[..., None]  # (c, w, d+1), zero outside the window
+        lhs = np.einsum("cwa,cwb->cab", v, v)
+        rhs = np.einsum("cwa,cwk->cak", v, xf[j])
+        coef = np.linalg.solve(lhs, rhs)[:, :3]
+        res[a : a + chunk] = coef
+    res[:, 1] /= half_window_s
+    res[:, 2] *= 2.0 / half_window_s**2
+    for k in range(3):
+        out[k][good] = res[:, k].reshape((good.size, *x.shape[1:]))
+    return out[0], out[1], out[2], ok
 
 
 def derivatives_on_times(t: Array, x: Array) -> tuple[Array, Array]:
-    """Non-causal velocity and acceleration of a recording (n, N) on its own time stamps:
-    the 5-point slope twice; the first and last 4 samples are NaN."""
-    n = t.size
-    qd, qdd = np.full(x.shape, np.nan), np.full(x.shape, np.nan)
-    if n < 9:
-        return qd, qdd
-    t = t - t[0]  # centred windows below: see slope_on_times
-    idx = np.arange(2, n - 2)[:, None] + np.arange(-2, 3)[None, :]
-    tw = t[idx]
-    dt = tw - tw.mean(axis=1, keepdims=True)
-    den = (dt * dt).sum(axis=1)
-    xw = x[idx]
-    qd[2:-2] = np.einsum("kw,kwj->kj", dt, xw - xw.mean(axis=1, keepdims=True)) / den[:, None]
-    tm = np.full(n, np.nan)
-    tm[2:-2] = tw.mean(axis=1)  # each velocity belongs to its window's mean time (as in _Filter)
-    idx2 = np.arange(4, n - 4)[:, None] + np.arange(-2, 3)[None, :]
-    dt2 = tm[idx2] - tm[idx2].mean(axis=1, keepdims=True)
-    vw = qd[idx2]
-    qdd[4:-4] = np.einsum("kw,kwj->kj", dt2, vw - vw.mean(axis=1, keepdims=True)) / (dt2 * dt2).sum(axis=1)[:, None]
-    return qd, qdd
+    """Non-causal velocity and acceleration of a recording (n, N) on its own time stamps
+    (:func:`local_polynomial`); NaN within the half window of either end."""
+    _, x1, x2, _ = local_polynomial(t, x)
+    return x1, x2
 
 
-MIN_STEP_S = 0.002
-"""The 5-point windows take records at least this far apart (every k-th record at a higher
-rate): on 1 ms data the plain filter's acceleration noise, in the regressor, biased the
-mass low by 3 % (errors in variables)."""
+def _rolling_median(steps: Array, k: int) -> Array:
+    """The median of each run of ``k`` consecutive steps (len(steps) - k + 1 values)."""
+    return np.median(np.lib.stride_tricks.sliding_window_view(steps, k), axis=1)
 
 
 @dataclass
 class _Filter:
-    """Causal 5-point derivatives of a stream on its time stamps: (t, positions, torques) in,
-    (t, q, qd, qdd, tau) 4 k records back out, the windows taking every k-th record so that
-    their points are at least ``MIN_STEP_S`` apart."""
+    """Causal :func:`local_polynomial` of a stream: records (t, positions, torques) in, in
+    batches of any size; out, each record's smoothed position and torque with its velocity
+    and acceleration, once every record within ``half_window_s`` after it has come (the
+    equations lag the stream by the half window). The same records give the same equations
+    however they are batched.
 
-    ratio: float = RATE_CHANGE_RATIO
-    t: deque = field(default_factory=deque)  # type: ignore[type-arg]
-    q: deque = field(default_factory=deque)  # type: ignore[type-arg]
-    tau: deque = field(default_factory=deque)  # type: ignore[type-arg]
-    qd: deque = field(default_factory=deque)  # type: ignore[type-arg]
-    tqd: deque = field(default_factory=deque)  # type: ignore[type-arg]
+    A step longer than ``GAP_RATIO`` times the typical step (the median of the
+    ``RATE_MEDIAN`` steps before it) or longer than the half window is a gap: the derivatives
+    start again after it. A rate change (the typical step moving by ``RATE_CHANGE_RATIO``)
+    is counted in ``rate_changes`` and needs nothing else: the windows are spans of time.
+    Jitter moves single steps, not their median, so jittery stamps are neither.
+    """
+
+    half_window_s: float = HALF_WINDOW_S
+    t: Array = field(default_factory=lambda: np.zeros(0))
+    x: Array = field(default_factory=lambda: np.zeros((0, 0)))
+    seg_start: float | None = None
+    last_centre: float = -np.inf
+    last_t: float | None = None
+    steps: Array = field(default_factory=lambda: np.zeros(0))  # the last RATE_MEDIAN steps, across restarts
+    typical: float | None = None  # the typical step when the rate was last counted
     rate_changes: int = 0
-    stride: int = 0
+    gaps: int = 0
 
     def reset(self) -> None:
-        for d in (self.t, self.q, self.tau, self.qd, self.tqd):
-            d.clear()
-        self.stride = 0
+        self.t = np.zeros(0)
+        self.x = np.zeros((0, 0))
+        self.seg_start = None
+        self.last_centre = -np.inf
 
-    def push(self, t: float, q: Array, tau: Array) -> tuple[float, Array, Array, Array, Array] | None:
-        if len(self.t) >= 2:
-            step, before = t - self.t[-1], self.t[-1] - self.t[-2]
-            if step > self.ratio * before or step * self.ratio < before:
-                self.rate_changes += 1
-                self.reset()
-        if self.stride == 0 and self.t:
-            self.stride = max(1, int(round(MIN_STEP_S / (t - self.t[-1]))))
-        self.t.append(t)
-        self.q.append(q)
-        self.tau.append(tau)
-        k = self.stride
-        if k == 0 or len(self.t) < 4 * k + 1:
-            return None
-        while len(self.t) > 4 * k + 1:
-            self.t.popleft()
-            self.q.popleft()
-            self.tau.popleft()
-        picks = range(-1 - 4 * k, 0, k)
-        tw = np.array([self.t[i] for i in picks])
-        self.qd.append(slope_on_times(tw, np.array([self.q[i] for i in picks])))
-        self.tqd.append(tw.mean())
-        if len(self.qd) < 4 * k + 1:
-            return None
-        while len(self.qd) > 4 * k + 1:
-            self.qd.popleft()
-            self.tqd.popleft()
-        qdd = slope_on_times(np.array([self.tqd[i] for i in picks]), np.array([self.qd[i] for i in picks]))
-        return self.t[0], self.q[0], self.qd[-1 - 2 * k], qdd, self.tau[0]
+    def _steps(self, t: Array) -> Array:
+        """Which records follow a gap; counts rate changes."""
+        first = np.array([np.nan if self.last_t is None else self.last_t])
+        step = np.diff(np.concatenate([first, t]))
+        finite = np.isfinite(step)
+        hist = np.concatenate([self.steps, step[finite]])
+        pos = self.steps.size + np.cumsum(finite) - 1  # index of each record's step in hist
+        gap = finite & (step > self.half_window_s)
+        if hist.size >= RATE_MEDIAN:
+            med = _rolling_median(hist, RATE_MEDIAN)  # med[i]: steps i .. i + RATE_MEDIAN - 1
+            have = finite & (pos >= RATE_MEDIAN)
+            before = np.full(t.size, np.inf)
+            before[have] = med[pos[have] - RATE_MEDIAN]
+            gap |= step > GAP_RATIO * before
+            for m in med[max(0, self.steps.size - RATE_MEDIAN + 1):]:
+                if self.typical is None:
+                    self.typical = float(m)
+                elif m > RATE_CHANGE_RATIO * self.typical or m * RATE_CHANGE_RATIO < self.typical:
+                    self.rate_changes += 1
+                    self.typical = float(m)
+        self.steps = hist[-RATE_MEDIAN:]
+        self.last_t = float(t[-1])
+        return gap
+
+    def push(self, t: Array, q: Array, tau: Array) -> tuple[Array, Array, Array, Array, Array, Array]:
+        """Returns ``(t, q, qd, qdd, tau, done_at)`` of the equations this batch completes,
+        ``done_at`` the index in the batch of the record that completed each."""
+        nj = q.shape[1]
+        x = np.hstack([q, tau])
+        parts = []
+        if t.size:
+            gap = self._steps(t)
+            cuts = np.concatenate([[0], np.flatnonzero(gap), [t.size]])
+            for a, b in zip(cuts[:-1], cuts[1:]):
+                if b > a:
+                    if gap[a]:
+                        self.gaps += 1
+                        self.reset()
+                    parts.append(self._segment(t[a:b], x[a:b], int(a)))
+        parts = [p for p in parts if p[0].size]
+        if not parts:
+            z = np.zeros((0, nj))
+            return np.zeros(0), z, z, z, z, np.zeros(0, int)
+        tt, x0, x1, x2, done = (np.concatenate([p[i] for p in parts]) for i in range(5))
+        return tt, x0[:, :nj], x1[:, :nj], x2[:, :nj], x0[:, nj:], done
+
+    def _segment(self, t: Array, x: Array, first: int) -> tuple[Array, Array, Array, Array, Array]:
+        if self.seg_start is None:
+            self.seg_start = float(t[0])
+        bt = np.concatenate([self.t, t])
+        bx = x if self.x.shape[0] == 0 else np.vstack([self.x, x])
+        hw = self.half_window_s
+        # the next centres whose windows are complete: every record up to t_c + hw has come
+        c0 = int(np.searchsorted(bt, self.last_centre, "right"))
+        c1 = int(np.searchsorted(bt, bt[-1] - hw, "right"))
+        res = (np.zeros(0), np.zeros((0, bx.shape[1])), np.zeros((0, bx.shape[1])), np.zeros((0, bx.shape[1])), np.zeros(0, int))
+        if c1 > c0:
+            centres = np.arange(c0, c1)
+            self.last_centre = float(bt[c1 - 1])
+            x0, x1, x2, ok = local_polynomial(bt, bx, centres, hw, span=(self.seg_start, np.inf),  # complete: c1 says so
+                                              origin=self.seg_start)
+            if ok.any():
+                tc = bt[centres][ok]
+                done = first + np.minimum(np.searchsorted(t, tc + hw, "left"), t.size - 1)
+                res = (tc, x0[ok], x1[ok], x2[ok], done)
+        # keep what the windows of the centres still to come need
+        nxt = int(np.searchsorted(bt, self.last_centre, "right"))
+        t_next = bt[nxt] if nxt < bt.size else bt[-1]
+        keep = max(0, int(np.searchsorted(bt, t_next - hw, "left")) - 2)  # 2 more: the windows' edges are decided on relative times
+        self.t, self.x = bt[keep:], bx[keep:]
+        return res
 
 
 class ReferenceRun:
@@ -351,12 +571,14 @@ class ReferenceRun:
 
     def __init__(self, arm: ArmModel, t: Array, q: Array, tau: Array, tolerance_rad: float = 0.05, search_s: float = 0.25) -> None:
         t, q, tau = np.asarray(t, float), np.asarray(q, float), np.asarray(tau, float)
-        qd, qdd = derivatives_on_times(t, q)
-        ok = np.isfinite(qdd).all(axis=1)
+        nj = q.shape[1]
+        # the same filter as the loaded run's equations, torque included
+        x0, x1, x2, ok = local_polynomial(t, np.hstack([q, tau]))
         if ok.sum() < 9:
-            raise ValueError(f"the reference run has {t.size} samples: too few to differentiate")
-        self.t, self.q = t[ok], q[ok]
-        self.residual = tau[ok] - arm.torque(q[ok], qd[ok], qdd[ok])
+            raise ValueError(f"the reference run has {t.size} samples: too few to differentiate "
+                             f"(it takes {MIN_WINDOW_POINTS} records within {1000 * HALF_WINDOW_S:g} ms)")
+        self.t, self.q = t[ok], x0[ok, :nj]
+        self.residual = x0[ok, nj:] - arm.torque(x0[ok, :nj], x1[ok, :nj], x2[ok, :nj])
         self.step_s = float(np.median(np.diff(self.t)))
         self.tolerance_rad = tolerance_rad
         self.window = max(2, int(round(search_s / self.step_s)))
@@ -411,30 +633,38 @@ class PayloadRLS:
 
     Hyperparameters only here; ``fit`` starts over, ``partial_fit`` goes on; learned state
     ends in ``_``. See the module docstring for the method. No sample period: every update
-    uses the records' time stamps.
+    uses the records' time stamps, and the equations of each ``block_s`` of the arm's time
+    are folded in together (one 10 x 10 update per block, whatever the record rate).
     """
 
-    def __init__(self, arm: ArmModel, *, forgetting: float = 0.998, moving_rad_s: float = 0.05, change_window: int = 25,
+    def __init__(self, arm: ArmModel, *, forgetting: float = 0.998, moving_rad_s: float = 0.05, change_window_s: float = CHANGE_WINDOW_S,
                  change_threshold: float = 8.0, prior_std: Array | None = None, noise_time_constant_s: float = 2.0,
-                 reference: ReferenceRun | None = None) -> None:
+                 reference: ReferenceRun | None = None, block_s: float = BLOCK_S) -> None:
         self.arm = arm
         self.forgetting = forgetting
         self.moving_rad_s = moving_rad_s
-        self.change_window = change_window
+        self.change_window_s = change_window_s
         self.change_threshold = change_threshold
         self.prior_std = PRIOR_STD if prior_std is None else np.asarray(prior_std, float)
         self.noise_time_constant_s = noise_time_constant_s
         self.reference = reference
+        self.block_s = block_s
 
     def _start(self) -> None:
         if not 0.0 < self.forgetting <= 1.0:
             raise ValueError(f"forgetting must be in (0, 1], got {self.forgetting}")
+        nj = self.arm.robot.n_joints
         self.theta_ = np.zeros(10)
         self.P_ = np.diag(self.prior_std**2)
         self.filter_ = _Filter()
         self.noise_var_ = np.maximum(np.asarray(self.arm.joint_sigma, float), 1e-6) ** 2
-        self._change: deque[float] = deque(maxlen=self.change_window)
-        self._window: deque[tuple[float, float, float, int]] = deque()  # (time, nis, dof, rejected)
+        self.correlation_time_ = np.full(nj, INITIAL_CORRELATION_S)
+        self._pending: dict[str, Array] | None = None
+        self._folded = 0
+        self._change: deque[tuple[float, float, float, int]] = deque()  # per block: (first time, last time, nis, dof)
+        self._window: deque[tuple[float, float, float, int, int]] = deque()  # per block: (time, nis, dof, rejected, rows), weighted
+        self._innovations: deque[tuple[Array, Array]] = deque()  # per block: (times, whitened innovations, NaN if unused)
+        self._next_correlation_t: float | None = None
         self._last_row_t: float | None = None
         self.n_updates_ = 0
         self.resets_ = 0
@@ -464,7 +694,7 @@ class PayloadRLS:
         """Run every code path once on a copy (imports, first-call costs) before the arm moves."""
         robot = self.arm.robot
         clone = PayloadRLS(self.arm, forgetting=self.forgetting, prior_std=self.prior_std)
-        t = np.arange(12) * 0.002
+        t = np.arange(80) * 0.002
         q = 0.1 * np.sin(np.outer(t, np.arange(1, robot.n_joints + 1)))
         clone.fit(t, q, np.zeros_like(q)).estimate()
         project_feasible(-np.ones(10) * 0.01, np.eye(10))
@@ -481,94 +711,196 @@ class PayloadRLS:
         if not hasattr(self, "theta_"):
             self._start()
         t, q, tau = np.atleast_1d(np.asarray(t, float)), np.atleast_2d(q), np.atleast_2d(tau)
-        rows: list[tuple[Any, ...]] = []
-        produced = np.full(t.shape[0], -1)
-        for k in range(t.shape[0]):
-            if self.filter_.t and not t[k] > self.filter_.t[-1]:
-                raise ValueError(f"time {t[k]:.6g} s is not after the previous record's {self.filter_.t[-1]:.6g} s")
-            out = self.filter_.push(float(t[k]), q[k], tau[k])
-            if out is not None:
-                produced[k] = len(rows)
-                rows.append(out)
+        n = t.shape[0]
+        if n == 0:
+            return self
+        prev = self.filter_.last_t
+        order = np.diff(t if prev is None else np.concatenate([[prev], t]))
+        bad = np.flatnonzero(~(order > 0))
+        if bad.size:
+            k = int(bad[0]) + (0 if prev is None else -1) + 1
+            before = t[k - 1] if k >= 1 else prev
+            raise ValueError(f"time {t[k]:.6g} s is not after the previous record's {before:.6g} s")
+        ts, qs, qds, qdds, taus, done = self.filter_.push(t, q, tau)
+        base = 0 if self._pending is None else self._pending["t"].size  # rows before this batch's
+        if ts.size:
+            self._add_rows(ts, qs, qds, qdds, taus)
         wanted = set(checkpoints)
-        if rows:
-            ts = np.array([r[0] for r in rows])
-            qs, qds, qdds, taus = (np.array([r[i] for r in rows]) for i in range(1, 5))
-            model, h_all = self.arm.torque_and_payload_columns(qs, qds, qdds)
-            residual = taus - model
-            # a joint's equation is left out while it is near rest or reversing: sign(qd) is
-            # wrong there (as in identification), and one wrong Coulomb step looks like a new payload
-            sliding = np.abs(qds) >= np.maximum(MIN_SPEED, np.abs(qdds) * REVERSAL_MARGIN_S)
-            if self.reference is not None:
-                for i in range(len(rows)):
-                    ref, dist = self.reference.lookup(float(ts[i]), qs[i])
-                    residual[i] -= ref
-                    if dist > self.reference.tolerance_rad:
-                        sliding[i] = False
-            moving = np.abs(qds).max(axis=1) > self.moving_rad_s
-            prev = np.concatenate([[ts[0] if self._last_row_t is None else self._last_row_t], ts[:-1]])
-            dts = np.clip(ts - prev, 0.0, 0.1)
-            self._last_row_t = float(ts[-1])
-        stops = sorted(k for k in wanted if 0 <= k < t.shape[0]) + [t.shape[0] - 1]
-        done_rows = 0
-        for k in stops:
-            upto = int(produced[: k + 1].max()) + 1 if (produced[: k + 1] >= 0).any() else 0
-            if upto > done_rows:
-                self._fold_rows(ts, h_all, residual, sliding, moving, dts, done_rows, upto)
-                self.time_s_ = float(ts[upto - 1])
-                done_rows = upto
+        for k in sorted(k for k in wanted if 0 <= k < n - 1) + [n - 1]:
+            self._fold_complete_blocks(base + int(np.searchsorted(done, k, "right")))
             if k in wanted and on_checkpoint is not None:
                 on_checkpoint(k)
+        if self._pending is not None and self._folded:
+            self._pending = {key: v[self._folded :] for key, v in self._pending.items()}
+            self._folded = 0
         return self
 
-    def _fold_rows(self, ts: Array, h_all: Array, residual: Array, sliding: Array, moving: Array, dts: Array, start: int, stop: int) -> None:
+    def _add_rows(self, ts: Array, qs: Array, qds: Array, qdds: Array, taus: Array) -> None:
+        """The equations of new rows, waiting for their block to be complete."""
+        model, h_all = self.arm.torque_and_payload_columns(qs, qds, qdds)
+        residual = taus - model
+        # a joint's equation is left out while it is near rest or reversing: sign(qd) is
+        # wrong there (as in identification), and one wrong Coulomb step looks like a new payload
+        sliding = np.abs(qds) >= np.maximum(MIN_SPEED, np.abs(qdds) * REVERSAL_MARGIN_S)
+        if self.reference is not None:
+            for i in range(ts.size):
+                ref, dist = self.reference.lookup(float(ts[i]), qs[i])
+                residual[i] -= ref
+                if dist > self.reference.tolerance_rad:
+                    sliding[i] = False
+        moving = np.abs(qds).max(axis=1) > self.moving_rad_s
+        first = self._last_row_t
+        if first is None:  # the first row after a (re)start: the typical step of the records
+            first = ts[0] - (self.filter_.typical or 0.0)
+        dts = np.clip(np.diff(np.concatenate([[first], ts])), 0.0, 0.1)
+        self._last_row_t = float(ts[-1])
+        rows = {"t": ts, "block": np.floor(ts / self.block_s), "h": h_all, "y": residual, "use": sliding, "moving": moving, "dt": dts}
+        if self._pending is None:
+            self._pending = rows
+        else:
+            self._pending = {key: np.concatenate([self._pending[key], v]) for key, v in rows.items()}
+
+    def _fold_complete_blocks(self, available: int) -> None:
+        """Fold the blocks of the first ``available`` pending rows that a later row closes."""
+        rows = self._pending
+        if rows is None or available <= self._folded:
+            return
+        block = rows["block"]
+        stop = int(np.searchsorted(block[:available], block[available - 1], "left"))
+        if stop <= self._folded:
+            return
+        edges = np.flatnonzero(np.diff(block[self._folded : stop])) + self._folded + 1
+        for a, b in zip([self._folded, *edges.tolist()], [*edges.tolist(), stop]):
+            self._fold_block(a, b)
+        self._folded = stop
+        self.time_s_ = float(rows["t"][stop - 1])
+
+    def _nis(self, h: Array, nu: Array, p: Array, r: Array) -> Array:
+        """Normalized innovation squared of each row, ``nu^T (h P h^T + R)^-1 nu``."""
+        s = (h @ p) @ h.transpose(0, 2, 1)
+        s += np.eye(r.size) * r
+        return np.einsum("mj,mj->m", nu, np.linalg.solve(s, nu[..., None])[..., 0])
+
+    def _fold_block(self, a: int, b: int) -> None:
+        rows = self._pending
+        assert rows is not None
+        use = rows["use"][a:b]
+        dof = use.sum(axis=1)
+        live = dof > 0
+        if not live.any():
+            return
+        if live.all():
+            ts, dts, moving, h, y = rows["t"][a:b], rows["dt"][a:b], rows["moving"][a:b], rows["h"][a:b], rows["y"][a:b]
+        else:
+            ts, dts, moving, h, y = (rows[key][a:b][live] for key in ("t", "dt", "moving", "h", "y"))
+            use, dof = use[live], dof[live]
+        h = h * use[..., None]
         theta, p, r = self.theta_, self.P_, self.noise_var_
         prior_var = self.prior_std**2
-        eye = np.eye(10)
-        for i in range(start, stop):
-            use = sliding[i]
-            if not use.any():
-                continue
-            h, y, rj = h_all[i][use], residual[i][use], r[use]
-            innovation = y - h @ theta
-            ph = p @ h.T
-            s = h @ ph + np.diag(rj)
-            s_inv = np.linalg.inv(s)
-            dof = int(use.sum())
-            nis = float(innovation @ s_inv @ innovation)
-            self._change.append(nis / dof)
-            if len(self._change) == self.change_window and sum(self._change) > self.change_threshold * self.change_window:
-                p = np.diag(prior_var)  # a new payload: start over from the prior, keep the estimate
+        nu = (y - h @ theta) * use
+        nis = self._nis(h, nu, p, r)
+        # a new payload: the equations' innovations over CHANGE_WINDOW_S of the arm's time (whole blocks)
+        now = float(ts[-1])
+        self._change.append((float(ts[0]), now, float(nis.sum()), int(dof.sum())))
+        while self._change[0][1] < now - self.change_window_s:
+            self._change.popleft()
+        if now - self._change[0][0] >= 0.8 * self.change_window_s:
+            window_nis = sum(c[2] for c in self._change)
+            window_dof = sum(c[3] for c in self._change)
+            if window_nis > self.change_threshold * window_dof:
+                p = np.diag(prior_var)  # start over from the prior, keep the estimate
                 self._change.clear()
                 self.resets_ += 1
-                continue
-            if nis / dof > GROSS_NIS:
-                self.rejected_ += 1
-                self._window.append((float(ts[i]), nis, dof, 1))
-                continue
-            gain = ph @ s_inv
-            theta = theta + gain @ innovation
-            a = eye - gain @ h
-            p = a @ p @ a.T + (gain * rj) @ gain.T
-            p = 0.5 * (p + p.T)
+                nis = self._nis(h, nu, p, r)
+        gross = nis > GROSS_NIS * dof
+        take = ~gross
+        self.rejected_ += int(gross.sum())
+        # each equation counts for the share of the innovations' correlation time it covers
+        # (never more than one): 1 ms and 10 ms records of one motion carry the same information
+        weight = np.minimum(1.0, dts[:, None] / self.correlation_time_[None, :]) * use * take[:, None]
+        inv_r = weight / r
+        if take.any():
+            d = np.sqrt(prior_var)
+            hs = h * d  # scaled parameters: x = theta / d
+            flat = hs.reshape(-1, 10)
+            info = (flat * inv_r.reshape(-1, 1)).T @ flat
+            grad = flat.T @ (inv_r * nu).ravel()
+            ps = p / np.outer(d, d)
+            ps_new = np.linalg.inv(np.linalg.inv(ps) + info)
+            ps_new = 0.5 * (ps_new + ps_new.T)
+            theta = theta + d * (ps_new @ grad)
+            p = ps_new * np.outer(d, d)
             # the noise this estimator sees: E[e^2] = r - (h P+ h^T) for the residual e after
-            # the update (unbiased whatever P is; innovation^2 - h P h^T is not when P is large)
-            post = innovation - h @ (gain @ innovation)
-            seen = np.minimum(post**2 + np.einsum("ij,jk,ik->i", h, p, h), 9.0 * rj)
-            if moving[i]:
-                p = p / self.forgetting ** (dts[i] / FORGETTING_STEP_S)
-                d = np.diag(p)
-                if (d > prior_var).any():  # never past the prior: no wind-up
-                    sc = np.sqrt(np.minimum(1.0, prior_var / d))
+            # the update (unbiased whatever P is); outliers clipped at 3 sigma
+            post = nu - (h @ (theta - self.theta_)) * use
+            seen = np.minimum(post**2 + ((h @ p) * h).sum(axis=2), 9.0 * r)
+            counted = use & take[:, None]
+            span = (dts[:, None] * counted).sum(axis=0)
+            mean_seen = (seen * dts[:, None] * counted).sum(axis=0) / np.maximum(span, 1e-300)
+            rate = np.minimum(1.0, span / self.noise_time_constant_s)
+            r = np.where(span > 0, r + rate * (mean_seen - r), r)
+            moving_s = float(dts[take & moving].sum())
+            if moving_s > 0:
+                p = p / self.forgetting ** (moving_s / FORGETTING_STEP_S)
+                dg = np.diag(p)
+                if (dg > prior_var).any():  # never past the prior: no wind-up
+                    sc = np.sqrt(np.minimum(1.0, prior_var / dg))
                     p = p * np.outer(sc, sc)
-            rate = dts[i] / self.noise_time_constant_s
-            r[use] = rj + rate * (seen - rj)  # outliers clipped at 3 sigma
-            self._window.append((float(ts[i]), nis, dof, 0))
-            self.n_updates_ += 1
-            self.innovation_ = innovation
-        while self._window and self._window[0][0] < ts[stop - 1] - CONSISTENCY_WINDOW_S:
+            self.n_updates_ += int(take.sum())
+            self.innovation_ = nu[take][-1][use[take][-1]]
+        # the chi-square window: each row weighted by its share of the correlation time
+        share = np.minimum(1.0, dts / float(np.mean(self.correlation_time_)))
+        self._window.append((float(ts[-1]), float((nis * share)[take].sum()), float((dof * share)[take].sum()),
+                             int(gross.sum()), int(live.sum())))
+        while self._window and self._window[0][0] < ts[-1] - CONSISTENCY_WINDOW_S:
             self._window.popleft()
-        self.theta_, self.P_ = theta, p
+        white = np.where(use & take[:, None], nu / np.sqrt(self.noise_var_), np.nan)
+        self._innovations.append((ts, white))
+        self.theta_, self.P_, self.noise_var_ = theta, p, r
+        self._update_correlation_time(float(ts[-1]))
+
+    def _update_correlation_time(self, now: float) -> None:
+        """Each joint's integrated autocorrelation time of the innovations over the last
+        ``CORRELATION_MEMORY_S`` (every ``CORRELATION_UPDATE_S`` of the arm's time).
+
+        RLS takes its equations as independent; records 1 ms apart are not (the derivative
+        window alone spans 100 ms, and a model error lasts as long as the pose). With
+        correlation time ``tau``, n rows ``dt`` apart carry the information of ``n dt / tau``
+        independent ones (the effective sample size of a correlated series), so each row is
+        weighted ``dt / tau``: the covariance is the one of independent samples of the same
+        motion, at any record rate. ``tau = dt (1 + 2 sum rho_k)``, the sum over the initial
+        positive autocorrelations (about zero, not the mean: a persistent bias is a long
+        correlation), up to lags of ``CORRELATION_MAX_LAG_S``.
+        """
+        while self._innovations and self._innovations[0][0][-1] < now - CORRELATION_MEMORY_S:
+            self._innovations.popleft()
+        if self._next_correlation_t is None:
+            self._next_correlation_t = now + CORRELATION_UPDATE_S
+        if now < self._next_correlation_t:
+            return
+        self._next_correlation_t = now + CORRELATION_UPDATE_S
+        t = np.concatenate([b[0] for b in self._innovations])
+        if t.size < 20 or t[-1] - t[0] < CORRELATION_MIN_S:
+            return
+        x = np.concatenate([b[1] for b in self._innovations])
+        dt = float(np.median(np.diff(t)))
+        m = np.isfinite(x)
+        x0 = np.where(m, x, 0.0)
+        n = t.size
+        lags = min(n - 1, max(1, int(round(CORRELATION_MAX_LAG_S / dt))))
+        nfft = 1 << int(np.ceil(np.log2(2 * n)))
+        fx, fm = np.fft.rfft(x0, nfft, axis=0), np.fft.rfft(m.astype(float), nfft, axis=0)
+        c = np.fft.irfft(np.abs(fx) ** 2, nfft, axis=0)[: lags + 1]
+        pairs = np.fft.irfft(np.abs(fm) ** 2, nfft, axis=0)[: lags + 1]
+        enough = pairs > 0.25 * np.maximum(pairs[0], 1.0)
+        cov = np.where(enough, c / np.maximum(pairs, 1.0), 0.0)
+        for j in range(x.shape[1]):
+            if pairs[0, j] < 20 or cov[0, j] <= 0:
+                continue
+            rho = cov[1:, j] / cov[0, j]
+            stop = np.flatnonzero(~(rho > 0))
+            k = int(stop[0]) if stop.size else rho.size
+            self.correlation_time_[j] = dt * (1.0 + 2.0 * float(rho[:k].sum()))
 
     # --- what the estimate means ---
     @property
@@ -581,20 +913,21 @@ class PayloadRLS:
         return self.std_ < 0.5 * self.prior_std
 
     def consistency(self) -> dict[str, Any]:
-        """Chi-square test of the whitened innovations over the last second of the arm's time:
-        ``sum(nis) / c`` against the 99.9 % point of chi-square with ``sum(dof) / c`` degrees of
-        freedom, ``c`` the filter's correlation length. One-sided: innovations larger than their
-        covariance allows (a model error, a wrong clock) fail it; smaller ones mean the stated
-        std is cautious. More than 2 % gross errors in the window fail it too."""
-        taken = [w for w in self._window if not w[3]]
-        rejected = len(self._window) - len(taken)
-        dof = sum(w[2] for w in taken)
-        if dof < 5 * FILTER_CORRELATION:
+        """Chi-square test of the whitened innovations over the last second of the arm's time.
+
+        Each row's normalized innovation squared counts for its share ``dt / tau`` of the
+        innovations' correlation time (see :meth:`_update_correlation_time`): the sum is
+        tested against the 99.9 % point of chi-square with as many degrees of freedom as the
+        rows' equations count independent ones. One-sided: innovations larger than their
+        covariance allows (a model error, a wrong clock) fail it; smaller ones mean the
+        stated std is cautious. More than 2 % gross errors in the window fail it too."""
+        rows = sum(w[4] for w in self._window)
+        rejected = sum(w[3] for w in self._window)
+        dof = sum(w[2] for w in self._window)
+        if dof < 5:
             return {"consistent": False, "nis_per_dof": None, "equations": dof, "rejected": rejected}
-        nis = sum(w[1] for w in taken)
-        k = dof / FILTER_CORRELATION
-        stat = nis / FILTER_CORRELATION
-        ok = bool(stat <= _chi2_upper(k)) and rejected <= 0.02 * len(self._window)
+        nis = sum(w[1] for w in self._window)
+        ok = bool(nis <= _chi2_upper(dof)) and rejected <= 0.02 * rows
         return {"consistent": ok, "nis_per_dof": nis / dof, "equations": dof, "rejected": rejected}
 
     def feasible_(self) -> Array:
@@ -602,8 +935,15 @@ class PayloadRLS:
         key = (self.n_updates_ + self.resets_ + self.rejected_, self.theta_.tobytes())
         if self._projected is None or self._projected[0] != key:
             last = self._projected[1] if self._projected is not None else None
-            self._projected = (key, project_feasible(self.theta_, self.P_, start=last))
+            self._projected = (key, project_feasible(self.theta_, self.P_, start=last, atol=PUBLISH_ATOL))
         return self._projected[1]
+
+    def snapshot(self) -> dict[str, Any]:
+        """What :meth:`document` needs of the estimator's state now (copies)."""
+        if not hasattr(self, "theta_"):
+            self._start()
+        return {"theta": self.theta_.copy(), "P": self.P_.copy(), "time": self.time_s_, "consistency": self.consistency(),
+                "updates": self.n_updates_, "resets": self.resets_, "rejected": self.rejected_, "rate_changes": self.rate_changes_}
 
     def estimate(self) -> dict[str, Any]:
         """Mass (kg), centre of mass (m) and inertia about it (kg m^2, xx xy xz yy yz zz) in
@@ -611,10 +951,31 @@ class PayloadRLS:
         the centre of mass); ``null`` for what the motion so far does not determine."""
         if not hasattr(self, "theta_"):
             self._start()
-        th_u, p = self.theta_, self.P_
-        th = self.feasible_()
-        std = self.std_
-        excited = self.excited_
+        return self.document(self.snapshot(), self.feasible_())
+
+    def estimates(self, snapshots: list[dict[str, Any]]) -> list[dict[str, Any]]:
+        """The documents of many snapshots, their projections in one batch
+        (:func:`project_feasible_many`): what a replay publishes, at a fraction of the cost."""
+        if not snapshots:
+            return []
+        if len(snapshots) < 4:  # a live batch: the last projection is a good start
+            out = []
+            for s in snapshots:
+                key = (s["updates"] + s["resets"] + s["rejected"], s["theta"].tobytes())
+                if self._projected is None or self._projected[0] != key:
+                    last = self._projected[1] if self._projected is not None else None
+                    self._projected = (key, project_feasible(s["theta"], s["P"], start=last, atol=PUBLISH_ATOL))
+                out.append(self.document(s, self._projected[1]))
+            return out
+        feasible = project_feasible_many(np.array([s["theta"] for s in snapshots]), np.array([s["P"] for s in snapshots]),
+                                         atol=PUBLISH_ATOL)
+        return [self.document(s, f) for s, f in zip(snapshots, feasible)]
+
+    def document(self, snap: dict[str, Any], th: Array) -> dict[str, Any]:
+        """The published document of a :meth:`snapshot` whose physically possible parameters are ``th``."""
+        th_u, p = snap["theta"], snap["P"]
+        std = np.sqrt(np.maximum(np.diag(p), 0.0))
+        excited = std < 0.5 * self.prior_std
         m = float(th[0])
         mass_known = bool(excited[0])
         com = com_std = inertia = None
@@ -626,7 +987,7 @@ class PayloadRLS:
             cs = np.sqrt(np.maximum(np.diag(jac @ p @ jac.T), 0.0))
             com, com_std = c.tolist(), cs.tolist()
             inertia = list(inertial_from_parameters(th).inertia_kgm2)
-        cons = self.consistency()
+        cons = snap["consistency"]
         mass_ok = mass_known and std[0] <= MASS_STD_KG + MASS_STD_REL * m
         com_ok = m < MIN_MASS_FOR_COM_KG or (com_std is not None and bool(excited[1:4].all()) and max(com_std) <= COM_STD_M)
         converged = bool(mass_ok and com_ok and cons["consistent"])
@@ -638,12 +999,12 @@ class PayloadRLS:
             status = "inconsistent"
         else:
             status = "converging"
-        doc = {"time": self.time_s_, "mass": m if mass_known else None, "mass_std": float(std[0]), "com": com, "com_std": com_std,
+        doc = {"time": snap["time"], "mass": m if mass_known else None, "mass_std": float(std[0]), "com": com, "com_std": com_std,
                "inertia": inertia, "inertia_std": std[4:].tolist(), "parameters": th.tolist(), "parameters_std": std.tolist(),
                "excited": excited.tolist(), "excited_parameters": [n for n, e in zip(PARAMETER_NAMES, excited) if e],
                "converged": converged, "status": status, "consistency": cons,
                "unconstrained": {"mass": float(th_u[0]), "parameters": th_u.tolist(), "feasible": bool(np.allclose(th, th_u))},
-               "updates": self.n_updates_, "resets": self.resets_, "rejected": self.rejected_, "rate_changes": self.rate_changes_}
+               "updates": snap["updates"], "resets": snap["resets"], "rejected": snap["rejected"], "rate_changes": snap["rate_changes"]}
         return json_safe(doc)
 
 
@@ -657,9 +1018,19 @@ def _chi2_upper(k: float, z: float = 3.0902) -> float:
 def json_safe(x: Any) -> Any:
     """``x`` with every non-finite float replaced by None: valid JSON (``null``, never ``NaN``)."""
     if isinstance(x, dict):
-        return {k: json_safe(v) for k, v in x.items()}
+        try:  # the usual case, checked by the C encoder: nothing to replace
+            json.dumps(x, allow_nan=False)
+            return x
+        except (ValueError, TypeError):
+            pass
+    return _json_safe(x)
+
+
+def _json_safe(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _json_safe(v) for k, v in x.items()}
     if isinstance(x, list | tuple):
-        return [json_safe(v) for v in x]
+        return [_json_safe(v) for v in x]
     if isinstance(x, float | np.floating):
         return float(x) if np.isfinite(x) else None
     if isinstance(x, np.integer):

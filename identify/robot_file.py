@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from .effects import CATALOGUE, LINEAR_EFFECTS, SETTINGS
+from .effects import CATALOGUE, FIXED, LINEAR_EFFECTS, SETTINGS
 from .errors import ImplausibleDataWarning, RobotFileError
 from .robot import DeclaredEffect, Inertial, Joint, JointLimits, JointType, Robot, dh_joint, inertia_entries, inertia_matrix, mdh_joint
 
@@ -206,8 +206,13 @@ def _effects(doc: Any, n_joints: int, src: str) -> list[DeclaredEffect]:
         name = e["effect"]
         if name not in CATALOGUE:
             raise RobotFileError(src, _field(where, "effect"), f"unknown effect {name!r} (catalogue: {', '.join(CATALOGUE)})")
-        if name not in LINEAR_EFFECTS and name not in SETTINGS:
-            raise RobotFileError(src, _field(where, "effect"), f"{name} cannot be declared yet (declarable: {', '.join([*LINEAR_EFFECTS, *SETTINGS])})")
+        if name not in LINEAR_EFFECTS and name not in SETTINGS and name not in FIXED:
+            raise RobotFileError(src, _field(where, "effect"), f"{name} cannot be declared yet (declarable: {', '.join([*LINEAR_EFFECTS, *SETTINGS, *FIXED])})")
+        if name in FIXED:
+            key = FIXED[name]
+            value = e.get(key)
+            if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
+                raise RobotFileError(src, _field(where, key), f"{name} needs {key}: a period > 0 in the joint's position (rad, or m), got {value!r}")
         if name in SETTINGS and "velocity" in e and (isinstance(e["velocity"], bool) or not isinstance(e["velocity"], int | float) or e["velocity"] < 0):
             raise RobotFileError(src, _field(where, "velocity"), f"must be a velocity >= 0 (rad/s or m/s), got {e['velocity']!r}")
         joint = e.get("joint")

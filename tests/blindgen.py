@@ -66,7 +66,7 @@ EFFECTS: dict[str, tuple[str, bool]] = {
     "spring": ("spring", False),
     "gravity_tilt": ("gravity_tilt", True),
     "load_coulomb": ("load_dependent_coulomb", False),  # (fc + c |tau_load|) sign(qd)
-    "friction_all": ("friction_all", True),  # Coulomb + viscous + offset on every joint
+    "friction_all": ("coulomb_friction", True),  # Coulomb + viscous + offset on every joint: the arm-wide friction candidate (joint null)
 }
 
 

@@ -129,3 +129,34 @@ def test_armid_diagnose_cli_writes_json_report_and_predictions(tmp_path: Path) -
                               str(ROOT / "config/robots/puma560.yaml"), "--validate", str(tmp_path / "nope.csv")],
                              cwd=ROOT, capture_output=True, text=True)
     assert missing.returncode == 2 and "nope.csv" in missing.stderr and len(missing.stderr.strip().splitlines()) == 1
+
+
+def test_after_is_identify_with_the_findings_declared() -> None:
+    """The 'after' model is `identify` on the declared model plus the findings (findings_model):
+    a lab that declares what diagnose found gets the same predictions, sample for sample."""
+    import warnings
+
+    from identify.diagnosis import findings_model
+    from identify.identification import identify
+
+    rng = np.random.default_rng(7)
+    undeclared, _ = CASES["cogging"](rng)
+    robot: Robot = dataclasses.replace(PUMA, effects=tuple(DeclaredEffect(name, j + 1, {}) for _, (name, _) in BASE.items() for j in range(6)))
+    config = SimulationConfig(joints=tuple(JointEffects(**({k: float(v[j]) for k, (_, v) in BASE.items()} | (undeclared if j == 2 else {})))
+                                           for j in range(6)), current_noise_a=0.005, current_time_constant_s=0.0002, substeps=2)
+    prepared = []
+    for k, duration in ((0, 16.0), (1, 8.0)):
+        traj = random_fourier_trajectory(robot, harmonics=5, base_frequency_hz=0.125, fill=0.5, seed=77 + k)
+        run = simulate(robot, config, traj.evaluate, duration, seed=77 + k)
+        prepared.append(prepare(run.recording(), robot, PrepareOptions(lowpass_hz=20.0, torque_hold=True)))
+    d = diagnose(robot, [prepared[0]], [prepared[1]])
+    _assert_found(d, "cogging", 2)
+    model, options = findings_model(robot, d.found)
+    assert ("cogging", 3) in {(e.effect, e.joint) for e in model.effects}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = identify(model, [prepared[0]], [prepared[1]], options)
+    _, _, tau_hat = result.predict_stamps([s for s in prepared[1].segments])
+    assert d.predictions is not None
+    np.testing.assert_allclose(tau_hat, d.predictions[2], rtol=0, atol=1e-9 * float(np.abs(tau_hat).max()))
+    assert result.validation is not None and result.validation["relative_error"] == pytest.approx(d.after["relative_error"], rel=1e-12)

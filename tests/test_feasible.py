@@ -230,9 +230,17 @@ def test_puma_example_feasible_within_ten_percent(tmp_path: Path) -> None:
     out = tmp_path
     code = main(["identify", str(ROOT / "examples/puma560_excitation.csv"), "--robot", str(ROBOTS / "puma560.yaml"),
                  "--validate", str(ROOT / "examples/puma560_validation.csv"), "--feasible", "--urdf", str(out / "puma.urdf"),
-                 "--json", str(out / "puma.json")])
+                 "--json", str(out / "puma.json"), "--report", str(out / "report")])
     assert code == 0
     doc = json.loads((out / "puma.json").read_text())["feasible"]
+    # the consistency report in report.md: the links least squares gets wrong, by how much,
+    # and the held-out errors side by side
+    report = (out / "report" / "report.md").read_text()
+    section = report[report.index("## Physical consistency") : report.index("## Torques")]
+    assert "links 1, 3, 4 are not a physical body" in section and "triangle inequality" in section
+    ratio = doc["feasible"]["validation"]["relative_error"] / doc["least_squares"]["validation"]["relative_error"]
+    assert f"| held-out (validation) data | {100 * doc['least_squares']['validation']['relative_error']:.4g} %" in section
+    assert f"| {ratio:.3f} |" in section
     assert doc["feasible"]["consistent"] and all(link["consistent"] for link in doc["feasible"]["links"])
     # the published PUMA 560 values (the simulation's truth) are not all physical: link 3's
     # principal moments break the triangle inequality, and the report says so
@@ -246,26 +254,50 @@ def test_puma_example_feasible_within_ten_percent(tmp_path: Path) -> None:
 
 @pytest.mark.skipif(not (SHARED / "data/kuka_lwr4/measurements_1.npz").exists(), reason="shared KUKA data not present")
 def test_kuka_lwr4_feasible() -> None:
-    """The real LWR4+ recordings: least squares is far from physical on every link; the
-    feasible estimate is physical. Its held-out error is 10.8 % above least squares' on
-    recording 2 (not within the issue's 10 %); the exact projection (a plain SDP without
-    regulariser) gives the same 10.8 %, so no physically consistent rigid body of this model
-    does better in the data's metric. Bound here: what was measured, as a regression guard."""
+    """The real LWR4+ recordings, each identified on and validated on the other two: least
+    squares is far from physical on every link; the feasible estimate is physical on every
+    link. Recordings 1 and 2 repeat one trajectory, recording 3 is another, twice as fast.
+
+    Measured (held-out relative error, feasible / least squares): 1 -> 2 2.336 / 2.015 %
+    (1.16), 2 -> 1 2.395 / 2.224 % (1.08), 1 -> 3 5.36 / 13.9 %, 2 -> 3 4.58 / 14.3 %,
+    3 -> 1 3.21 / 4.89 %, 3 -> 2 3.01 / 4.61 %. Within the issue's 10 % on five of the six;
+    1 -> 2 is not, and no choice made on recording 1 got it there: the feasible set's own
+    optimum in the data's metric (regulariser weight 0) fits recording 1 itself 1.19 times
+    worse than least squares (2.11 / 1.78 %), and its error on recording 2 is 2.334 %; the
+    regulariser's weight (0 to 3000), an unweighted metric, every Coulomb smoothing of the
+    grid, training on the raw samples instead of the filtered ones give 2.33-2.76 %, and even
+    dropping the friction signs 2.25 % (1.12). Only a negative rotor inertia (-2.7, -1.9,
+    -0.7 kg m^2 on joints 1, 2, 7: no rotor) closes it (2.09 %): the recordings carry a
+    joint-local torque against each joint's acceleration that least squares absorbs as
+    negative inertias. That pair keeps its regression guard (README, feasible section)."""
     from identify.preprocess import prepare
     from identify.recordings import read_recording
 
     robot = load_robot(ROBOTS / "kuka_lwr4.yaml")
     data = SHARED / "data/kuka_lwr4"
-    ex = [prepare(read_recording(data / "measurements_1.npz", robot), robot)]
-    va = [prepare(read_recording(data / "measurements_2.npz", robot), robot)]
-    feasible, least_squares, fr = _held_out(robot, ex, va)
-    assert fr.consistent  # type: ignore[attr-defined]
-    assert not any(c.consistent for c in fr.least_squares_checks)  # type: ignore[attr-defined]
-    print(f"kuka_lwr4 1 -> 2: validation error feasible {feasible:.5f}, least squares {least_squares:.5f}, ratio {feasible / least_squares:.4f}")
-    # the guard was feasible <= 1.12 x least squares (measured 2.393 % / 2.159 %); since Coulomb
-    # friction is smooth with its velocity chosen by the fit, least squares reaches 2.015 % and
-    # the feasible estimate 2.336 %: the guard stays on the feasible model's own error
-    assert feasible <= 1.12 * 0.02159
+    prepared = {k: prepare(read_recording(data / f"measurements_{k}.npz", robot), robot) for k in (1, 2, 3)}
+    ratios = {}
+    for k in (1, 2, 3):
+        result = identify(robot, [prepared[k]])
+        for v in (1, 2, 3):
+            if v == k:
+                continue
+            fr = feasible_estimate(result, [prepared[v]])
+            assert fr.consistent and fr.validation is not None and fr.least_squares_validation is not None
+            for i in range(robot.n_joints):  # independently of the solver's own report
+                assert fr.phi[10 * i] > 0 and np.linalg.eigvalsh(pseudo_inertia(fr.phi[10 * i : 10 * i + 10]))[0] >= 0
+            assert not any(c.consistent for c in fr.least_squares_checks)
+            feasible, least_squares = fr.validation["relative_error"], fr.least_squares_validation["relative_error"]
+            ratios[k, v] = feasible / least_squares
+            print(f"kuka_lwr4 {k} -> {v}: validation error feasible {feasible:.5f}, least squares {least_squares:.5f}, ratio {ratios[k, v]:.4f}")
+            if (k, v) == (1, 2):
+                # the guard was feasible <= 1.12 x least squares (measured 2.393 % / 2.159 %); since
+                # Coulomb friction is smooth with its velocity chosen by the fit, least squares
+                # reaches 2.015 % and the feasible estimate 2.336 %: the guard stays on the
+                # feasible model's own error
+                assert feasible <= 1.12 * 0.02159
+            else:
+                assert feasible <= 1.10 * least_squares, (k, v)
 
 
 def test_bad_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -286,6 +318,10 @@ def test_bad_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert code == 2
     assert err[-1] == "armid identify: error: link 2 has no modeled inertial values: the physically consistent fit needs them as its prior"
     assert "Traceback" not in "\n".join(err)
+    # a robot described by DH rows has no geometry to take a box from
+    code = main(["identify", str(data), "--robot", str(ROBOTS / "planar2.yaml"), "--bounding-box"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err[-1].startswith("armid identify: error: --bounding-box: ") and "gives no link a box" in err[-1]
 
 
 def test_diagnose_feasible_takes_linear_findings(tmp_path: Path) -> None:
@@ -302,9 +338,11 @@ def test_diagnose_feasible_takes_linear_findings(tmp_path: Path) -> None:
         write_csv(paths[-1], seg.t, {"q": seg.q, "qd": seg.qd, "qdd": seg.qdd, "tau": seg.tau})
     out = tmp_path / "diag.json"
     code = main(["diagnose", str(paths[0]), "--robot", str(ROBOTS / "planar2.yaml"), "--validate", str(paths[1]), "--feasible",
-                 "--json", str(out), "--urdf", str(tmp_path / "planar2.urdf")])
+                 "--json", str(out), "--urdf", str(tmp_path / "planar2.urdf"), "--report", str(tmp_path / "report")])
     assert code == 0
     doc = json.loads(out.read_text())
+    report = (tmp_path / "report" / "diagnosis.md").read_text()
+    assert "## Physical consistency" in report and "| held-out (validation) data |" in report
     feasible = doc["feasible"]
     assert feasible["model"]["added_findings"] and feasible["feasible"]["consistent"]
     assert {e["effect"] for e in feasible["effects"]} >= {"viscous_friction"}
@@ -387,3 +425,65 @@ def test_interior_lift_and_massless_prior() -> None:
     assert np.abs(lifted - point).max() < 1e-6  # e = 2 * 1e-10 / min eig(J0), about 4e-8
     j, note = feasible_prior(np.zeros(10))
     assert note and "massless" in note and np.linalg.eigvalsh(j)[0] > 0
+
+
+def test_box_lmi_closed_form() -> None:
+    """tr(B_k J) = E[(u_k - x_k)(x_k - l_k)] over the mass: a solid box of uniform density
+    inside the bounding box (closed form: Var + (u - c)(c - l) per axis) is inside; the
+    same body moved half out is not, and the check names the axis."""
+    from identify.feasible import box_matrices, check_box
+
+    size, com = np.array([0.1, 0.2, 0.3]), np.array([0.0, 0.05, 0.1])
+    body = link_parameters(Inertial(2.0, tuple(com), tuple(inertia_entries(np.diag(2.0 / 12 * np.array(
+        [size[1] ** 2 + size[2] ** 2, size[0] ** 2 + size[2] ** 2, size[0] ** 2 + size[1] ** 2]))))))  # type: ignore[arg-type]
+    lo, hi = np.array([-0.1, -0.1, -0.1]), np.array([0.1, 0.2, 0.3])
+    j = pseudo_inertia(body)
+    for k, b in enumerate(box_matrices((lo, hi))):
+        expected = 2.0 * (size[k] ** 2 / 12 * -1 + (hi[k] - com[k]) * (com[k] - lo[k]))
+        assert np.isclose(np.sum(b * j), expected, rtol=1e-12)
+    assert check_box(body, (lo, hi)) == []
+    moved = link_parameters(Inertial(2.0, (0.0, 0.05, 0.3), tuple(inertia_entries(np.diag(
+        2.0 / 12 * np.array([size[1] ** 2 + size[2] ** 2, size[0] ** 2 + size[2] ** 2, size[0] ** 2 + size[1] ** 2]))))))  # type: ignore[arg-type]
+    out = check_box(moved, (lo, hi))
+    assert len(out) == 1 and "along z" in out[0]
+
+
+@pytest.mark.skipif(not (SHARED / "data/kuka_lwr4/measurements_1.npz").exists(), reason="shared KUKA data not present")
+def test_kuka_bounding_boxes_from_collision_geometry(tmp_path: Path) -> None:
+    """``--bounding-box``: each link's box from the URDF's collision primitives (link 6 has a
+    mesh: no box); the feasible estimate keeps every boxed link's mass in its box, checked
+    here from the centre of mass and the slab integrals; least squares is outside them."""
+    from armid.urdf_export import collision_boxes
+
+    robot = load_robot(ROBOTS / "kuka_lwr4.yaml")
+    boxes = collision_boxes(robot)
+    assert boxes[5] is None
+    lo7, hi7 = boxes[6]  # type: ignore[misc]
+    assert np.allclose(lo7, [-0.04, -0.04, -0.025]) and np.allclose(hi7, [0.04, 0.04, 0.025])  # cylinder r 0.04, length 0.05
+    lo1, hi1 = boxes[0]  # type: ignore[misc]
+    assert np.allclose(lo1, [-0.07, -0.07, -0.07]) and np.allclose(hi1[[0, 2]], [0.07, 0.27])  # two spheres and a tilted cylinder
+    data = SHARED / "data/kuka_lwr4"
+    out = tmp_path / "kuka.json"
+    code = main(["identify", str(data / "measurements_1.npz"), "--robot", str(ROBOTS / "kuka_lwr4.yaml"), "--validate", str(data / "measurements_3.npz"),
+                 "--bounding-box", "--json", str(out), "--urdf", str(tmp_path / "kuka.urdf")])
+    assert code == 0
+    doc = json.loads(out.read_text())["feasible"]
+    assert doc["feasible"]["consistent"] and doc["bounding_boxes"][5] is None
+    assert any("bounding box" in v for link in doc["least_squares"]["links"] for v in link["violations"])
+    phi = np.array([p["value"] for p in doc["parameters"]])
+    for i, box in enumerate(boxes):
+        m, h = phi[10 * i], phi[10 * i + 1 : 10 * i + 4]
+        assert m > 0 and np.linalg.eigvalsh(pseudo_inertia(phi[10 * i : 10 * i + 10]))[0] >= 0
+        if box is None:
+            continue
+        lo, hi = box
+        inertia = np.array([[phi[10 * i + 4], phi[10 * i + 5], phi[10 * i + 6]], [phi[10 * i + 5], phi[10 * i + 7], phi[10 * i + 8]],
+                            [phi[10 * i + 6], phi[10 * i + 8], phi[10 * i + 9]]])
+        second = 0.5 * np.trace(inertia) - np.diag(inertia)  # E[x_k^2] m
+        assert np.all(h / m >= lo - 1e-9) and np.all(h / m <= hi + 1e-9)
+        assert np.all(-second + (hi + lo) * h - hi * lo * m >= -1e-8 * m), i
+    ratio = doc["feasible"]["validation_ratio"]
+    print(f"kuka_lwr4 1 -> 3 with bounding boxes: validation error feasible {doc['feasible']['validation']['relative_error']:.5f}, "
+          f"least squares {doc['least_squares']['validation']['relative_error']:.5f}, ratio {ratio:.4f}")
+    assert ratio <= 1.10
+    assert pin.buildModelFromUrdf(str(tmp_path / "kuka.urdf")).nv == 7

@@ -93,6 +93,8 @@ def test_noisy_estimates_within_three_sigma(tmp_path, seed):  # type: ignore[no-
         ("name: x\njoints:\n  - {a: 0, alpha: 0, d: 0, theta: 0, inertial: {mass: 1, com: [0, 0]}}\n", "joints[0].inertial.inertia"),
         ("name: x\njoints:\n  - {a: 0, alpha: 0, d: 0, theta: 0}\neffects: [{effect: magic, joint: 1}]\n", "effects[0].effect"),
         ("name: x\njoints:\n  - {a: 0, alpha: 0, d: 0, theta: 0}\neffects: [{effect: coulomb_friction, joint: 4}]\n", "effects[0].joint"),
+        ("name: x\njoints:\n  - {a: 0, alpha: 0, d: 0, theta: 0}\neffects: [{effect: cogging, joint: 1}]\n", "effects[0].period_rad"),
+        ("name: x\njoints:\n  - {a: 0, alpha: 0, d: 0, theta: 0}\neffects: [{effect: cogging, joint: 1, period_rad: -1}]\n", "effects[0].period_rad"),
         ("name: x\njoints: [\n", "line"),
         ("name: x\nurdf: nothere.urdf\njoints: [{name: a}]\n", "urdf"),
     ],
