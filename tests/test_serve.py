@@ -334,3 +334,16 @@ def test_a_slow_service_skips_records_says_so_and_identifies_what_it_kept(tmp_pa
     print(f"\nslow service: skipped {service.skipped} records; whole run: kept {100 * kept_share:.0f} % in {len(docs[1]['experiment']['kept'])} "
           f"stretches, identify on them {rel:.3g} relative; against every record's estimate: max |z| {np.abs(z).max():.2f}, "
           f"{int((np.abs(z) > 3).sum())} of {z.size} beyond 3 sigma")
+
+
+@pytest.mark.skipif(shutil.which("script") is None, reason="needs script(1) for a pseudo-terminal")
+def test_record_shows_a_live_line_on_a_terminal_and_nothing_otherwise(tmp_path: Path) -> None:
+    cmd = [sys.executable, "-m", "armid.cli", "record", "--rig", str(RIG), "--channel", f"armid-live-{uuid.uuid4().hex[:6]}",
+           "--duration", "1", "--no-zenoh"]
+    on_tty = subprocess.run(["script", "-qc", " ".join([*cmd, "--out", str(tmp_path / "a")]), "/dev/null"], cwd=ROOT, env=ENV,
+                            capture_output=True, timeout=120)
+    lines = [x for x in on_tty.stdout.decode(errors="replace").replace("\r", "\n").splitlines() if "rate" in x]
+    assert on_tty.returncode == 0 and lines, on_tty.stdout[-2000:]
+    assert all(k in lines[-1] for k in ("records", "Hz", "lost cycles", "faults")), lines[-1]
+    piped = subprocess.run([*cmd, "--out", str(tmp_path / "b")], cwd=ROOT, env=ENV, capture_output=True, timeout=120)
+    assert piped.returncode == 0 and piped.stdout == b""
