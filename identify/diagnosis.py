@@ -36,6 +36,7 @@ declared model exactly as ``armid identify`` gives it, after the same with the f
 
 from __future__ import annotations
 
+import functools
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -45,6 +46,7 @@ import numpy as np
 from scipy import stats
 
 from .dynamics import regressor
+from .effects import ColumnFunction
 from .errors import PoorExcitationWarning
 from .identification import IdentificationResult, IdentifyOptions, declared_effects, identify, stacked_regressor, structural_base
 from .metrics import masked_summary, summary
@@ -110,6 +112,21 @@ class _Data:
     tau: Array
     period: float
     t: Array | None = None
+    # pointwise columns of the motion computed at the input's full rate and put through the
+    # same parallel filter as the torque (for columns that vary faster than the cut-off:
+    # cogging at speed); None: computed on the filtered samples themselves
+    full_rate: Callable[[ColumnFunction], Array] | None = None
+    _cache: dict[Any, Array] = field(default_factory=dict, compare=False, repr=False)
+
+    def filtered(self, fn: ColumnFunction) -> Array:
+        """``fn(q, qd, qdd)`` -> (n, k) as the equations see it (see ``full_rate``); the same
+        function (a partial: the same function and arguments) is computed once per data set."""
+        if self.full_rate is None:
+            return fn(self.q, self.qd, self.qdd)
+        key = (fn.func, fn.args, tuple(sorted(fn.keywords.items()))) if isinstance(fn, functools.partial) else fn
+        if key not in self._cache:
+            self._cache[key] = self.full_rate(fn)
+        return self._cache[key]
 
     @property
     def n_joints(self) -> int:
@@ -125,6 +142,25 @@ class _Data:
         out[j :: self.n_joints] = columns
         return out
 
+    def lagged(self, j: int | None, delay: float) -> _Data:
+        """The data with a found delay undone: joint j's motion read ``delay`` later (its
+        position was reported late), or for ``j`` None every joint's torque read ``delay``
+        later (the torque channel lags the positions)."""
+        n = self.q.shape[0]
+        idx = np.arange(n, dtype=float)
+        src = idx + delay / self.period
+
+        def later(x: Array, cols: range | list[int]) -> Array:
+            x = x.copy()
+            for c in cols:
+                x[:, c] = np.interp(src, idx, x[:, c])
+            return x
+
+        if j is None:
+            return replace(self, tau=later(self.tau, range(self.n_joints)), _cache={})
+        # the full-rate columns would not see the lag: computed on the lagged samples instead
+        return replace(self, q=later(self.q, [j]), qd=later(self.qd, [j]), qdd=later(self.qdd, [j]), full_rate=None, _cache={})
+
     def shifted(self, j: int, steps: int) -> _Data:
         """Joint j's motion ``steps`` samples later (edges repeated)."""
         def shift(x: Array) -> Array:
@@ -138,6 +174,11 @@ class _Data:
         return _Data(shift(self.q), shift(self.qd), shift(self.qdd), self.tau, self.period, self.t)
 
 
+def _cogging_columns(j: int, period: float, q: Array, qd: Array, qdd: Array) -> Array:
+    x = 2 * np.pi * q[:, j] / period
+    return np.column_stack([np.sin(x), np.cos(x)])
+
+
 def _stack(prepared: list[Prepared]) -> _Data:
     """The equations' samples: kinematics and torque through each segment's parallel filter
     (low-pass, edges, decimation), so that torque and motion stay aligned."""
@@ -146,7 +187,12 @@ def _stack(prepared: list[Prepared]) -> _Data:
     period = filt.period_s * filt.decimation
     q, qd, qdd, tau = (np.concatenate([s.parallel.apply(getattr(s, k)) for s in segs]) for k in ("q", "qd", "qdd", "tau"))
     t = np.concatenate([s.t[s.parallel.kept(s.n_samples)] for s in segs])
-    return _Data(q, qd, qdd, tau, period, t)
+
+    def full_rate(fn: ColumnFunction) -> Array:
+        return np.concatenate([s.parallel.apply(fn(s.q, s.qd, s.qdd)) if s.parallel.cutoff_hz is not None
+                               else fn(s.q, s.qd, s.qdd)[s.parallel.kept(s.n_samples)] for s in segs])
+
+    return _Data(q, qd, qdd, tau, period, t, full_rate)
 
 
 @dataclass(frozen=True)
@@ -269,10 +315,10 @@ def _candidates(robot: Robot, data: _Data, present: set[tuple[str, int | None]],
             span = float(np.ptp(data.q[:, j]))
             for k in range(2, opts.max_cogging_per_turn + 1):
                 period = 2.0 * np.pi / k
-                if span < 2.0 * period:
+                if span < period:  # at least one whole period over the motion
                     continue
-                lin("cogging", lambda d, j=j, p=period: np.column_stack([np.sin(2 * np.pi * d.q[:, j] / p), np.cos(2 * np.pi * d.q[:, j] / p)]),  # type: ignore[misc]
-                    ("a", "b"), setting=(("period_rad", period),))
+                cog = functools.partial(_cogging_columns, j, period)
+                lin("cogging", lambda d, fn=cog: d.filtered(fn), ("a", "b"), setting=(("period_rad", period),))  # type: ignore[misc]
         if ("torque_gain", j) not in present:
             out.append(Candidate("torque_gain", j, (), ("c",), block=lambda d, j=j: ctx["predict"](d)[:, j : j + 1]))  # type: ignore[misc]
         if ("time_delay", j) not in present:  # joint j's drive reports its position late: every joint's torque leads it
@@ -337,7 +383,10 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
         return stacked_regressor(robot, effects, d.q, d.qd, d.qdd)[:, base.independent]
 
     robot0 = robot
+    sample_period = min(s.parallel.period_s for p in experiments for s in p.segments)  # the input's, before decimation
     tilt_total, tilt_rounds = np.zeros(2), 0
+    delay_total: dict[int | None, float] = {}
+    delay_rounds: dict[int | None, int] = {}
 
     wi, wv = base_columns(ident), base_columns(held)
     yi, yv = ident.y, held.y
@@ -421,7 +470,7 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
                 continue  # friction that pushes the joint along, or a negative inertia: not physical
             if c.effect == "torque_gain" and not -0.9 < float(gamma[0]) < 9.0:
                 continue  # a gain below 0.1 or above 10 (or negative) is a wrong robot file or wiring, not an effect
-            if c.effect == "time_delay" and abs(float(gamma[0])) < 0.5 * ident.period:
+            if c.effect == "time_delay" and abs(float(gamma[0])) < 0.5 * sample_period:
                 # shorter than half a sample period: within the timing uncertainty of the
                 # samples themselves (zero-order hold of the current, current loop, filters)
                 continue
@@ -509,6 +558,29 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
             base = structural_base(robot, effects)  # a tilt makes more of the first links' parameters seen
             wi, wv = base_columns(ident), base_columns(held)
             continue
+        if best.effect == "time_delay":
+            # applied exactly, like the tilt: the data are shifted by the delay and the search
+            # goes on; a further delay of the same kind found later corrects this one (the
+            # linearised estimate is biased by the fit it was taken about; at most two corrections)
+            key = ("time_delay", best.joint)
+            d = float(gamma[0])
+            ident, held = ident.lagged(best.joint, d), held.lagged(best.joint, d)
+            delay_total[best.joint] = delay_total.get(best.joint, 0.0) + d
+            earlier = next((f for f in found if f.effect == "time_delay" and f.joint == best.joint), None)
+            if earlier is not None:
+                earlier.parameters["delay_s"] = delay_total[best.joint]
+                earlier.explained = 1.0 - (1.0 - earlier.explained) * (1.0 - finding.explained)
+                earlier.error_after = finding.error_after
+            else:
+                found.append(finding)
+            delay_rounds[best.joint] = delay_rounds.get(best.joint, 0) + 1
+            if delay_rounds[best.joint] >= 3:
+                present.add(key)
+            yi, yv = ident.y, held.y
+            wi, wv = base_columns(ident), base_columns(held)
+            extra_i = np.column_stack([np.zeros((yi.size, 0))] + [c.columns(ident) for c in chosen])
+            extra_v = np.column_stack([np.zeros((yv.size, 0))] + [c.columns(held) for c in chosen])
+            continue
         found.append(finding)
         chosen.append(best)
         present.add((best.effect, best.joint))
@@ -592,12 +664,10 @@ def findings_model(robot: Robot, found: list[Finding]) -> tuple[Robot, IdentifyO
 
 
 def _refine_delays(robot: Robot, found: list[Finding], experiments: list[Prepared]) -> None:
-    """A delay's linearised estimate is biased (the derivative is taken of a model fitted
-    without the delay: a 19 ms delay came out 34 ms), so each found delay is refined on the
-    identification data with the exact model (the motion or the torque shifted in time): the
-    fit's error on a grid of 0.2-2 times the estimate (it is not unimodal: a shift by about a
-    period of the excitation's harmonics fits again), then Brent's method between the best
-    point's neighbours."""
+    """Each found delay, refined on the identification data with the exact model (the motion
+    or the torque shifted in time) as `identify` fits it: the fit's error on a grid of
+    0.6-1.6 times the search's estimate (not unimodal: a shift by about a period of the
+    excitation's harmonics fits again), then Brent's method between the best point's neighbours."""
     from scipy.optimize import minimize_scalar
 
     for f in found:
@@ -610,7 +680,7 @@ def _refine_delays(robot: Robot, found: list[Finding], experiments: list[Prepare
             model, options = findings_model(robot, found)
             return float(identify(model, experiments, None, options).fit["relative_error"])
 
-        grid = d0 * np.array([0.2, 0.35, 0.5, 0.65, 0.8, 1.0, 1.25, 1.6, 2.0])
+        grid = d0 * np.array([0.6, 0.8, 1.0, 1.25, 1.6])
         errors = [error(d) for d in grid]
         k = int(np.argmin(errors))
         lo, hi = sorted((grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]))
@@ -665,8 +735,11 @@ def _blocks(d: _Data, parts: int = 10) -> tuple[_Data, _Data]:
     block = np.minimum(np.arange(n) * parts // max(n, 1), parts - 1)
     held = block % 2 == 1
 
+    full = d.full_rate
+
     def take(mask: Array) -> _Data:
-        return _Data(d.q[mask], d.qd[mask], d.qdd[mask], d.tau[mask], d.period, None if d.t is None else d.t[mask])
+        rows = None if full is None else (lambda fn: full(fn)[mask])
+        return _Data(d.q[mask], d.qd[mask], d.qdd[mask], d.tau[mask], d.period, None if d.t is None else d.t[mask], rows)
 
     return take(~held), take(held)
 
