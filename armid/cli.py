@@ -336,24 +336,40 @@ def _record(args: argparse.Namespace) -> int:
             stream = Stream(session, rig.robot.name, "recorder", lambda: {"records": acq.sequence, "invalid": acq.invalid.tolist(),
                                                                           "dropped_by_stream": sinks[-1].dropped})
             sinks.append(Sink("zenoh", stream.publish, bounded=True, capacity=5000))
-        acq = Acquisition(driver, sinks, on_fault=lambda f: stream.event("fault", joint=f.joint + 1, code=f.code, meaning=f.meaning) if stream else None)
+        faults: list[Any] = []
+
+        def on_fault(f: Any) -> None:
+            faults.append(f)
+            if stream:
+                stream.event("fault", joint=f.joint + 1, code=f.code, meaning=f.meaning)
+
+        acq = Acquisition(driver, sinks, on_fault=on_fault)
+        from armid.daq.experiment_stream import experiment_description
+
+        run_name = out.name or "record"
+        experiment = experiment_description(run_name, None, rig.n_joints, metadata)
         if stream:
-            stream.event("start", rig=rig.name)
+            stream.event("start", rig=rig.name, run=run_name, experiment=experiment)
+        from .live import LiveLine, acquisition_line
+
+        live = LiveLine(lambda: acquisition_line(acq, driver, len(faults), rig.period_s))
         acq.start()
         start = time.monotonic()
         print(f"armid record: {rig.name} -> {out / 'run.mcap'} (Ctrl-C stops)", file=sys.stderr, flush=True)
-        while not stop.wait(0.1):
-            elapsed = acq.sequence * rig.period_s if paced else time.monotonic() - start
-            if args.duration and elapsed >= args.duration:
-                break
-            if acq.error:
-                break
+        with live:
+            while not stop.wait(0.1):
+                elapsed = acq.sequence * rig.period_s if paced else time.monotonic() - start
+                if args.duration and elapsed >= args.duration:
+                    break
+                if acq.error:
+                    break
         acq.stop()
         recorder.close()
         if can_log is not None:
             can_log.stop()
         if stream:
-            stream.event("stop", records=acq.sequence)
+            stream.event("stop", rig=rig.name, run=run_name, experiment=experiment, records=recorder.count, completed=acq.error is None,
+                         reason=acq.error, first_sequence=0, last_sequence=acq.sequence - 1, first_cycle=0, window_s=None)
         print(f"armid record: {acq.sequence} records, invalid per joint {acq.invalid.tolist()}, lost cycles per joint "
               f"{driver.lost_cycles.tolist()}" + (f", dropped by the stream {sinks[-1].dropped}" if stream else ""), file=sys.stderr)
         return 1 if acq.error else 0
@@ -410,11 +426,8 @@ def _excite(args: argparse.Namespace) -> int:
 
     from rich.console import Console
 
-    from armid.daq.excite import ExcitationSession
-    from armid.identify import excitation as ex
     from armid.io.rig_file import load_rig
 
-    from .experiments import Experiment, design_experiments, run_experiments
 
     rig = load_rig(args.rig)
     changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
@@ -444,27 +457,76 @@ def _excite(args: argparse.Namespace) -> int:
     out = Path(args.out or f"runs/{time.strftime('%Y%m%d-%H%M%S')}")
     # the pose the arm will be at: the rig's (simulated) start, or the drives' own report
     start = np.asarray(rig.simulation.get("initial_position", np.zeros(n)), float) if simulate else None
+    zsession = stream = None
+    holder: dict[str, Any] = {}
+    if not args.no_zenoh and not args.dry_run:  # every record on armid/<robot>/joint_state, each experiment on events
+        from armid.daq.stream import Stream
+
+        zsession = open_zenoh(args)
+
+        def status() -> dict[str, Any]:
+            s = holder.get("session")
+            acq = s.acquisition if s is not None else None
+            return {"component": "excite", "records": acq.sequence if acq else 0, "invalid": acq.invalid.tolist() if acq else [],
+                    "dropped_by_stream": s._sinks[-1].dropped if s is not None else 0}
+
+        stream = Stream(zsession, robot.name, "excite", status)
+    try:
+        return _excite_run(args, rig, robot, n, simulate, links, trajectory, out, start, console, stream, holder)
+    finally:
+        if stream is not None:
+            stream.close()
+        if zsession is not None:
+            zsession.close()
+
+
+def _excite_run(args: argparse.Namespace, rig: Any, robot: Any, n: int, simulate: bool, links: list[int], trajectory: Any, out: Path,
+                start: Any, console: Any, stream: Any, holder: dict[str, Any]) -> int:
+    from armid.daq.excite import ExcitationSession
+    from armid.identify import excitation as ex
+
+    from .experiments import Experiment, design_experiments, run_experiments
+
+    if start is None:  # the pose the drives report; the drives are let be while this process designs
+        driver, sim = _open_driver(rig, args)
+        with ExcitationSession(rig, driver, simulator=sim, tracking_limit_rad=args.tracking_limit) as probe:
+            start = probe.position
+    if trajectory is not None:
+        traj, moving = trajectory
+        limits = ex.Limits.of(robot)
+        p = ex.plan(traj, start, limits, periods=args.periods)
+        ex.check_plan(robot, p, rig.period_s, limits)
+        design = ex.Design(traj, moving, tuple(range(n)), [], [], 0, float("nan"), float("nan"), {})
+        experiments = [Experiment(Path(args.trajectory).stem, design, p)]
+    else:
+        whole = [("whole", args.periods)] if not links or args.whole else []
+        experiments = design_experiments(robot, start, links, whole, rig.period_s, link_frequency_hz=args.frequency or 0.5,
+                                          link_periods=args.periods, whole_frequency_hz=args.frequency or 0.2, seed=args.seed,
+                                          log=lambda m: console.print(f"  {m}"))
+    _write_json(out / "designs.json", {e.name: e.design.to_json() for e in experiments})
+    console.print(f"armid excite: {len(experiments)} trajectories checked against every limit; recording to {out}")
+    if args.dry_run:
+        return 0
+    # designing can keep this process busy for tens of seconds: only now the drives run with it
     driver, sim = _open_driver(rig, args)
-    with ExcitationSession(rig, driver, simulator=sim, tracking_limit_rad=args.tracking_limit) as session:
-        if start is None or np.abs(start - session.position).max() > 0.02:
-            start = session.position
-        if trajectory is not None:
-            traj, moving = trajectory
-            limits = ex.Limits.of(robot)
-            p = ex.plan(traj, start, limits, periods=args.periods)
-            ex.check_plan(robot, p, rig.period_s, limits)
-            design = ex.Design(traj, moving, tuple(range(n)), [], [], 0, float("nan"), float("nan"), {})
-            experiments = [Experiment(Path(args.trajectory).stem, design, p)]
-        else:
-            whole = [("whole", args.periods)] if not links or args.whole else []
-            experiments = design_experiments(robot, start, links, whole, rig.period_s, link_frequency_hz=args.frequency or 0.5,
-                                              link_periods=args.periods, whole_frequency_hz=args.frequency or 0.2, seed=args.seed,
-                                              log=lambda m: console.print(f"  {m}"))
-        _write_json(out / "designs.json", {e.name: e.design.to_json() for e in experiments})
-        console.print(f"armid excite: {len(experiments)} trajectories checked against every limit; recording to {out}")
-        if args.dry_run:
-            return 0
-        reports = run_experiments(session, experiments, out, console)
+    with ExcitationSession(rig, driver, simulator=sim, tracking_limit_rad=args.tracking_limit, stream=stream) as session:
+        holder["session"] = session
+        moved = float(np.abs(start - session.position).max())
+        if moved > 0.02:
+            raise UsageError(f"the arm is {moved:.3f} rad from the pose the trajectories were designed from: it moved; run again")
+        from .live import RateLine, acquisition_counts, enabled
+
+        rate = RateLine()
+
+        def status() -> str:
+            acq = session.acquisition
+            if acq is None:
+                return ""
+            records, lost, invalid = acquisition_counts(acq, session.driver)
+            faults = 1 if session.control.stop_reason and "fault" in session.control.stop_reason else 0
+            return rate(records, lost, invalid, faults, sum(s.dropped for s in acq.sinks))
+
+        reports = run_experiments(session, experiments, out, console, status=status if enabled() else None)
     _write_json(out / "runs.json", [r.to_json() for r in reports])
     for r in reports:
         status = "completed" if r.completed else f"STOPPED: {r.stop_reason}"
@@ -700,6 +762,70 @@ def _estimate(args: argparse.Namespace) -> int:
             out.close()
 
 
+def _serve(args: argparse.Namespace) -> int:
+    """The estimator service (``armid/serve.py``) until Ctrl-C, SIGTERM or ``--duration``."""
+    import signal
+    import tempfile
+    import threading
+    import time
+
+    from armid.io.robot_file import load_robot
+
+    from .serve import EstimatorService, ServiceOptions
+
+    robot_path = Path(args.robot)
+    if not robot_path.exists() and "/" not in args.robot and not robot_path.suffix:
+        shipped = Path(__file__).resolve().parent.parent / "config" / "robots" / f"{args.robot}.yaml"
+        if shipped.is_file():
+            robot_path = shipped
+    robot = load_robot(robot_path)
+    _inputs_read()
+    try:  # never slow acquisition on the same machine: the arithmetic runs at a lower priority
+        os.nice(5)
+    except OSError:
+        pass
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    out_json = open(args.json, "a") if args.json else None  # noqa: SIM115 - closed below
+    tmp = None if args.out else tempfile.TemporaryDirectory(prefix="armid-serve-")
+    out = Path(args.out) if args.out else Path(tmp.name)  # type: ignore[union-attr]
+
+    def published(doc: dict[str, Any]) -> None:
+        e = doc["experiment"]
+        what = e.get("note") or (f"links done {doc['links_done']}" if e.get("kind") == "single_link" else f"whole arm from {e['run']}")
+        v = doc.get("validation")
+        print(f"armid serve: {e['run']}: {what}; {len(doc['base_parameters'])} base parameters published"
+              + (f", validation error {100 * v['relative_error']:.3g} %" if v else "")
+              + (f" ({e['missing']} records of the run not received)" if e.get("missing") else ""), file=sys.stderr, flush=True)
+        if out_json is not None:
+            out_json.write(strict_json(doc) + "\n")
+            out_json.flush()
+
+    options = ServiceOptions(max_backlog=args.max_backlog, whole_arm=args.whole_arm, payload=not args.no_payload)
+    try:
+        with open_zenoh(args) as session:
+            service = EstimatorService(session, robot, out, options, on_publish=published,
+                                       log=lambda m: print(f"armid serve: {m}", file=sys.stderr, flush=True))
+            print(f"armid serve: {robot.name}: listening on armid/{robot.name}/joint_state and events; publishing "
+                  f"armid/{robot.name}/estimate/parameters (Ctrl-C stops)", file=sys.stderr, flush=True)
+            try:
+                deadline = time.monotonic() + args.duration if args.duration else None
+                while not stop.wait(0.1):
+                    if deadline is not None and time.monotonic() >= deadline:
+                        break
+            finally:
+                service.close()
+        print(f"armid serve: {service.received} records received, {service.skipped} skipped, {service.lost} lost; "
+              f"{service.published} estimates published", file=sys.stderr)
+        return 0
+    finally:
+        if out_json is not None:
+            out_json.close()
+        if tmp is not None:
+            tmp.cleanup()
+
+
 def _watch(args: argparse.Namespace) -> int:
     from .watch import watch
 
@@ -806,6 +932,14 @@ def open_zenoh(args: argparse.Namespace) -> Any:
 
     src = args.zenoh_config
     endpoints = "--zenoh-listen/--zenoh-connect"
+    if src is None and args.zenoh_listen is None and args.zenoh_connect is None:
+        from armid.daq.stream import local_endpoint, open_local_session
+
+        try:  # no flags: find the other armid processes on this machine (daq.stream.open_local_session)
+            return open_local_session()
+        except Exception as err:
+            raise OptionError(endpoints, f"no endpoint given and the local one {local_endpoint()} cannot be used "
+                                         f"({_zenoh_message(err)})") from None
     if src is not None and not Path(src).is_file():
         raise InputFileError(src, "", "no such file")
     try:
@@ -829,7 +963,8 @@ def open_zenoh(args: argparse.Namespace) -> Any:
 
 
 def _zenoh_arguments(p: argparse.ArgumentParser) -> None:
-    """Where the Zenoh session connects (peer mode, multicast scouting off)."""
+    """Where the Zenoh session connects (peer mode, multicast scouting off). With none of
+    these, armid processes on one machine find each other (``daq.stream.open_local_session``)."""
     p.add_argument("--zenoh-listen", nargs="*", metavar="ENDPOINT", help="Zenoh endpoints to listen on, e.g. tcp/127.0.0.1:7447")
     p.add_argument("--zenoh-connect", nargs="*", metavar="ENDPOINT", help="Zenoh endpoints to connect to")
     p.add_argument("--zenoh-config", metavar="JSON5", help="a Zenoh configuration file (config/zenoh/lab.json5)")
@@ -903,7 +1038,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--channel", help="override the rig's channel")
     p.add_argument("--simulate", action=argparse.BooleanOptionalAction, default=None,
                    help="run the rig's simulated arm in this process (default: when the bus is virtual)")
+    p.add_argument("--no-zenoh", action="store_true", help="do not stream the records and the experiments' events")
+    _zenoh_arguments(p)
     p.set_defaults(run=_excite)
+
+    p = sub.add_parser("serve", help="the estimator service: streamed experiments in, estimate/parameters (and estimate/payload) out")
+    p.add_argument("--robot", required=True, help="robot description (config/robots/*.yaml), or the name of a shipped one")
+    p.add_argument("--out", metavar="DIR", help="where the service keeps its copy of each experiment it received (default: a temporary folder)")
+    p.add_argument("--whole-arm", choices=("identify", "drives"), default="identify",
+                   help="identify a whole-arm run as 'armid identify RUN.mcap' does (default), or as 'armid demo' does (excitation window, no low-pass)")
+    p.add_argument("--no-payload", action="store_true", help="do not run the payload estimator once the arm is identified")
+    p.add_argument("--max-backlog", type=_count, default=2500, help="records queued before the service skips to the newest (default 2500: 5 s at 2 ms)")
+    p.add_argument("--duration", type=_positive, help="stop after this many seconds (default: until Ctrl-C)")
+    p.add_argument("--json", metavar="JSONL", help="also write every published estimate/parameters document as a JSON line")
+    _zenoh_arguments(p)
+    p.set_defaults(run=_serve)
 
     p = sub.add_parser("watch", help="a live view of the stream in the terminal (joints, rate, gaps, events, payload)")
     p.add_argument("--robot", required=True, help="robot name, as in armid/<robot>/... (e.g. puma560)")

@@ -19,8 +19,8 @@ import numpy as np
 
 from armid.drivers.rig import Rig
 from armid.identify import excitation as ex
-from armid.identify.identification import IdentificationResult, IdentifyOptions, identify
-from armid.identify.single_link import SequenceResult, single_link_sequence
+from armid.identify.identification import IdentificationResult
+from armid.identify.single_link import SequenceResult
 from armid.io.rig_file import load_rig
 from armid.resources import config_file
 
@@ -142,18 +142,45 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0) -> int:
         motion_s = sum(e.plan.duration_s for e in experiments)
         phases.start("runs", f"running the {len(experiments)} experiments on the drives in real time ({motion_s:.0f} s of motion, "
                      "2 ms SYNC over the virtual CAN bus), each recorded as MCAP")
-        with excitation_session(rig, simulate=True) as session:
-            reports = run_experiments(session, experiments, out / "runs", console)
-        write_json(out / "runs.json", [r.to_json() for r in reports])
-        failed = [r for r in reports if not r.completed]
-        if failed:
-            console.print(f"[red]run {failed[0].name} stopped: {failed[0].stop_reason}[/]")
-            return 1
-        phases.start("identify", "identifying: Khosla's single-link sequence (links 6 to 1), the whole arm (validated on whole_b), "
-                     "both against the simulator's known parameters, then diagnosing the residual")
+        # the experiments stream to the estimator service (armid serve) as they run; the
+        # single-link and whole-arm tables are what it publishes
+        import zenoh
+
+        from armid.daq.stream import Stream, session_config
+
+        from .serve import EstimatorService, ServiceOptions
+
+        published: list[dict[str, Any]] = []
+        zsession = zenoh.open(session_config(listen=[], connect=[]))
+        stream = Stream(zsession, robot.name, "demo", lambda: {"component": "demo"})
+        service = EstimatorService(zsession, robot, out / "service", ServiceOptions(whole_arm="drives", payload=False),
+                                   on_publish=published.append)
+        try:
+            with excitation_session(rig, simulate=True, stream=stream) as session:
+                reports = run_experiments(session, experiments, out / "runs", console)
+            write_json(out / "runs.json", [r.to_json() for r in reports])
+            failed = [r for r in reports if not r.completed]
+            if failed:
+                console.print(f"[red]run {failed[0].name} stopped: {failed[0].stop_reason}[/]")
+                return 1
+            phases.start("identify", "identifying: the estimator service's single-link sequence (links 6 to 1) and whole arm "
+                         "(validated on whole_b), both against the simulator's known parameters, then diagnosing the residual")
+            deadline = time.monotonic() + 300
+            while len(published) < len(experiments) and time.monotonic() < deadline:
+                time.sleep(0.1)
+        finally:
+            service.close()
+            stream.close()
+            zsession.close()
+        if len(published) < len(experiments) or "whole_a" not in service.whole_fits or service.sequence is None:
+            raise RuntimeError(f"the estimator service published {len(published)} of {len(experiments)} estimates"
+                               + (f" ({service.errors[0]})" if service.errors else ""))
+        write_json(out / "service.json", published)
         prepared = prepared_runs(reports, robot, rig.period_s)
-        seq = single_link_sequence(robot, {e.link: [prepared[e.name]] for e in experiments if e.link is not None})
-        whole = identify(robot, [prepared["whole_a"]], [prepared["whole_b"]], IdentifyOptions(exclude_reversals=True))
+        seq = service.sequence
+        whole = service.whole_fits["whole_a"]
+        console.print(f"  the estimator service published {len(published)} estimates; records skipped {service.skipped}, "
+                      f"missing {sum(d['experiment']['missing'] for d in published)}")
         truth = check_against_truth(rig, seq, whole)
         comparison = seq.compare(whole)
         from armid.identify.diagnosis import diagnose

@@ -86,8 +86,10 @@ def design_experiments(robot: Robot, start: np.ndarray, links: list[int], whole:
     return out
 
 
-def run_experiments(session: ExcitationSession, experiments: list[Experiment], out: Path, console: Any = None) -> list[RunReport]:
-    """Run each experiment on the drives with a progress bar; stop at the first that fails."""
+def run_experiments(session: ExcitationSession, experiments: list[Experiment], out: Path, console: Any = None,
+                    status: Callable[[], str] | None = None) -> list[RunReport]:
+    """Run each experiment on the drives with a progress bar; stop at the first that fails.
+    ``status``: a live line (records, rate, lost cycles, faults) shown under the bars."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     reports = []
@@ -96,6 +98,7 @@ def run_experiments(session: ExcitationSession, experiments: list[Experiment], o
         total_s = sum(e.plan.duration_s for e in experiments)
         overall = progress.add_task(f"{'all runs':>8}", total=total_s, summary=f"{len(experiments)} plans, {total_s:.0f} s of motion")
         done_s = 0.0
+        live = progress.add_task(f"{'live':>8}", total=None, summary=status()) if status is not None else None
         for e in experiments:
             task = progress.add_task(f"{e.name:>8}", total=e.plan.duration_s, summary="")
 
@@ -105,6 +108,8 @@ def run_experiments(session: ExcitationSession, experiments: list[Experiment], o
                 progress.update(task, completed=min(t, e.plan.duration_s),
                                 summary=f"tracking error {err:5.1f} mrad, peak torque {tq:4.0f} % of limit")
                 progress.update(overall, completed=done_s + min(t, e.plan.duration_s))
+                if live is not None and status is not None:
+                    progress.update(live, summary=status())
 
             report = session.run(e.plan, out / e.name, e.name, {"design": e.design.to_json()}, progress=update)
             reports.append(report)

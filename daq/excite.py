@@ -96,6 +96,9 @@ class ExcitationControl:
         self.saturated = np.zeros(n, np.int64)
         self._invalid_run = np.zeros(n, np.int64)
         self.skipped = 0  # samples supervised but not commanded from (a newer one was waiting)
+        # lost frames stop the arm once the drives are enabled; before that (the trajectories are
+        # being designed, which can stall this process for longer than 3 cycles) they are only counted
+        self.armed = False
         self.last_record: JointStateRecord | None = None
         self._lock = threading.Lock()
 
@@ -133,7 +136,7 @@ class ExcitationControl:
         if self.stop_reason:
             return
         self._invalid_run = np.where(s.valid, 0, self._invalid_run + 1)
-        if (self._invalid_run >= LOST_CYCLES_STOP).any():
+        if self.armed and (self._invalid_run >= LOST_CYCLES_STOP).any():
             j = int(np.argmax(self._invalid_run))
             return self._stop(f"joint {j + 1}: no frames for {LOST_CYCLES_STOP} cycles", s.cycle)
         with self._lock:
@@ -195,12 +198,17 @@ class _Switch:
     def __init__(self) -> None:
         self.recorder: McapRecorder | None = None
         self.count = 0
+        self.first_sequence: int | None = None  # of the current recording: the stream's subscribers cut the run by these
+        self.last_sequence: int | None = None
 
     def __call__(self, record: JointStateRecord) -> None:
         recorder = self.recorder
         if recorder is not None:
             recorder.write(record)
             self.count += 1
+            if self.first_sequence is None:
+                self.first_sequence = record.sequence
+            self.last_sequence = record.sequence
 
 
 class ExcitationSession:
@@ -245,6 +253,10 @@ class ExcitationSession:
         if self.control.hold is None:
             raise DriverError("no sample from the drives within 2 s of starting")
 
+    def _invalid_run_reset(self) -> None:
+        self.control._invalid_run[:] = 0
+        self.control.armed = True
+
     def _on_fault(self, fault: DriveFault) -> None:
         self.control.fault(fault)
         if self.stream is not None:
@@ -275,16 +287,21 @@ class ExcitationSession:
         recorder = McapRecorder(out / "run.mcap", [j.name for j in self.robot.joints], meta)
         # every frame on a CAN bus, the master's included
         can_log = BusLog(self.driver, out / "can.log") if getattr(self.driver, "network", None) is not None else None
+        self._switch.first_sequence = self._switch.last_sequence = None
         self._switch.recorder = recorder
         written_before = self._switch.count
         try:
             if not self.enabled:
                 # enable first, holding the pose: the plan's clock starts once the drives follow
+                self._invalid_run_reset()
                 self.driver.enable()
                 self.enabled = True
             active = self.control.start(plan)
             if self.stream is not None:
-                self.stream.event("start", run=name, duration_s=plan.duration_s)
+                from .experiment_stream import experiment_description
+
+                self.stream.event("start", run=name, duration_s=plan.duration_s,
+                                  experiment=experiment_description(name, plan, self.robot.n_joints, meta))
             while not active.done.wait(0.2):
                 if progress is not None:
                     progress(active.cycles * self.rig.period_s, self.control)
@@ -305,9 +322,12 @@ class ExcitationSession:
             recorder.close()
             if can_log is not None:
                 can_log.stop()
-        if self.stream is not None:
-            self.stream.event("stop", run=name, completed=self.control.stop_reason is None, reason=self.control.stop_reason)
         c = self.control
+        if self.stream is not None:  # the records the recording holds, by sequence number, and where the excitation lies
+            self.stream.event("stop", run=name, completed=c.stop_reason is None, reason=c.stop_reason, stop_cycle=c.stop_cycle,
+                              records=self._switch.count - written_before, first_sequence=self._switch.first_sequence,
+                              last_sequence=self._switch.last_sequence, first_cycle=active.first_cycle or 0,
+                              window_s=list(plan.excitation_window), cycles=active.cycles)
         return RunReport(name, c.stop_reason is None, c.stop_reason, c.stop_cycle, active.cycles, self._switch.count - written_before,
                          active.first_cycle or 0, c.max_error.tolist(), c.peak_torque.tolist(), c.saturated.tolist(), str(out / "run.mcap"),
                          plan.excitation_window)

@@ -32,6 +32,38 @@ def session_config(listen: list[str] | None = None, connect: list[str] | None = 
     return config
 
 
+LOCAL_ENDPOINT = "tcp/127.0.0.1:7447"
+"""Where armid processes on one machine meet when no endpoint is given (``ARMID_ZENOH_LOCAL``
+overrides it): the first to start listens there, every one connects there, and Zenoh's gossip
+then links them all to each other, so that any of them may stop first."""
+
+
+def local_endpoint() -> str:
+    import os
+
+    return os.environ.get("ARMID_ZENOH_LOCAL") or LOCAL_ENDPOINT
+
+
+def open_local_session() -> Any:
+    """A peer session that finds every other armid process on this machine with no flags.
+
+    It listens on :data:`LOCAL_ENDPOINT` when that is free (else on a port of the loopback
+    the system picks) and connects to it; peers learn each other's endpoints by gossip and
+    connect directly. Zenoh retries a connect endpoint that is not there yet, so processes
+    may start in any order, and when the one holding the endpoint stops, the next to start
+    takes it over and the others reconnect to it. Multicast scouting stays off: on a lab
+    network, a configuration file says how peers find each other (multicast scouting or a
+    router), as ``config/zenoh/lab.json5`` does."""
+    import zenoh
+
+    hub = local_endpoint()
+    try:
+        return zenoh.open(session_config([hub], [hub]))
+    except Exception:  # the endpoint is taken: another armid process holds it
+        host = hub.split("/", 1)[1].rsplit(":", 1)[0] if "/" in hub else "127.0.0.1"
+        return zenoh.open(session_config([f"tcp/{host}:0"], [hub]))
+
+
 def key(robot: str, leaf: str) -> str:
     return f"armid/{robot}/{leaf}"
 
@@ -49,11 +81,12 @@ class Stream:
         self._events = session.declare_publisher(key(robot, "events"), encoding=zenoh.Encoding.APPLICATION_JSON)
         self._token = session.liveliness().declare_token(key(robot, f"alive/{component}"))
         self._status = status
+        self.component = component
         self._queryable = session.declare_queryable(key(robot, "status"), self._on_query)
         self.published = 0
 
     def _on_query(self, query: Any) -> None:
-        query.reply(key(self.robot, "status"), json.dumps(self._status()))
+        query.reply(key(self.robot, "status"), json.dumps({"component": self.component, **self._status()}))
 
     def publish(self, record: JointStateRecord) -> None:
         self._pub.put(record.pack())

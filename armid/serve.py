@@ -1,0 +1,407 @@
+"""``armid serve``: the estimator service. Streamed experiments in, the arm's parameters out.
+
+It subscribes to ``armid/<robot>/joint_state`` and ``armid/<robot>/events``, cuts each
+experiment out of the stream by the sequence numbers its ``stop`` event gives
+(:mod:`daq.experiment_stream`), keeps its own MCAP copy of what it received
+(``<out>/<run>/run.mcap``, written by the recorder ``armid record`` uses), and then:
+
+- a **single-link** experiment (one joint moved): Khosla's off-line sequence over every
+  single-link experiment received so far, last link first, each link with the later links
+  known (:func:`identify.single_link.single_link_sequence`), on the excitation window of
+  each run as ``armid demo`` cuts it;
+- a **whole-arm** run: ``armid identify`` on that run (the same reader, preparation and
+  options: the estimate equals ``armid identify`` on the recording), validated on the other
+  whole-arm runs received; every earlier whole-arm fit is validated again on the new run.
+
+After each experiment it publishes ``armid/<robot>/estimate/parameters`` (JSON, below). Once
+a whole-arm fit exists it also runs the on-line payload estimator on the live stream
+(:class:`daq.payload_service.PayloadService`, beside it in the same session:
+``armid/<robot>/estimate/payload`` as ``armid estimate live`` publishes it).
+
+Threads, so that nothing waits on the arithmetic: Zenoh's callbacks only queue bytes; an
+ingest thread files records by sequence number; an analysis thread identifies. The ingest
+never holds up the stream: when it falls more than ``max_backlog`` records behind it skips to
+the newest and counts what it skipped, and an experiment is then identified on the records
+it kept (``experiment.kept`` gives their sequence ranges, ``experiment.missing`` how many of
+the recording's it lacks). Acquisition and recording happen in the process that streams, on
+their own unbounded queue: a slow service costs them nothing.
+
+``estimate/parameters`` document::
+
+    {"robot", "time", "experiment": {"run", "kind", "link", "records", "missing", "skipped", "kept", "completed", "mcap"},
+     "links_done": [6, 5, ...], "single_link": {"order", "steps", "table": [{"link", "parameter", "estimate", "std", ...}]},
+     "whole_arm": {"<run>": {"base_parameters": [{"expression", "value", "std"}], "fit", "validation", "validated_on", ...}},
+     "base_parameters": [...], "validation": {...} | null, "source": "whole_arm <run>" | "single_link"}
+
+``base_parameters`` are the newest whole-arm run's once there is one, else the single-link
+table's (expression, value, std, link).
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from armid.daq.experiment_stream import CollectedExperiment, ExperimentCollector, event_of
+from armid.daq.stream import key
+from armid.identify.robot import Robot
+from armid.schema.joint_state import JointStateRecord, check_encoding
+
+WHOLE_ARM_PIPELINES = ("identify", "drives")
+"""How a whole-arm run is identified: ``identify`` as ``armid identify RUN.mcap`` does (the
+whole recording, low-pass chosen from the data, weighted least squares); ``drives`` as
+``armid demo`` does (the excitation window, the drives' velocity, no low-pass, reversals
+left out)."""
+
+
+@dataclass(frozen=True)
+class ServiceOptions:
+    max_backlog: int = 2500
+    """Records queued in the ingest before it skips to the newest (5 s at 2 ms)."""
+    whole_arm: str = "identify"
+    payload: bool = True
+    """Run the payload estimator on the live stream once a whole-arm fit exists."""
+    stop_wait_s: float = 5.0
+    ingest_delay_s: float = 0.0
+    """Seconds of extra work per record in the ingest: a slow consumer by design (tests)."""
+
+
+class EstimatorService:
+    """Run the estimator service on an open Zenoh session until :meth:`close`."""
+
+    def __init__(self, session: Any, robot: Robot, out: Path, options: ServiceOptions | None = None,
+                 on_publish: Callable[[dict[str, Any]], None] | None = None, log: Callable[[str], None] | None = None) -> None:
+        import zenoh
+
+        self.session = session
+        self.robot = robot
+        self.name = robot.name
+        self.out = Path(out)
+        self.options = options or ServiceOptions()
+        if self.options.whole_arm not in WHOLE_ARM_PIPELINES:
+            raise ValueError(f"whole_arm must be one of {', '.join(WHOLE_ARM_PIPELINES)}, got {self.options.whole_arm!r}")
+        self.on_publish = on_publish
+        self.log = log or (lambda _m: None)
+        self.collector = ExperimentCollector(stop_wait_s=self.options.stop_wait_s)
+        self._inbox: deque[bytes] = deque()
+        self._events: deque[dict[str, Any]] = deque()
+        self._jobs: deque[CollectedExperiment] = deque()
+        self._stop = threading.Event()
+        self._wake = threading.Event()
+        self._job_ready = threading.Event()
+        self.received = 0
+        self.skipped = 0
+        self.lost = 0
+        self.bad = 0
+        self._last_seq: int | None = None
+        self.published = 0
+        self.errors: list[str] = []
+        self.experiments: list[dict[str, Any]] = []
+        self.last: dict[str, Any] | None = None
+        self.busy: str | None = None
+        # what the analysis has so far
+        self._single: dict[int, Any] = {}  # 0-based link -> Prepared
+        self._single_runs: dict[int, str] = {}
+        self._sequence_doc: dict[str, Any] | None = None
+        self.sequence: Any = None
+        self._whole: dict[str, Any] = {}  # run -> Prepared
+        self.whole_fits: dict[str, Any] = {}  # run -> IdentificationResult
+        self._whole_docs: dict[str, dict[str, Any]] = {}
+        self.payload_service: Any = None
+        self._pub = session.declare_publisher(key(self.name, "estimate/parameters"), encoding=zenoh.Encoding.APPLICATION_JSON)
+        self._token = session.liveliness().declare_token(key(self.name, "alive/estimator"))
+        self._queryable = session.declare_queryable(key(self.name, "status"), self._on_query)
+        self._subs = [session.declare_subscriber(key(self.name, "joint_state"), self._on_record),
+                      session.declare_subscriber(key(self.name, "events"), self._on_event)]
+        self._threads = [threading.Thread(target=self._ingest, name="armid-serve-ingest", daemon=True),
+                         threading.Thread(target=self._analyse, name="armid-serve-analysis", daemon=True)]
+        for t in self._threads:
+            t.start()
+
+    # -- Zenoh callbacks: queue only (a callback never kills the receive thread) --------------
+    def _on_record(self, sample: Any) -> None:
+        try:
+            check_encoding(str(sample.encoding))
+            self._inbox.append(sample.payload.to_bytes())
+            self._wake.set()
+        except Exception as err:
+            self.bad += 1
+            self._error(err)
+
+    def _on_event(self, sample: Any) -> None:
+        try:
+            doc = event_of(sample.payload.to_bytes())
+            if doc is not None:
+                self._events.append(doc)
+                self._wake.set()
+        except Exception as err:
+            self._error(err)
+
+    def _error(self, err: BaseException) -> None:
+        if len(self.errors) < 100:
+            self.errors.append(f"{type(err).__name__}: {err}")
+
+    # -- ingest ------------------------------------------------------------------------------------
+    def _ingest(self) -> None:
+        delay = self.options.ingest_delay_s
+        while not self._stop.is_set():
+            self._wake.wait(0.1)
+            self._wake.clear()
+            try:
+                while self._events:
+                    self.collector.event(self._events.popleft())
+                while self._inbox and not self._stop.is_set():
+                    backlog = len(self._inbox)
+                    if backlog > self.options.max_backlog:
+                        for _ in range(backlog - 1):  # behind: skip to the newest record
+                            self._inbox.popleft()
+                        self.skipped += backlog - 1
+                        self._last_seq = None
+                    data = self._inbox.popleft()
+                    try:
+                        seq = JointStateRecord.unpack(data).sequence
+                    except ValueError as err:
+                        self.bad += 1
+                        self._error(err)
+                        continue
+                    if self._last_seq is not None and seq > self._last_seq + 1:
+                        self.lost += seq - self._last_seq - 1
+                    self._last_seq = seq
+                    self.received += 1
+                    self.collector.record(seq, data)
+                    if delay:
+                        time.sleep(delay)
+                    while self._events:
+                        self.collector.event(self._events.popleft())
+                    if self.collector.stopping:
+                        self._queue_completed()
+                self._queue_completed()
+            except Exception as err:
+                self._error(err)
+
+    def _queue_completed(self) -> None:
+        for exp in self.collector.completed():
+            self._jobs.append(exp)
+            self._job_ready.set()
+
+    # -- analysis ----------------------------------------------------------------------------------
+    def _analyse(self) -> None:
+        while not self._stop.is_set():
+            self._job_ready.wait(0.1)
+            self._job_ready.clear()
+            while self._jobs and not self._stop.is_set():
+                exp = self._jobs.popleft()
+                self.busy = exp.name
+                try:
+                    doc = self.process(exp)
+                    if doc is not None:
+                        self.publish(doc)
+                except Exception as err:
+                    self._error(err)
+                    self.log(f"{exp.name}: not identified: {type(err).__name__}: {err}")
+                    self.experiments.append({"run": exp.name, "error": f"{type(err).__name__}: {err}"})
+                finally:
+                    self.busy = None
+
+    @property
+    def idle(self) -> bool:
+        """Nothing received waits to be filed or identified."""
+        return not (self._inbox or self._events or self._jobs or self.collector.stopping or self.busy)
+
+    def write_copy(self, exp: CollectedExperiment) -> Path:
+        """The service's own recording of the experiment: what it received, as ``armid record`` writes it."""
+        from armid.daq.recorder import McapRecorder
+
+        desc = exp.description
+        meta = dict(desc.get("metadata") or {})
+        meta.setdefault("robot", self.name)
+        meta["excitation"] = {k: v for k, v in desc.items() if k != "metadata"}
+        meta["received_by"] = {"component": "estimator", "missing": exp.missing, "kept": exp.kept}
+        path = self.out / _safe(exp.name) / "run.mcap"
+        rec = McapRecorder(path, [j.name for j in self.robot.joints], meta)
+        try:
+            for data in exp.records:
+                rec.write(JointStateRecord.unpack(data))
+        finally:
+            rec.close()
+        return path
+
+    def process(self, exp: CollectedExperiment) -> dict[str, Any] | None:
+        """Identify on one collected experiment; the document to publish (None: nothing to say)."""
+        desc = exp.description
+        kind = desc.get("kind") or "recording"
+        stop = exp.stop
+        info: dict[str, Any] = {"run": exp.name, "kind": kind, "link": desc.get("link"), "records": len(exp.records),
+                                "missing": exp.missing, "kept": exp.kept, "completed": bool(stop.get("completed", True)),
+                                "reason": stop.get("reason"), "skipped_total": self.skipped, "timed_out": exp.timed_out}
+        if len(exp.records) < 50:
+            info["note"] = f"only {len(exp.records)} records received: nothing identified"
+            self.experiments.append(info)
+            return self._document(info)
+        path = self.write_copy(exp)
+        info["mcap"] = str(path)
+        if not info["completed"]:
+            info["note"] = f"the run was stopped ({stop.get('reason')}): not identified"
+        elif kind == "recording":
+            kind = self._kind_from_motion(path)
+            info["kind_from_motion"] = kind
+        if info["completed"] and kind == "single_link":
+            link = desc.get("link") or info.get("link")
+            self._single_link(exp, path, int(link) - 1, info)
+        elif info["completed"] and kind == "whole_arm":
+            self._whole_arm(exp, path, info)
+        elif info["completed"]:
+            info["note"] = f"a {kind} experiment: neither single-link nor whole-arm, not identified"
+        self.experiments.append(info)
+        self.log(f"{exp.name}: {info.get('note') or 'identified'} ({len(exp.records)} records, {exp.missing} missing)")
+        return self._document(info)
+
+    def _kind_from_motion(self, path: Path) -> str:
+        from armid.io.recordings import read_recording
+
+        rec = read_recording(path, self.robot)
+        moving = np.flatnonzero(np.ptp(rec.q, axis=0) > 0.05)
+        if moving.size == self.robot.n_joints:
+            return "whole_arm"
+        return "single_link" if moving.size == 1 else "partial"
+
+    def _single_link(self, exp: CollectedExperiment, path: Path, k: int, info: dict[str, Any]) -> None:
+        from armid.identify.preprocess import prepare
+        from armid.identify.single_link import single_link_sequence
+
+        from .experiments import PREPARE, excitation_recording
+
+        stop = exp.stop
+        period = float((exp.description.get("metadata") or {}).get("period_s") or 0.002)
+        report = _report_of(exp, path)
+        self._single[k] = prepare(excitation_recording(report, self.robot, period), self.robot, PREPARE)
+        self._single_runs[k] = exp.name
+        self.sequence = single_link_sequence(self.robot, {j: [p] for j, p in self._single.items()})
+        doc = self.sequence.to_json()
+        n = self.robot.n_joints
+        done = sorted((j + 1 for j in self._single), reverse=True)
+        for step in doc["steps"]:  # Khosla's order: a link is identified with every later link known
+            step["later_links_known"] = all(j in self._single for j in range(step["link"], n))
+            step["run"] = self._single_runs[step["link"] - 1]
+        doc["links_done"] = done
+        self._sequence_doc = doc
+        info["window_s"] = stop.get("window_s")
+
+    def _whole_arm(self, exp: CollectedExperiment, path: Path, info: dict[str, Any]) -> None:
+        from armid.identify.identification import IdentifyOptions, identify
+        from armid.identify.preprocess import PrepareOptions, prepare
+        from armid.io.recordings import read_recording
+
+        from .experiments import PREPARE, excitation_recording
+
+        if self.options.whole_arm == "identify":  # as `armid identify RUN.mcap --robot R` does
+            prep = prepare(read_recording(path, self.robot), self.robot, PrepareOptions(max_gap_factor=20.0, lowpass_hz="auto"))
+            options = IdentifyOptions(weighting="wls")
+        else:  # as `armid demo` does
+            period = float((exp.description.get("metadata") or {}).get("period_s") or 0.002)
+            prep = prepare(excitation_recording(_report_of(exp, path), self.robot, period), self.robot, PREPARE)
+            options = IdentifyOptions(exclude_reversals=True)
+        self._whole[exp.name] = prep
+        import warnings
+
+        from armid.identify.errors import PoorExcitationWarning
+
+        for run in list(self._whole):  # each run's fit, validated on every other whole-arm run
+            others = [p for r, p in self._whole.items() if r != run]
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", PoorExcitationWarning)
+                fit = identify(self.robot, [self._whole[run]], others or None, options)
+            self.whole_fits[run] = fit
+            d = fit.to_json()
+            d["validated_on"] = [r for r in self._whole if r != run]
+            d["pipeline"] = self.options.whole_arm
+            self._whole_docs[run] = d
+        info["whole_arm_fit"] = exp.name
+        if self.options.payload and self.payload_service is None:
+            self._start_payload(self.whole_fits[exp.name])
+
+    def _start_payload(self, fit: Any) -> None:
+        from armid.daq.payload_service import EstimateStream, PayloadService
+        from armid.identify.payload import ArmModel, PayloadRLS
+
+        arm = ArmModel(self.robot, tuple(fit.effects), fit.base.independent, fit.estimate.beta, fit.estimate.joint_sigma)
+        estimator = PayloadRLS(arm)
+        estimator.warm()
+        self.payload_service = PayloadService(self.session, self.name, EstimateStream(estimator))
+        self.log("payload estimator running on the live stream (estimate/payload)")
+
+    def _document(self, info: dict[str, Any]) -> dict[str, Any]:
+        newest_whole = next(reversed(self._whole_docs), None) if self._whole_docs else None
+        doc: dict[str, Any] = {"robot": self.name, "time": time.time(), "experiment": info,
+                               "links_done": sorted((j + 1 for j in self._single), reverse=True),
+                               "single_link": self._sequence_doc, "whole_arm": self._whole_docs or None,
+                               "received": self.received, "skipped": self.skipped, "lost": self.lost}
+        if newest_whole is not None:
+            w = self._whole_docs[newest_whole]
+            doc["source"] = f"whole_arm {newest_whole}"
+            doc["base_parameters"] = w["base_parameters"]
+            doc["validation"] = w.get("validation")
+        elif self._sequence_doc is not None:
+            doc["source"] = "single_link"
+            doc["base_parameters"] = [{"expression": r["parameter"], "value": r["estimate"], "std": r["std"], "link": r["link"]}
+                                      for r in self._sequence_doc["table"]]
+            doc["validation"] = None
+        else:
+            doc["source"], doc["base_parameters"], doc["validation"] = None, [], None
+        return doc
+
+    def publish(self, doc: dict[str, Any]) -> None:
+        from .cli import strict_json
+
+        text = strict_json(doc)
+        self._pub.put(text)
+        self.published += 1
+        self.last = json.loads(text)
+        if self.on_publish is not None:
+            self.on_publish(self.last)
+
+    def _on_query(self, query: Any) -> None:
+        from .cli import strict_json
+
+        doc = {"component": "estimator", "received": self.received, "skipped": self.skipped, "lost": self.lost, "bad": self.bad,
+               "backlog": len(self._inbox), "analysing": self.busy, "queued_experiments": len(self._jobs),
+               "open_experiments": sorted(self.collector.started), "published": self.published,
+               "experiments": self.experiments, "links_done": sorted((j + 1 for j in self._single), reverse=True),
+               "whole_arm_runs": list(self._whole_docs), "errors": self.errors[-5:]}
+        query.reply(key(self.name, "status"), strict_json(doc))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        self._job_ready.set()
+        for t in self._threads:
+            t.join(5.0)
+        if self.payload_service is not None:
+            self.payload_service.close()
+        for entity in (*self._subs, self._queryable, self._token, self._pub):
+            try:
+                entity.undeclare()
+            except Exception:  # already gone with the session
+                pass
+
+
+def _safe(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "run"
+
+
+def _report_of(exp: CollectedExperiment, path: Path) -> Any:
+    """The run's report as ``armid excite`` wrote it, from its ``stop`` event."""
+    from armid.daq.excite import RunReport
+
+    s = exp.stop
+    w = s.get("window_s") or [0.0, float("inf")]
+    return RunReport(exp.name, bool(s.get("completed", True)), s.get("reason"), s.get("stop_cycle"), int(s.get("cycles") or 0),
+                     len(exp.records), int(s.get("first_cycle") or 0), [], [], [], str(path), (float(w[0]), float(w[1])))

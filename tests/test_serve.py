@@ -1,0 +1,349 @@
+"""The estimator service (``armid serve``): experiments streamed over Zenoh, estimates published.
+
+Real parts only: the simulated arm in its own process on python-can ``udp_multicast``,
+``armid excite`` and ``armid serve`` as processes, Zenoh peers on explicit loopback
+endpoints (multicast scouting off); the no-flag discovery test runs in a network namespace
+of its own so that nothing else on the machine can answer on the well-known endpoint.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from armid.cli import main
+
+ROOT = Path(__file__).resolve().parent.parent
+RIG = ROOT / "config" / "rigs" / "sim.yaml"
+ROBOT = ROOT / "config" / "robots" / "puma560.yaml"
+ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _rig_copy(tmp_path: Path, period_s: float | None = None) -> Path:
+    """The shipped rig with the simulated drives' SYNC timeout at 0.5 s instead of 0.1 s and
+    the master's heartbeat every 250 ms instead of 50 ms (a drive faults after three missed):
+    the arm runs in its own process on a 2-core machine shared with other jobs, where the
+    master's process can stall for more than 150 ms while it designs the trajectories. These
+    are the simulated drives' tolerances, not bounds of the test. ``period_s``: another SYNC
+    period (the two-process test runs at 4 ms: at 2 ms this shared machine loses frames over
+    UDP whenever other jobs load it, as the shipped two-process test in test_canopen shows)."""
+    text = RIG.read_text().replace("robot: ../robots/puma560.yaml", f"robot: {ROBOT}")
+    text = text.replace("sync_timeout_s: 0.1 ", "sync_timeout_s: 0.5 ")
+    text = text.replace("master_heartbeat_ms: 50 ", "master_heartbeat_ms: 250 ")
+    assert "sync_timeout_s: 0.5" in text and "master_heartbeat_ms: 250" in text
+    if period_s is not None:
+        assert "period_s: 0.002\n" in text
+        text = text.replace("period_s: 0.002\n", f"period_s: {period_s}\n")
+    out = tmp_path / "rig.yaml"
+    out.write_text(text)
+    return out
+
+
+def _acquisition_priority() -> None:
+    """The arm and the acquisition at the ordinary priority even when the tests run niced; the
+    service lowers its own (``armid serve`` runs 5 steps nicer than what started it)."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, 0)
+    except OSError:  # not allowed here: leave it
+        pass
+
+
+def _relative(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.linalg.norm(a - b) / max(float(np.linalg.norm(b)), 1e-300))
+
+
+def _offline_sequence(ex_dir: Path, period_s: float) -> list[dict]:
+    """Khosla's sequence computed off-line from the recorded MCAPs, as ``armid demo`` does."""
+    from armid.daq.excite import RunReport
+    from armid.experiments import prepared_runs
+    from armid.identify.single_link import single_link_sequence
+    from armid.io.robot_file import load_robot
+
+    robot = load_robot(ROBOT)
+    reports = [RunReport(**{**r, "window_s": tuple(r["window_s"])}) for r in json.loads((ex_dir / "runs.json").read_text())]
+    links = [r for r in reports if r.name.startswith("link")]
+    prepared = prepared_runs(links, robot, period_s)
+    return single_link_sequence(robot, {int(name[4:]) - 1: [p] for name, p in prepared.items()}).table()
+
+
+def _check_tables(online: list[dict], offline: list[dict]) -> float:
+    assert [(r["link"], r["parameter"]) for r in online] == [(r["link"], r["parameter"]) for r in offline]
+    worst = 0.0
+    for key in ("estimate", "std"):
+        a, b = np.array([r[key] for r in online]), np.array([r[key] for r in offline])
+        worst = max(worst, _relative(a, b))
+        assert _relative(a, b) <= 1e-9, (key, _relative(a, b))
+    return worst
+
+
+def _check_whole(doc: dict, mcap: Path, tmp_path: Path) -> float:
+    out = tmp_path / f"identify-{mcap.parent.name}.json"
+    assert main(["identify", str(mcap), "--robot", str(ROBOT), "--json", str(out)]) == 0
+    ident = json.loads(out.read_text())
+    assert [b["expression"] for b in doc["base_parameters"]] == [b["expression"] for b in ident["base_parameters"]]
+    worst = 0.0
+    for key in ("value", "std"):
+        a = np.array([b[key] for b in doc["base_parameters"]], float)
+        b = np.array([x[key] for x in ident["base_parameters"]], float)
+        worst = max(worst, _relative(a, b))
+        assert _relative(a, b) <= 1e-9, (key, _relative(a, b))
+    return worst
+
+
+@pytest.mark.parametrize("bus", ["udp_multicast", "virtual"])
+def test_three_processes_khosla_sequence_and_whole_arm_streamed_to_the_service(tmp_path: Path, bus: str) -> None:
+    """``udp_multicast``: the simulated arm in a process of its own, on the wall clock, as real
+    drives are: on this shared 2-core machine, under other jobs' load, the excitation's own
+    supervision sometimes stops a run (tracking error, velocity, lost frames) before the
+    service has anything to identify; that case is reported as a skip with the reason. The
+    ``virtual`` case runs the same commands with the arm simulated inside ``armid excite``
+    (SYNC paced by its control loop), which no load can stop: three processes (excite with
+    its arm, serve, this subscriber) every time."""
+    import zenoh
+
+    from armid.daq.stream import key, session_config
+
+    period_s = 0.004 if bus == "udp_multicast" else 0.002
+    rig = _rig_copy(tmp_path, period_s)
+    group = (f"239.74.{np.random.default_rng().integers(1, 250)}.{np.random.default_rng().integers(1, 250)}" if bus == "udp_multicast"
+             else f"armid-serve-{uuid.uuid4().hex[:8]}")
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    ready = tmp_path / "sim.ready"
+    if bus == "udp_multicast":
+        sim = subprocess.Popen([sys.executable, "-m", "armid.cli", "sim", "--rig", str(rig), "--interface", bus, "--channel", group,
+                                "--ready", str(ready)], cwd=ROOT, env=ENV, stderr=subprocess.PIPE, text=True,
+                               preexec_fn=_acquisition_priority)
+    else:  # the arm inside armid excite
+        ready.write_text("ready\n")
+        sim = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(3600)"])
+    serve = subprocess.Popen([sys.executable, "-m", "armid.cli", "serve", "--robot", str(ROBOT), "--zenoh-listen", endpoint, "--no-payload",
+                              "--out", str(tmp_path / "serve"), "--json", str(tmp_path / "serve.jsonl")],
+                             cwd=ROOT, env=ENV, stderr=subprocess.PIPE, text=True)
+    got: list[dict] = []
+    received = threading.Event()
+
+    def on_parameters(sample: object) -> None:
+        got.append(json.loads(sample.payload.to_bytes()))  # type: ignore[attr-defined]
+        received.set()
+
+    session = zenoh.open(session_config(connect=[endpoint]))
+    ex_dir = tmp_path / "excite"
+    try:
+        sub = session.declare_subscriber(key("puma560", "estimate/parameters"), on_parameters)
+        for _ in range(400):
+            if ready.exists():
+                break
+            time.sleep(0.05)
+        assert ready.exists(), "the simulator did not come up"
+        # the service is up when its liveliness token is seen
+        deadline = time.monotonic() + 60
+        alive: list[str] = []
+        while time.monotonic() < deadline and "estimator" not in alive:
+            alive = [str(r.ok.key_expr).rsplit("/", 1)[-1] for r in session.liveliness().get(key("puma560", "alive/**"), timeout=2.0) if r.ok]
+            time.sleep(0.2)
+        assert "estimator" in alive
+        slow = ["--frequency", "0.15"] if bus == "udp_multicast" else []  # slower motion: more margin for the loop's delays
+        excite = subprocess.run([sys.executable, "-m", "armid.cli", "excite", "--rig", str(rig), "--interface", bus, "--channel", group,
+                                 "--link", "all", "--whole", "--periods", "1", *slow, "--out", str(ex_dir), "--zenoh-connect", endpoint],
+                                cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=900, preexec_fn=_acquisition_priority)
+        stopped = [line for line in excite.stderr.splitlines()
+                   if "STOPPED" in line or "the arm was stopped" in line or "drives did not reach state" in line]
+        if bus == "udp_multicast" and excite.returncode == 1 and stopped:
+            pytest.skip(f"the arm on its own process was stopped by its supervision under this machine's load: {stopped[0]}")
+        assert excite.returncode == 0, excite.stderr[-2000:]
+        deadline = time.monotonic() + 180
+        while len(got) < 7 and time.monotonic() < deadline:
+            received.wait(1.0)
+            received.clear()
+        status = [json.loads(r.ok.payload.to_bytes()) for r in session.get(key("puma560", "status"), target=zenoh.QueryTarget.ALL,
+                                                                            consolidation=zenoh.ConsolidationMode.NONE, timeout=5.0) if r.ok]
+        sub.undeclare()
+    finally:
+        session.close()
+        for proc in (serve, sim):
+            proc.send_signal(signal.SIGTERM)
+        for proc in (serve, sim):
+            try:
+                proc.wait(20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+    runs = [d["experiment"]["run"] for d in got]
+    assert runs == ["link6", "link5", "link4", "link3", "link2", "link1", "whole"], (runs, serve.stderr.read() if serve.stderr else "")
+    # after each experiment: the links done so far, last link first
+    assert [d["links_done"] for d in got[:6]] == [[6, 5, 4, 3, 2, 1][: k + 1] for k in range(6)]
+    assert all(d["experiment"]["missing"] == 0 and d["skipped"] == 0 for d in got)
+    assert all(st["steps"] for st in [got[5]["single_link"]]) and all(s["later_links_known"] for s in got[5]["single_link"]["steps"])
+    # the single-link table equals the sequence computed off-line from the recorded MCAPs
+    single = _check_tables(got[5]["single_link"]["table"], _offline_sequence(ex_dir, period_s))
+    # the whole-arm estimate equals `armid identify` on that run's recording
+    whole = _check_whole(got[6], ex_dir / "whole" / "run.mcap", tmp_path)
+    est = [s for s in status if s.get("component") == "estimator"]
+    assert est and est[0]["published"] == 7 and est[0]["skipped"] == 0 and est[0]["links_done"] == [6, 5, 4, 3, 2, 1]
+    print(f"\nsingle-link table against the off-line sequence: {single:.3g} relative; whole arm against armid identify: {whole:.3g} relative")
+
+
+def _netns() -> str | None:
+    if shutil.which("unshare") is None or shutil.which("ip") is None:
+        return "needs unshare and ip (a network namespace of its own)"
+    try:
+        r = subprocess.run(["unshare", "-rn", "sh", "-c", "ip link set lo up"], capture_output=True, timeout=10)
+    except (OSError, subprocess.TimeoutExpired) as err:
+        return f"unshare failed: {err}"
+    return None if r.returncode == 0 else f"no user network namespace here: {r.stderr.decode(errors='replace').strip()}"
+
+
+@pytest.mark.skipif(_netns() is not None, reason=str(_netns()))
+def test_record_and_watch_find_each_other_with_no_zenoh_flags(tmp_path: Path) -> None:
+    """In a network namespace of its own (only a loopback: nothing else on the machine can
+    answer on the well-known endpoint): ``armid watch`` started first, then ``armid record``;
+    then the other order, with ``armid serve`` answering the status query of a third process."""
+    armid = [sys.executable, "-m", "armid.cli"]
+    channel = f"armid-nf-{uuid.uuid4().hex[:6]}"
+    script = f"""
+set -e
+ip link set lo up
+cd {ROOT}
+{' '.join(armid)} watch --robot puma560 --duration 45 > {tmp_path}/watch.out 2> {tmp_path}/watch.err &
+W=$!
+sleep 4
+{' '.join(armid)} record --rig {RIG} --channel {channel} --out {tmp_path}/run --duration 3 2> {tmp_path}/record.err
+wait $W
+{' '.join(armid)} record --rig {RIG} --channel {channel}b --out {tmp_path}/run2 --duration 20 2> {tmp_path}/record2.err &
+R=$!
+sleep 3
+{' '.join(armid)} serve --robot puma560 --no-payload --duration 25 2> {tmp_path}/serve.err &
+S=$!
+{' '.join(armid)} watch --robot puma560 --duration 8 > {tmp_path}/watch2.out 2> {tmp_path}/watch2.err
+{sys.executable} -c "
+import json, time, zenoh
+from armid.daq.stream import open_local_session
+with open_local_session() as s:
+    time.sleep(2)
+    docs = [json.loads(r.ok.payload.to_bytes()) for r in s.get('armid/puma560/status', target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.ConsolidationMode.NONE, timeout=5.0) if r.ok]
+    print(json.dumps(docs))
+" > {tmp_path}/status.json
+wait $R
+kill $S || true
+wait $S || true
+"""
+    r = subprocess.run(["unshare", "-rn", "sh", "-c", script], env=ENV, capture_output=True, text=True, timeout=400)
+    assert r.returncode == 0, r.stderr[-3000:] + (tmp_path / "record.err").read_text()[-2000:] if (tmp_path / "record.err").exists() else r.stderr
+    from armid.io.recordings import read_mcap_arrays as read_mcap
+
+    arrays, _, _ = read_mcap(tmp_path / "run" / "run.mcap")
+    n = len(arrays["sequence"])
+    summary = (tmp_path / "watch.err").read_text().strip().splitlines()[-1]
+    assert summary.startswith(f"armid watch: {n} records, 0 gaps (0 missing), 0 unreadable"), (summary, n)
+    # the other order: the recorder was there first; the watcher joined it, the service too
+    later = (tmp_path / "watch2.err").read_text().strip().splitlines()[-1]
+    assert int(later.split()[2]) > 0 and " 0 gaps" in later, later
+    status = json.loads((tmp_path / "status.json").read_text())
+    components = {d.get("component") for d in status}
+    assert {"estimator", "recorder"} <= components, status
+    assert next(d for d in status if d.get("component") == "estimator")["received"] > 0
+    print(f"\nwatcher with no flags: {n} of {n} records; the other order: {later}")
+
+
+def test_a_slow_service_skips_records_says_so_and_identifies_what_it_kept(tmp_path: Path) -> None:
+    """The service falls behind by design (10 ms of extra work per record at 2 ms): the
+    recording loses nothing, the service says how many records it skipped, and its estimates
+    are those of exactly the records it kept (equal to ``armid identify`` on them)."""
+    import zenoh
+
+    from armid.daq.stream import Stream, session_config
+    from armid.experiments import design_experiments, run_experiments
+    from armid.io.recordings import read_mcap_arrays as read_mcap
+    from armid.io.rig_file import load_rig
+    from armid.serve import EstimatorService, ServiceOptions
+    from armid.simulated import excitation_session
+
+    rig = load_rig(_rig_copy(tmp_path)).with_bus(channel=f"armid-slow-{uuid.uuid4().hex[:6]}")
+    robot = rig.robot
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    publisher = zenoh.open(session_config(listen=[endpoint]))
+    listener = zenoh.open(session_config(connect=[endpoint]))
+    docs: list[dict] = []
+    service = EstimatorService(listener, robot, tmp_path / "serve", ServiceOptions(max_backlog=500, ingest_delay_s=0.01, payload=False),
+                               on_publish=docs.append)
+    stream = Stream(publisher, robot.name, "excite", lambda: {})
+    start = np.asarray(rig.simulation["initial_position"], float)
+    experiments = design_experiments(robot, start, [5], [("whole", 1)], rig.period_s, link_periods=1, seed=0)
+    try:
+        with excitation_session(rig, simulate=True, stream=stream) as session:
+            reports = run_experiments(session, experiments, tmp_path / "excite")
+            assert session.acquisition is not None
+            recorder_dropped = session.acquisition.sinks[0].dropped
+        deadline = time.monotonic() + 240
+        while len(docs) < 2 and time.monotonic() < deadline:
+            time.sleep(0.2)
+    finally:
+        service.close()
+        stream.close()
+        listener.close()
+        publisher.close()
+    assert all(r.completed for r in reports), [r.stop_reason for r in reports]
+    # acquisition and recording lost nothing
+    assert recorder_dropped == 0
+    for r in reports:
+        a, _, notes = read_mcap(r.recording)
+        assert not notes and np.all(np.diff(a["sequence"]) == 1) and len(a["sequence"]) == r.records
+    assert [d["experiment"]["run"] for d in docs] == ["link6", "whole"]
+    assert service.skipped > 0 and docs[-1]["skipped"] == service.skipped
+    assert sum(d["experiment"]["missing"] for d in docs) > 0
+    for d, r in zip(docs, reports):
+        e = d["experiment"]
+        full, _, _ = read_mcap(r.recording)
+        copy, _, _ = read_mcap(e["mcap"])
+        kept = np.concatenate([np.arange(a, b + 1) for a, b in e["kept"]])
+        assert e["missing"] == len(full["sequence"]) - kept.size > 0
+        # the service's copy holds exactly the records it kept, as the recording has them
+        assert np.array_equal(copy["sequence"], kept)
+        rows = np.searchsorted(full["sequence"], kept)
+        for name in ("t", "position", "velocity", "measured_current", "valid", "cycle"):
+            assert np.array_equal(copy[name], full[name][rows]), name
+    # the whole-arm estimate is armid identify's on the records kept
+    rel = _check_whole(docs[1]["whole_arm"]["whole"], Path(docs[1]["experiment"]["mcap"]), tmp_path)
+    # beside the estimate from every record (a figure, not asserted: the kept 30 % covers parts
+    # of one period, and the batch-means standard deviations of a few short stretches are
+    # optimistic, so z against the full estimate runs well beyond 3)
+    full_out = tmp_path / "identify-full.json"
+    assert main(["identify", reports[1].recording, "--robot", str(ROBOT), "--json", str(full_out)]) == 0
+    full_doc = json.loads(full_out.read_text())
+    kept_base = docs[1]["whole_arm"]["whole"]["base_parameters"]
+    z = np.array([(k["value"] - f["value"]) / k["std"] for k, f in zip(kept_base, full_doc["base_parameters"])])
+    kept_share = 1 - docs[1]["experiment"]["missing"] / reports[1].records
+    print(f"\nslow service: skipped {service.skipped} records; whole run: kept {100 * kept_share:.0f} % in {len(docs[1]['experiment']['kept'])} "
+          f"stretches, identify on them {rel:.3g} relative; against every record's estimate: max |z| {np.abs(z).max():.2f}, "
+          f"{int((np.abs(z) > 3).sum())} of {z.size} beyond 3 sigma")
+
+
+@pytest.mark.skipif(shutil.which("script") is None, reason="needs script(1) for a pseudo-terminal")
+def test_record_shows_a_live_line_on_a_terminal_and_nothing_otherwise(tmp_path: Path) -> None:
+    cmd = [sys.executable, "-m", "armid.cli", "record", "--rig", str(RIG), "--channel", f"armid-live-{uuid.uuid4().hex[:6]}",
+           "--duration", "1", "--no-zenoh"]
+    on_tty = subprocess.run(["script", "-qc", " ".join([*cmd, "--out", str(tmp_path / "a")]), "/dev/null"], cwd=ROOT, env=ENV,
+                            capture_output=True, timeout=120)
+    lines = [x for x in on_tty.stdout.decode(errors="replace").replace("\r", "\n").splitlines() if "rate" in x]
+    assert on_tty.returncode == 0 and lines, on_tty.stdout[-2000:]
+    assert all(k in lines[-1] for k in ("records", "Hz", "lost cycles", "faults")), lines[-1]
+    piped = subprocess.run([*cmd, "--out", str(tmp_path / "b")], cwd=ROOT, env=ENV, capture_output=True, timeout=120)
+    assert piped.returncode == 0 and piped.stdout == b""
