@@ -42,6 +42,10 @@ _D = 29  # the shift that carries rows from the last joint point to this one
 _B = 32  # B[r, k] = ([dw x] + w w^T - |w|^2 E)[r, k] at _B + 3 r + k
 _NSTATE = 41
 
+# numba caches the compiled kernels beside this file, keyed by its path and time stamp; a cache
+# written when this package was the top-level ``identify`` (before it installed as
+# ``armid.identify``) names the old module, so this file changed with the rename to make any
+# such cache stale rather than fail to load ("No module named 'identify'")
 _inline = numba.njit(cache=True, fastmath=True, error_model="numpy", boundscheck=False, inline="always")
 # no reassociation here: the Cody-Waite reduction's order of subtraction is its accuracy
 _exact = numba.njit(cache=True, fastmath={"contract", "nsz", "arcp"}, error_model="numpy", boundscheck=False)
