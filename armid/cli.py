@@ -169,7 +169,7 @@ def _identify(args: argparse.Namespace) -> int:
     _inputs_read()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", PoorExcitationWarning)
-        result = identify(robot, experiments, validation, IdentifyOptions(weighting=args.weighting))
+        result = identify(robot, experiments, validation, IdentifyOptions(weighting=args.weighting, prior=args.prior))
     for w in caught:
         print(f"warning: {w.message}", file=sys.stderr)
     doc = result.to_json()
@@ -289,19 +289,24 @@ def _diagnosed_feasible(args: argparse.Namespace, robot: Any, diag: Any, experim
     return line
 
 
+def _rig(args: argparse.Namespace) -> Any:
+    """The rig file, with ``--interface``/``--channel`` replacing its CAN bus's."""
+    from armid.io.rig_file import load_rig
+
+    rig = load_rig(args.rig)
+    changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
+    return rig.with_bus(**changes) if changes and not rig.is_serial else rig
+
+
 def _record(args: argparse.Namespace) -> int:
     import threading
     import time
 
     from armid.daq.acquisition import Acquisition, Sink
     from armid.daq.recorder import McapRecorder
-    from armid.io.rig_file import load_rig
     from armid.schema import versions
 
-    rig = load_rig(args.rig)
-    changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
-    if changes and not rig.is_serial:
-        rig = rig.with_bus(**changes)
+    rig = _rig(args)
     _inputs_read()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -426,13 +431,7 @@ def _excite(args: argparse.Namespace) -> int:
 
     from rich.console import Console
 
-    from armid.io.rig_file import load_rig
-
-
-    rig = load_rig(args.rig)
-    changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
-    if changes and not rig.is_serial:
-        rig = rig.with_bus(**changes)
+    rig = _rig(args)
     robot = rig.robot
     n = robot.n_joints
     if args.frequency is not None and args.frequency >= 0.5 / rig.period_s:
@@ -844,12 +843,7 @@ def _demo(args: argparse.Namespace) -> int:
 def _sim(args: argparse.Namespace) -> int:
     import threading
 
-    from armid.io.rig_file import load_rig
-
-    rig = load_rig(args.rig)
-    changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
-    if changes and not rig.is_serial:
-        rig = rig.with_bus(**changes)
+    rig = _rig(args)
     _inputs_read()
     stop = threading.Event()
     restore = _stop_on_signals(stop)
@@ -991,6 +985,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--report", metavar="DIR", help="write a markdown report with PNG plots")
     p.add_argument("--predictions", metavar="CSV", help="write predicted validation torques (t, tau_hat1..n)")
     p.add_argument("--weighting", choices=("wls", "ols"), default="wls", help="per-joint weighted (default) or ordinary LS")
+    p.add_argument("--prior", choices=("modeled", "none"), default="modeled",
+                   help="the robot file's modeled values as a prior for what the data do not excite (default), or least squares alone")
     _feasible_arguments(p)
     p.add_argument("--lowpass", type=_lowpass, default="auto", metavar="HZ|auto|off",
                    help="zero-phase low-pass of the kinematics, the regressor and the torque alike (default auto: chosen from each recording's spectrum)")

@@ -150,6 +150,25 @@ def solve_factors(factors: JointFactors, weighting: str = "wls") -> LeastSquares
     return LeastSquares(beta, cov, np.sqrt(np.maximum(np.diag(cov), 0.0)), sigma, weighting)
 
 
+def with_prior(factors: JointFactors, est: LeastSquares, mean: Array, precision: Array, correlation: int) -> tuple[LeastSquares, Array]:
+    """The maximum a posteriori estimate with a Gaussian prior ``N(mean, precision^-1)`` on
+    ``beta`` (identify.prior), the data weighed as ``n / correlation`` independent equations
+    of ``est``'s weighting; and the penalty matrix it adds to ``R^T R`` of that weighting.
+    The covariance is the posterior's."""
+    weights = 1.0 / np.maximum(est.joint_sigma, 1e-300) if est.weighting == "wls" else np.ones(len(factors.r))
+    r = factors.combined(weights)
+    rr, z = r[:-1, :-1], r[:-1, -1]
+    p = rr.shape[1]
+    rows = float(factors.counts.sum())
+    s2 = float(np.sum(factors.residual_squares(est.beta) * weights**2)) / max(rows - p, 1.0)
+    penalty = max(s2, 1e-300) * max(int(correlation), 1) * np.asarray(precision, float)
+    a = rr.T @ rr + penalty
+    beta = np.linalg.solve(a, rr.T @ z + penalty @ mean)
+    cov = max(s2, 1e-300) * max(int(correlation), 1) * np.linalg.inv(a)
+    cov = 0.5 * (cov + cov.T)
+    return LeastSquares(beta, cov, np.sqrt(np.maximum(np.diag(cov), 0.0)), est.joint_sigma, est.weighting), penalty
+
+
 def correlation_length(residual: Array, threshold: float = 0.05) -> int:
     """Samples until the residual's autocorrelation (averaged over columns) first falls
     below ``threshold``: how far apart two samples must be to count as independent."""

@@ -223,10 +223,9 @@ def feasible_prior(phi0_link: Array, floor: float = PRIOR_FLOOR, fallback: Array
 
 def base_projection(base: BaseParameters, n_columns: int) -> Array:
     """``P`` (p, n_columns) with ``beta = P phi`` (``phi_b + K phi_d``, 5.4)."""
-    p = np.zeros((base.n_base, n_columns))
-    p[np.arange(base.n_base), base.independent] = 1.0
-    if base.dependent.size:
-        p[:, base.dependent] += base.regrouping
+    p = base.projection()
+    if p.shape[1] != n_columns:
+        raise ValueError(f"the base parameters have {p.shape[1]} columns, not {n_columns}")
     return p
 
 

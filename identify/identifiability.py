@@ -52,6 +52,14 @@ class BaseParameters:
     def n_base(self) -> int:
         return int(self.independent.size)
 
+    def projection(self) -> Array:
+        """``P`` (p, n_columns) with ``beta = P phi`` (``phi_b + K phi_d``, 5.4)."""
+        p = np.zeros((self.n_base, len(self.names)))
+        p[np.arange(self.n_base), self.independent] = 1.0
+        if self.dependent.size:
+            p[:, self.dependent] += self.regrouping
+        return p
+
     def base_values(self, phi: Array) -> Array:
         """``beta = phi_b + K phi_d`` for standard parameters ``phi``."""
         phi = np.asarray(phi, dtype=float)

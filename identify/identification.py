@@ -17,10 +17,11 @@ import numpy as np
 from .dynamics import regressor
 from .effects import SETTINGS, LinearEffect, effect_columns, linear_effect
 from .errors import IdentificationError, PoorExcitationWarning
-from .estimation import JointFactors, LeastSquares, batch_means_covariance, correlation_length, factor_columns, solve_factors
+from .estimation import JointFactors, LeastSquares, batch_means_covariance, correlation_length, factor_columns, solve_factors, with_prior
 from .identifiability import UNIQUE, BaseParameters, Excitation, base_parameters, excitation, preferred_order
 from .metrics import summary
 from .preprocess import Prepared, Segment
+from .prior import Prior, base_prior, link_scales
 from .robot import Robot
 from .spatial import Array
 
@@ -42,6 +43,12 @@ class IdentifyOptions:
     torque_scale: tuple[float, ...] | None = None
     delay_s: tuple[float, ...] | None = None
     motion_delay_s: tuple[float, ...] | None = None
+    # "modeled": the robot file's modeled values as a prior (identify.prior) for what the
+    # data do not excite; "none": least squares alone
+    prior: str = "modeled"
+
+
+PRIORS = ("modeled", "none")
 
 
 def declared_effects(robot: Robot) -> list[LinearEffect]:
@@ -117,6 +124,7 @@ class IdentificationResult:
     torque_scale: Array | None = None  # IdentifyOptions.torque_scale / delay_s / motion_delay_s, per joint
     delay_s: Array | None = None
     motion_delay_s: Array | None = None
+    prior: dict[str, Any] | None = None  # the prior the estimate used (identify.prior), None for least squares alone
 
     def predict(self, segment: Segment) -> Array:
         """Torques (n, N) the identified model predicts for a segment's motion (its grid)."""
@@ -216,6 +224,7 @@ class IdentificationResult:
             "validation_samples": self.validation_samples,
             "preprocessing": self.notes,
             "filtering": self.filtering,
+            "prior": self.prior,
         }
 
 
@@ -372,19 +381,44 @@ def _factors(system: Array, columns: Array) -> JointFactors:
     return factor_columns([system[j][keep] for j in range(system.shape[0])])
 
 
-def _robust(system: Array, columns: Array, residual: Array, est: LeastSquares, factors: JointFactors, weighting: str) -> tuple[LeastSquares, int]:
+def _robust(system: Array, columns: Array, residual: Array, est: LeastSquares, factors: JointFactors, weighting: str,
+            penalty: Array | None = None) -> tuple[LeastSquares, int]:
     """``est`` with the batch-means sandwich covariance (:func:`batch_means_covariance`);
-    the information matrix comes from the QR triangles, the scores from one pass."""
+    the information matrix comes from the QR triangles (plus a prior's ``penalty``), the
+    scores from one pass."""
     weights = 1.0 / np.maximum(est.joint_sigma, 1e-300) if weighting == "wls" else np.ones(system.shape[0])
     scores = np.zeros((residual.shape[0], columns.size))
     for j in range(system.shape[0]):
         scores += system[j][columns].T * (weights[j] ** 2 * residual[:, j])[:, None]
     r = factors.combined(weights)[:-1, :-1]
-    rinv = np.linalg.pinv(r)
-    bread = rinv @ rinv.T
+    if penalty is None:
+        rinv = np.linalg.pinv(r)
+        bread = rinv @ rinv.T
+    else:
+        bread = np.linalg.inv(r.T @ r + penalty)
     block = 4 * correlation_length(residual * weights)
     cov = batch_means_covariance(bread, scores, block)
     return replace(est, covariance=cov, std=np.sqrt(np.maximum(np.diag(cov), 0.0))), block
+
+
+def _modeled_prior(robot: Robot, names: list[str], effects: list[LinearEffect], base: BaseParameters, system: Array) -> Prior | None:
+    """The robot file's modeled values as a prior on the base parameters (identify.prior);
+    None when no link has modeled values."""
+    phi0 = robot.modeled_parameters()
+    std = np.full(len(names), np.inf)
+    std[: robot.n_parameters] = link_scales(phi0)
+    if not np.isfinite(std[: robot.n_parameters]).any():
+        return None
+    mean = np.zeros(len(names))
+    mean[: robot.n_parameters] = np.nan_to_num(phi0)
+    for e in effects:
+        tau_rms = float(np.sqrt(np.mean(system[e.joint][-1] ** 2)))
+        for label in e.labels():
+            c = names.index(label)
+            col_rms = float(np.sqrt(np.mean(system[e.joint][c] ** 2)))
+            if col_rms > 0 and tau_rms > 0:
+                std[c] = tau_rms / col_rms
+    return base_prior(base, mean, std)
 
 
 def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepared] | None = None, options: IdentifyOptions | None = None) -> IdentificationResult:
@@ -427,17 +461,35 @@ def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     for c in caught:
         warnings.warn(c.message, PoorExcitationWarning, stacklevel=2)
     est = solve_factors(factors, options.weighting)
-    coef = np.zeros(len(names))
-    coef[base.independent] = est.beta
     tau = system[:, -1].T
     n = tau.shape[0]
-    tau_hat = np.stack([system[j, :-1].T @ coef for j in range(robot.n_joints)], axis=1)
+
+    def model_torque(beta: Array) -> Array:
+        coef = np.zeros(len(names))
+        coef[base.independent] = beta
+        return np.stack([system[j, :-1].T @ coef for j in range(robot.n_joints)], axis=1)
+
+    tau_hat = model_torque(est.beta)
+    penalty, prior_doc = None, None
+    if options.prior not in PRIORS:
+        raise ValueError(f"prior must be one of {PRIORS}, got {options.prior!r}")
+    prior = _modeled_prior(robot, names, effects, base, system) if options.prior == "modeled" else None
+    if prior is not None:
+        weights = 1.0 / np.maximum(est.joint_sigma, 1e-300) if options.weighting == "wls" else np.ones(robot.n_joints)
+        length = correlation_length((tau - tau_hat) * weights)
+        est, penalty = with_prior(factors, est, prior.mean, prior.precision, length)
+        tau_hat = model_torque(est.beta)
+        prior_doc = prior.to_json(length)
+        notes.append(f"prior: the modeled values (within {100 * prior_doc['relative_std']:g} % of themselves) on {prior.covered} of "
+                     f"{base.n_base} base parameters, the data weighed as one equation in {length} (their correlation length)")
+    elif options.prior == "modeled":
+        notes.append("prior: none (the robot file models no link's inertial values); least squares alone")
     fit = summary(tau, tau_hat)
     if options.covariance == "batch_means":
-        est, block = _robust(system, base.independent, tau - tau_hat, est, factors, options.weighting)
+        est, block = _robust(system, base.independent, tau - tau_hat, est, factors, options.weighting, penalty)
         notes.append(f"standard deviations: batch-means sandwich over blocks of {block} samples (four times the residual's correlation length)")
     result = IdentificationResult(robot, names, effects, base, est, exc, sum(p.n_stamps for p in experiments), fit, notes=notes, factors=factors,
-                                  torque_scale=scale, delay_s=delay, motion_delay_s=motion_delay)
+                                  torque_scale=scale, delay_s=delay, motion_delay_s=motion_delay, prior=prior_doc)
     # the errors anyone can check: the model at each input sample against the raw torque
     _, tau_raw, tau_hat_raw = result.predict_stamps(segments)
     result.fit = summary(tau_raw, tau_hat_raw)
