@@ -352,15 +352,18 @@ def test_record_shows_a_live_line_on_a_terminal_and_nothing_otherwise(tmp_path: 
 
 
 
+
+@pytest.mark.slow
 def test_once_the_arm_is_identified_the_service_estimates_a_payload_on_the_live_stream(tmp_path: Path) -> None:
-    """Issue 20's last part: a whole-arm run streams to the service, which identifies the arm
-    (as ``armid identify`` does) and starts the on-line payload estimator on the live stream.
-    The arm works on through the same trajectory (not an experiment: no events, nothing for
-    the service to identify) and ``armid demo``'s 2 kg payload is attached 1.5 s into the
-    motion, on the arm's own clock. A subscriber in a session of its own receives
-    ``estimate/payload`` from the service: nothing before the arm is identified; then half a
-    second before the attach no mass, and 2, 2.5 and 3 s after it the mass within 5 % and the
-    centre of mass within 1 cm (tests/test_payload.py's bounds)."""
+    """Issue 20's last part, with ``armid serve`` as a process of its own (its defaults: the
+    payload estimator on): a whole-arm run streams to it, it identifies the arm (as ``armid
+    identify`` does) and starts the on-line payload estimator on the live stream. The arm
+    works on through the same trajectory (not an experiment: no events, nothing more to
+    identify) and ``armid demo``'s 2 kg payload is attached 1.5 s into the motion, on the
+    arm's own clock. A subscriber in a session of its own receives ``estimate/payload`` from
+    the service: nothing before the arm is identified; then half a second before the attach
+    no mass, and 2, 2.5 and 3 s after it the mass within 5 % and the centre of mass within
+    1 cm (tests/test_payload.py's bounds)."""
     import zenoh
 
     from armid.daq.stream import Stream, key, session_config
@@ -369,7 +372,6 @@ def test_once_the_arm_is_identified_the_service_estimates_a_payload_on_the_live_
     from armid.identify import excitation as ex
     from armid.io.recordings import read_mcap_arrays as read_mcap
     from armid.io.rig_file import load_rig
-    from armid.serve import EstimatorService, ServiceOptions
     from armid.sim_bus.physics import Payload
     from armid.simulated import excitation_session
 
@@ -378,13 +380,14 @@ def test_once_the_arm_is_identified_the_service_estimates_a_payload_on_the_live_
     rig = load_rig(_rig_copy(tmp_path)).with_bus(channel=f"armid-payload-{uuid.uuid4().hex[:6]}")
     robot = rig.robot
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    publisher = zenoh.open(session_config(listen=[endpoint]))
-    listener = zenoh.open(session_config(connect=[endpoint]))
+    serve = subprocess.Popen([sys.executable, "-m", "armid.cli", "serve", "--robot", str(ROBOT), "--zenoh-listen", endpoint,
+                              "--out", str(tmp_path / "serve")], cwd=ROOT, env=ENV, stderr=subprocess.PIPE, text=True)
+    publisher = zenoh.open(session_config(connect=[endpoint]))
     watcher = zenoh.open(session_config(connect=[endpoint]))
     estimates: list[dict] = []
-    sub = watcher.declare_subscriber(key(robot.name, "estimate/payload"), lambda s: estimates.append(json.loads(s.payload.to_bytes())))
     docs: list[dict] = []
-    service = EstimatorService(listener, robot, tmp_path / "serve", ServiceOptions(), on_publish=docs.append)
+    subs = [watcher.declare_subscriber(key(robot.name, "estimate/payload"), lambda s: estimates.append(json.loads(s.payload.to_bytes()))),
+            watcher.declare_subscriber(key(robot.name, "estimate/parameters"), lambda s: docs.append(json.loads(s.payload.to_bytes())))]
     stream = Stream(publisher, robot.name, "excite", lambda: {})
     start = np.asarray(rig.simulation["initial_position"], float)
     [whole] = design_experiments(robot, start, [], [("whole", 1)], rig.period_s, seed=0)
@@ -398,6 +401,7 @@ def test_once_the_arm_is_identified_the_service_estimates_a_payload_on_the_live_
             time.sleep(0.05)
 
     try:
+        wait(lambda: "estimator" in alive(), 60)  # the service is up
         assert "estimator" in alive() and "payload_estimator" not in alive()  # no payload estimator before the arm is known
         with excitation_session(rig, simulate=True, stream=stream) as s:
             assert s.arm is not None
@@ -406,7 +410,7 @@ def test_once_the_arm_is_identified_the_service_estimates_a_payload_on_the_live_
             assert report.completed, report.stop_reason
             wait(lambda: docs, 180)
             identified_s = time.monotonic() - began
-            assert [d["source"] for d in docs] == ["whole_arm whole"], (docs, service.errors)
+            assert [d["source"] for d in docs] == ["whole_arm whole"], docs
             wait(lambda: "payload_estimator" in alive(), 10)
             assert "payload_estimator" in alive()
             plan = ex.plan(whole.design, s.position, s.limits, periods=1)
@@ -425,17 +429,25 @@ def test_once_the_arm_is_identified_the_service_estimates_a_payload_on_the_live_
             end = active.first_cycle + active.cycles + offset
         wait(lambda: estimates and estimates[-1]["sequence"] >= end - 10, 20)
     finally:
-        sub.undeclare()
-        service.close()
+        for sub in subs:
+            sub.undeclare()
         stream.close()
-        for z in (watcher, listener, publisher):
+        for z in (watcher, publisher):
             z.close()
+        serve.send_signal(signal.SIGTERM)
+        try:
+            serve.wait(20)
+        except subprocess.TimeoutExpired:
+            serve.kill()
     took = time.monotonic() - began
+    log = serve.stderr.read() if serve.stderr else ""
+    assert serve.returncode == 0, log[-2000:]
+    assert "payload estimator running on the live stream" in log, log[-2000:]
     assert len(physics.payload_events) == 1
     recorded, _, _ = read_mcap(tmp_path / "excite" / "whole" / "run.mcap")
     assert np.all(recorded["sequence"] - recorded["cycle"] == offset)  # no SYNC lost: the two numberings stay aligned
     # nothing published before the arm was identified, then every 10th record (50 Hz)
-    assert estimates and min(e["sequence"] for e in estimates) > recorded["sequence"][-1], (len(estimates), service.errors)
+    assert estimates and min(e["sequence"] for e in estimates) > recorded["sequence"][-1], (len(estimates), log[-2000:])
     mine = [e for e in estimates if first_work <= e["sequence"] <= end]
     assert len(mine) >= 0.9 * plan.duration_s * 50, len(mine)
     seq = np.array([e["sequence"] for e in mine])
