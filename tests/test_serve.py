@@ -502,6 +502,8 @@ def test_once_the_arm_is_identified_the_service_estimates_a_payload_on_the_live_
             offset = last.sequence - last.sample.cycle  # a record's sequence number less its SYNC cycle
             assert active.done.wait(plan.duration_s + 60)
             assert s.control.stop_reason is None, s.control.stop_reason
+            last = s.control.last_record
+            assert last is not None and last.sequence - last.sample.cycle == offset  # no SYNC lost while it worked
             first_work = active.first_cycle + offset
             end = active.first_cycle + active.cycles + offset
         wait(lambda: estimates and estimates[-1]["sequence"] >= end - 10, 20)
