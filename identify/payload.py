@@ -158,7 +158,13 @@ def project_feasible(theta: Array, cov: Array, gap: float = 1e-5, start: Array |
     Every iterate is strictly feasible, so the result is
     physically possible even when the iterations stop early. ``theta`` is returned
     unchanged when it is feasible already. ``start``, a strictly feasible point near the
-    answer (the last projection), starts the path late: a few Newton steps instead of tens.
+    answer, starts the path late (at the final barrier weight). The last projection is no
+    such point: it lies on the boundary (the least eigenvalue of its pseudo-inertia ~1e-13),
+    where the Newton steps stall, so that an answer started there stays near it. On a live
+    run of the simulated arm with 2 kg attached, started from the last answer, 249 of 328
+    published projections were worse than the cold start's (the distance ``f`` up to 58
+    above it; 12.0 against 2.25 at one, 2.054 kg against 2.011 kg, the centre of mass 1 cm
+    apart) for 20 % less time: the estimator starts every projection cold.
     """
     theta = np.asarray(theta, float)
     w, v = np.linalg.eigh(pseudo_inertia(theta))
@@ -934,8 +940,7 @@ class PayloadRLS:
         """The published parameters: :func:`project_feasible` of ``theta_`` (cached per update)."""
         key = (self.n_updates_ + self.resets_ + self.rejected_, self.theta_.tobytes())
         if self._projected is None or self._projected[0] != key:
-            last = self._projected[1] if self._projected is not None else None
-            self._projected = (key, project_feasible(self.theta_, self.P_, start=last, atol=PUBLISH_ATOL))
+            self._projected = (key, project_feasible(self.theta_, self.P_, atol=PUBLISH_ATOL))
         return self._projected[1]
 
     def snapshot(self) -> dict[str, Any]:
@@ -958,13 +963,12 @@ class PayloadRLS:
         (:func:`project_feasible_many`): what a replay publishes, at a fraction of the cost."""
         if not snapshots:
             return []
-        if len(snapshots) < 4:  # a live batch: the last projection is a good start
+        if len(snapshots) < 4:  # a live batch: each from the cold start, as the batch below (never the last answer: see project_feasible)
             out = []
             for s in snapshots:
                 key = (s["updates"] + s["resets"] + s["rejected"], s["theta"].tobytes())
                 if self._projected is None or self._projected[0] != key:
-                    last = self._projected[1] if self._projected is not None else None
-                    self._projected = (key, project_feasible(s["theta"], s["P"], start=last, atol=PUBLISH_ATOL))
+                    self._projected = (key, project_feasible(s["theta"], s["P"], atol=PUBLISH_ATOL))
                 out.append(self.document(s, self._projected[1]))
             return out
         feasible = project_feasible_many(np.array([s["theta"] for s in snapshots]), np.array([s["P"] for s in snapshots]),
