@@ -162,14 +162,6 @@ class CanopenDriver(Driver):
         """SYNCs sent more than a period late (the schedule restarted)."""
         return self._clock.late
 
-    @property
-    def latest_cycle(self) -> int | None:
-        return self._cycle
-
-    @property
-    def torque_constants(self) -> Array:
-        return np.array([u.torque_constant for u in self.units])
-
     # --- start-up ---
     def start(self) -> None:
         try:

@@ -98,17 +98,9 @@ class DynamixelDriver(Driver):
         self.drive_configuration: list[dict[str, int]] = []
 
     @property
-    def torque_constants(self) -> Array:
-        return np.array([u.torque_constant for u in self.units])
-
-    @property
     def late_cycles(self) -> int:
         """Cycles started more than a period late (the schedule restarted)."""
         return self._clock.late
-
-    @property
-    def latest_cycle(self) -> int | None:
-        return self._cycle
 
     # --- the line ---
     def _open(self) -> None:

@@ -17,11 +17,15 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from armid.schema import Array, Sample
 from armid.schema.errors import DriveConfigError, DriveFault, DriverError, HeartbeatLost
+
+if TYPE_CHECKING:
+    from .rig import DriveUnits
 
 __all__ = ["CycleClock", "DriveConfigError", "DriveFault", "Driver", "DriverError", "Event", "HeartbeatLost", "Sample"]
 
@@ -130,6 +134,8 @@ class Driver(abc.ABC):
     """Cycles lost per joint since :meth:`start` (the driver sets it up in ``__init__``)."""
     drive_configuration: list[dict[str, int]]
     """What each drive reported of its configuration at :meth:`start` (the recording's metadata)."""
+    units: list[DriveUnits]
+    """Each joint's unit conversions: counts, currents, torque constant."""
 
     def __init__(self) -> None:
         self._events: deque[Event] = deque(maxlen=10_000)
@@ -173,8 +179,9 @@ class Driver(abc.ABC):
         """Stop cycling and release the bus."""
 
     @property
-    @abc.abstractmethod
-    def torque_constants(self) -> Array: ...
+    def torque_constants(self) -> Array:
+        """Each joint's torque per ampere (N*m/A or N/A), from its drive's units."""
+        return np.array([u.torque_constant for u in self.units])
 
     def acknowledge(self, cycle: int) -> None:  # noqa: B027 - an optional hook: most drivers pace nothing
         """The consumer has acted on ``cycle`` (a driver pacing a simulated arm waits for it)."""
@@ -186,8 +193,10 @@ class Driver(abc.ABC):
 
     @property
     def latest_cycle(self) -> int | None:
-        """The newest cycle started on the bus: a command sent now applies from the next."""
-        return None
+        """The newest cycle started on the bus: a command sent now applies from the next
+        (``_cycle``, which a driver counts from :meth:`start`)."""
+        cycle: int | None = getattr(self, "_cycle", None)
+        return cycle
 
     def events(self) -> list[Event]:
         """Events since the last call."""

@@ -21,7 +21,7 @@ from .estimation import JointFactors, LeastSquares, batch_means_covariance, corr
 from .identifiability import UNIQUE, BaseParameters, Excitation, base_parameters, excitation, preferred_order
 from .metrics import summary
 from .preprocess import Prepared, Segment
-from .prior import Prior, base_prior, link_scales
+from .prior import RELATIVE_STD, Prior, base_prior, link_scales, widened
 from .robot import Robot
 from .spatial import Array
 
@@ -477,11 +477,16 @@ def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     if prior is not None:
         weights = 1.0 / np.maximum(est.joint_sigma, 1e-300) if options.weighting == "wls" else np.ones(robot.n_joints)
         length = correlation_length((tau - tau_hat) * weights)
-        est, penalty = with_prior(factors, est, prior.mean, prior.precision, length)
-        tau_hat = model_torque(est.beta)
+        prior = widened(prior, est.beta, length * est.covariance)
         prior_doc = prior.to_json(length)
-        notes.append(f"prior: the modeled values (within {100 * prior_doc['relative_std']:g} % of themselves) on {prior.covered} of "
-                     f"{base.n_base} base parameters, the data weighed as one equation in {length} (their correlation length)")
+        if prior.covered:
+            est, penalty = with_prior(factors, est, prior.mean, prior.precision, length)
+            tau_hat = model_torque(est.beta)
+            wider = f", widened {prior.widening:.3g}x in variance to agree with the data" if prior.widening > 1.0 else ""
+            notes.append(f"prior: the modeled values (within {100 * RELATIVE_STD:g} % of themselves{wider}) on {prior.covered} of "
+                         f"{base.n_base} base parameters, the data weighed as one equation in {length} (their correlation length)")
+        else:
+            notes.append("prior: the data contradict the modeled values beyond any width; least squares alone")
     elif options.prior == "modeled":
         notes.append("prior: none (the robot file models no link's inertial values); least squares alone")
     fit = summary(tau, tau_hat)

@@ -49,11 +49,14 @@ class Prior:
     mean: Array
     precision: Array
     covered: int  # base parameters the prior speaks about
+    widening: float = 1.0  # the factor its covariance was widened by to agree with the data (:func:`widened`)
 
     def to_json(self, correlation: int) -> dict[str, Any]:
         return {
             "kind": "Gaussian, the robot file's modeled values as mean (maximum a posteriori estimate)",
             "relative_std": RELATIVE_STD,
+            "widened_by": self.widening if np.isfinite(self.widening) else None,
+            "used": self.covered > 0,
             "base_parameters_with_prior": self.covered,
             "base_parameters": int(self.mean.size),
             "correlation_length_equations": int(correlation),
@@ -103,4 +106,33 @@ def base_prior(base: BaseParameters, mean: Array, std: Array) -> Prior | None:
     return Prior(beta0, precision, int(covered.size))
 
 
-__all__ = ["Prior", "RELATIVE_STD", "base_prior", "link_scales"]
+def widened(prior: Prior, beta: Array, covariance: Array, limit: float = 1e12) -> Prior:
+    """The prior with its covariance scaled by the least ``s^2 >= 1`` for which the data's
+    estimate ``beta`` (covariance ``covariance``) lies no farther from the prior's mean than
+    expected: ``d^T (C + s^2 S_0)^-1 d <= k`` over the ``k`` base parameters it covers (the
+    method of moments of empirical Bayes). A model the data contradict (a URDF's placeholder
+    inertias) loses its weight instead of pulling the estimate; a model they agree with
+    keeps what the robot file says. Beyond ``limit`` the prior is dropped (zero precision)."""
+    idx = np.flatnonzero(np.abs(prior.precision).sum(axis=1) > 0)
+    if idx.size == 0:
+        return prior
+    s0 = np.linalg.pinv(prior.precision[np.ix_(idx, idx)], hermitian=True)
+    c = np.asarray(covariance, float)[np.ix_(idx, idx)]
+    d = (np.asarray(beta, float) - prior.mean)[idx]
+
+    def excess(scale: float) -> float:
+        return float(d @ np.linalg.lstsq(c + scale * s0, d, rcond=None)[0]) / idx.size - 1.0
+
+    if excess(1.0) <= 0.0:
+        return prior
+    if excess(limit) > 0.0:
+        return Prior(prior.mean, np.zeros_like(prior.precision), 0, np.inf)
+    lo, hi = 0.0, float(np.log(limit))
+    for _ in range(60):  # bisection on log s^2: excess falls as the prior widens
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if excess(float(np.exp(mid))) > 0.0 else (lo, mid)
+    scale = float(np.exp(hi))
+    return Prior(prior.mean, prior.precision / scale, prior.covered, scale)
+
+
+__all__ = ["Prior", "RELATIVE_STD", "base_prior", "link_scales", "widened"]
