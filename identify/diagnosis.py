@@ -350,6 +350,66 @@ def _candidates(robot: Robot, data: _Data, present: set[tuple[str, int | None]],
     return out
 
 
+class _GainProfile:
+    """A drive gain on one joint fitted exactly: the joint measures ``s`` times the model's
+    rigid-body torque, so that joint's rows of the base columns are scaled by ``s``, the
+    linear parameters refitted, and ``s`` chosen by the identification fit's residual (a
+    profile over ``s``: a log grid over 0.1-10, then Brent's method between the best point's
+    neighbours). A gain linearised about the current fit (the prediction as one more column)
+    is biased by that fit: the rigid-body parameters the joint's rows share with the rest of
+    the arm were fitted to the scaled torque, and a large gain on a distal joint came out
+    wrong, even of the wrong sign.
+
+    The normal equations are split into the joint's rows and the others' (columns equilibrated),
+    so that each value of ``s`` costs one small solve."""
+
+    GRID = np.geomspace(0.1, 10.0, 41)
+
+    def __init__(self, a_i: Array, y_i: Array, a_v: Array, y_v: Array, wt_v: Array, n_joints: int, p_base: int) -> None:
+        self.norms = np.linalg.norm(a_i, axis=0)
+        self.norms[self.norms == 0.0] = 1.0
+        self.a = a_i / self.norms  # weighted identification rows, equilibrated
+        self.y = y_i
+        self.yy = float(y_i @ y_i)
+        self.g_all, self.b_all = self.a.T @ self.a, self.a.T @ y_i
+        self.a_v, self.y_v, self.wt_v = a_v, y_v, wt_v
+        self.nj, self.p_base = n_joints, p_base
+
+    def best(self, j: int) -> tuple[float, float, float, Array] | None:
+        """(scale, identification RSS, held-out RSS, held-out prediction) at the best scale of
+        joint j, or None when the best lies at the edge of 0.1-10 (not a drive's gain)."""
+        from scipy.optimize import minimize_scalar
+
+        aj = self.a[j :: self.nj]
+        g_j, b_j = aj.T @ aj, aj.T @ self.y[j :: self.nj]
+        g_o, b_o = self.g_all - g_j, self.b_all - b_j
+        d = np.ones(self.a.shape[1])
+
+        def fit(log_s: float) -> tuple[float, Array]:
+            d[: self.p_base] = np.exp(log_s)
+            g, b = g_o + d[:, None] * g_j * d[None, :], b_o + d * b_j
+            try:
+                x = np.linalg.solve(g, b)
+            except np.linalg.LinAlgError:
+                x = np.linalg.lstsq(g, b, rcond=None)[0]
+            return self.yy - float(b @ x), x
+
+        logs = np.log(self.GRID)
+        rss = np.array([fit(v)[0] for v in logs])
+        k = int(np.argmin(rss))
+        if k in (0, len(logs) - 1):
+            return None
+        res = minimize_scalar(lambda v: fit(v)[0], bounds=(logs[k - 1], logs[k + 1]), method="bounded", options={"xatol": 1e-4})
+        log_s = float(res.x) if res.fun <= rss[k] else float(logs[k])
+        rss1, x = fit(log_s)
+        scale = float(np.exp(log_s))
+        coef = x / self.norms
+        pred = self.a_v @ coef
+        pred[j :: self.nj] += (scale - 1.0) * (self.a_v[j :: self.nj, : self.p_base] @ coef[: self.p_base])
+        r_v = (self.y_v - pred) * self.wt_v
+        return scale, max(rss1, 0.0), float(r_v @ r_v), pred
+
+
 def _parameters(c: Candidate, gamma: Array) -> dict[str, float]:
     g = [float(x) for x in gamma]
     setting = dict(c.setting)
@@ -379,8 +439,11 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     base = structural_base(robot, effects)
     n_cols = robot.n_parameters + sum(len(e.parameter_names) for e in effects)
 
-    def base_columns(d: _Data) -> Array:  # with the gravity as tilted so far
-        return stacked_regressor(robot, effects, d.q, d.qd, d.qdd)[:, base.independent]
+    gain_scale = np.ones(nj)  # found drive gains: joint j measures gain_scale[j] times the model's torque
+
+    def base_columns(d: _Data) -> Array:  # with the gravity as tilted so far and the drive gains found so far
+        cols = stacked_regressor(robot, effects, d.q, d.qd, d.qdd)[:, base.independent]
+        return cols if np.all(gain_scale == 1.0) else cols * np.tile(gain_scale, d.q.shape[0])[:, None]
 
     robot0 = robot
     sample_period = min(s.parallel.period_s for p in experiments for s in p.segments)  # the input's, before decimation
@@ -432,8 +495,21 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
         # G = A_v R^-1. Only a candidate's own rows enter, so a round costs little.
         g_mat = np.linalg.solve(r_mat.T, (a_v * wt_v[:, None]).T).T
         h_vec, h_mat = g_mat.T @ res_v, g_mat.T @ g_mat
+        gain_fit = _GainProfile(a_i, yw, a_v, yv, wt_v, nj, p_base)
         scored = []
         for c in _candidates(robot, ident, present | absorbed_keys, ctx, opts):
+            if c.effect == "torque_gain":
+                # fitted exactly, not linearised about the current fit: the joint's rigid-body
+                # columns scaled by the gain, profiled over it (see _GainProfile)
+                assert c.joint is not None
+                exact = gain_fit.best(c.joint)
+                if exact is None:
+                    continue  # a gain below 0.1 or above 10: a wrong robot file or wiring, not an effect
+                scale, rss1, rss_v1, pred_exact = exact
+                dof = n_used - a_i.shape[1] - 1
+                f_stat = (rss - rss1) / max(rss1 / dof, 1e-300)
+                scored.append((rss_v1, float(stats.f.sf(f_stat, 1, dof)), c, np.array([scale - 1.0]), None, pred_exact, None))
+                continue
             if c.block is not None:
                 j = c.joint
                 assert j is not None
@@ -468,8 +544,6 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
                 continue
             if c.effect in DISSIPATIVE and (bool(np.any(gamma <= 0.0)) if c.joint is not None else float(np.median(gamma[0::3])) <= 0.0):
                 continue  # friction that pushes the joint along, or a negative inertia: not physical
-            if c.effect == "torque_gain" and not -0.9 < float(gamma[0]) < 9.0:
-                continue  # a gain below 0.1 or above 10 (or negative) is a wrong robot file or wiring, not an effect
             if c.effect == "time_delay" and abs(float(gamma[0])) < 0.5 * sample_period:
                 # shorter than half a sample period: within the timing uncertainty of the
                 # samples themselves (zero-order hold of the current, current loop, filters)
@@ -481,7 +555,11 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
             dof = n_used - a_i.shape[1] - k
             f_stat = ((rss - rss1) / k) / max(rss1 / dof, 1e-300)
             p_value = float(stats.f.sf(f_stat, k, dof))
-            scored.append((rss_v1, p_value, c, gamma, proj))
+            per_joint = None
+            if c.block is None:  # the held-out residual power it leaves on each joint, before and after
+                res_c = res_v + g_mat @ u - cv_full @ gamma
+                per_joint = (np.bincount(np.arange(yv.size) % nj, res_v**2, nj), np.bincount(np.arange(yv.size) % nj, res_c**2, nj))
+            scored.append((rss_v1, p_value, c, gamma, proj, None, per_joint))
         if not scored:
             break
         # the best by held-out residual power, each added parameter paying its penalty
@@ -501,15 +579,29 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
         # best-ranked candidate that clears its gates is taken (the ranking still favours the
         # larger effect); none clears them: the search ends.
         pick = None
-        for rss_v1, p_value, best, gamma, proj in scored[: opts.ranked]:
+        for rss_v1, p_value, best, gamma, proj, pred_exact, per_joint in scored[: opts.ranked]:
             if p_value > opts.alpha:
                 continue
-            beta_c = beta - np.linalg.solve(r_mat, proj @ gamma)
-            cv = best.columns(held)
-            pred_before, pred_after = a_v @ beta, a_v @ beta_c + cv @ gamma
+            pred_before = a_v @ beta
+            if pred_exact is not None:
+                cv, pred_after = None, pred_exact
+            else:
+                beta_c = beta - np.linalg.solve(r_mat, proj @ gamma)
+                cv = best.columns(held)
+                pred_after = a_v @ beta_c + cv @ gamma
             if best.block is None:
                 if rss_v1 > (1.0 - opts.min_gain) * rss_v:
                     continue
+                if per_joint is not None and nj > 1:
+                    # an effect of the arm must show on the arm: what it removes from the joints
+                    # other than the one it helps most must be min_gain of their power too (a
+                    # tilt bent to fit one joint's unmodeled position-dependent torque helps that
+                    # joint alone and leaves the others as they were, or worse)
+                    drop = per_joint[0] - per_joint[1]
+                    top = int(np.argmax(drop))
+                    rest = float(np.sum(per_joint[0]) - per_joint[0][top])
+                    if float(np.sum(drop) - drop[top]) < opts.min_gain * rest:
+                        continue
             else:
                 rows = (wt_v > 0) & (np.arange(yv.size) % nj == best.joint)
                 own = float(np.sum(res_v[rows] ** 2))
@@ -525,7 +617,6 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
         if pick is None:
             break
         rss_v1, p_value, best, gamma, proj, cv, pred_before, pred_after = pick
-        ci = best.columns(ident)
         err_before = _rel(yv * (wt_v > 0), pred_before * (wt_v > 0))
         err_after = _rel(yv * (wt_v > 0), pred_after * (wt_v > 0))
         finding = Finding(best.effect, best.joint, _parameters(best, gamma), 1.0 - rss_v1 / rss_v, err_before, err_after)
@@ -558,6 +649,14 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
             base = structural_base(robot, effects)  # a tilt makes more of the first links' parameters seen
             wi, wv = base_columns(ident), base_columns(held)
             continue
+        if best.effect == "torque_gain":
+            # applied exactly, like the tilt: the joint's rigid-body columns scaled by the gain
+            assert best.joint is not None
+            gain_scale[best.joint] *= 1.0 + float(gamma[0])
+            found.append(finding)
+            present.add(("torque_gain", best.joint))
+            wi, wv = base_columns(ident), base_columns(held)
+            continue
         if best.effect == "time_delay":
             # applied exactly, like the tilt: the data are shifted by the delay and the search
             # goes on; a further delay of the same kind found later corrects this one (the
@@ -581,6 +680,8 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
             extra_i = np.column_stack([np.zeros((yi.size, 0))] + [c.columns(ident) for c in chosen])
             extra_v = np.column_stack([np.zeros((yv.size, 0))] + [c.columns(held) for c in chosen])
             continue
+        assert cv is not None
+        ci = best.columns(ident)
         found.append(finding)
         chosen.append(best)
         present.add((best.effect, best.joint))
