@@ -8,8 +8,10 @@ entry of the catalogue becomes candidate regressor columns on a joint (or the ar
 - nonlinear in one parameter, searched on a grid and linear given it: Stribeck friction
   (``sign(qd) exp(-(qd/v_s)^2)`` over ``v_s``), cogging (``sin, cos(2 pi q / P)`` over the
   period ``P``, an integer number of periods per turn from 2 to 120);
-- linearised about the current fit: a torque-constant error (the joint's predicted torque:
-  the measured torque is the true one over the gain), a delay of a joint's torque (or of the
+- a torque-constant error (the joint measures ``s`` times the model's torque), fitted
+  exactly: that joint's rigid-body rows scaled by ``s`` and the fit profiled over ``s``
+  (:class:`_GainProfile`);
+- linearised about the current fit: a delay of a joint's torque (or of the
   whole torque channel) behind the positions (minus the rate of change of the prediction:
   ``tau(t - d) ~ tau - d dtau/dt``) and a tilt
   of gravity (the derivative of the prediction when gravity turns about base x or y; the
@@ -21,8 +23,9 @@ current model (Frisch-Waugh), the refit is solved on the even tenths of the iden
 data and its error measured on the odd tenths (held-out blocks; the validation data are
 kept for measuring before and after, never for choosing). The best-ranked candidate that
 clears its gates is added: (a) it cuts the held-out residual power by at least ``min_gain_joint``
-of its joint's (``min_gain`` of the arm's, for an arm-wide effect), each added parameter paying a
-penalty in the ranking, (b) a one-joint effect cuts its joint's held-out error by
+of its joint's (``min_gain`` of the arm's, for an arm-wide effect, and ``min_gain`` of the power
+of the joints other than the one it helps most: an effect of the arm must show on more than
+one joint), each added parameter paying a penalty in the ranking, (b) a one-joint effect cuts its joint's held-out error by
 ``min_error_drop`` and the arm's by ``min_arm_drop``, and (c) it passes an F-test on the identification data at ``alpha``. Then refit and
 repeat, until nothing passes. A candidate whose columns lie in the span of the model is
 absorbed (rotor inertia of a first joint with a vertical axis joins ``Izz1``), and is
@@ -496,7 +499,9 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
         g_mat = np.linalg.solve(r_mat.T, (a_v * wt_v[:, None]).T).T
         h_vec, h_mat = g_mat.T @ res_v, g_mat.T @ g_mat
         gain_fit = _GainProfile(a_i, yw, a_v, yv, wt_v, nj, p_base)
-        scored = []
+        # (held-out RSS, p-value, candidate, parameters, projection on the model or None,
+        # held-out prediction of an exactly fitted one or None, per-joint held-out power before and after or None)
+        scored: list[tuple[float, float, Candidate, Array, Array | None, Array | None, tuple[Array, Array] | None]] = []
         for c in _candidates(robot, ident, present | absorbed_keys, ctx, opts):
             if c.effect == "torque_gain":
                 # fitted exactly, not linearised about the current fit: the joint's rigid-body
@@ -555,7 +560,7 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
             dof = n_used - a_i.shape[1] - k
             f_stat = ((rss - rss1) / k) / max(rss1 / dof, 1e-300)
             p_value = float(stats.f.sf(f_stat, k, dof))
-            per_joint = None
+            per_joint: tuple[Array, Array] | None = None
             if c.block is None:  # the held-out residual power it leaves on each joint, before and after
                 res_c = res_v + g_mat @ u - cv_full @ gamma
                 per_joint = (np.bincount(np.arange(yv.size) % nj, res_v**2, nj), np.bincount(np.arange(yv.size) % nj, res_c**2, nj))
@@ -579,14 +584,15 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
         # best-ranked candidate that clears its gates is taken (the ranking still favours the
         # larger effect); none clears them: the search ends.
         pick = None
-        for rss_v1, p_value, best, gamma, proj, pred_exact, per_joint in scored[: opts.ranked]:
+        for rss_v1, p_value, best, gamma, proj_s, pred_x, per_joint in scored[: opts.ranked]:
             if p_value > opts.alpha:
                 continue
             pred_before = a_v @ beta
-            if pred_exact is not None:
-                cv, pred_after = None, pred_exact
+            if pred_x is not None:
+                cv, pred_after = None, pred_x
             else:
-                beta_c = beta - np.linalg.solve(r_mat, proj @ gamma)
+                assert proj_s is not None
+                beta_c = beta - np.linalg.solve(r_mat, proj_s @ gamma)
                 cv = best.columns(held)
                 pred_after = a_v @ beta_c + cv @ gamma
             if best.block is None:
@@ -612,11 +618,11 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
                 used = wt_v > 0
                 if _rel(yv * used, pred_after * used) > (1.0 - opts.min_arm_drop) * _rel(yv * used, pred_before * used):
                     continue  # ... nor the arm's: a joint whose torque is a thousandth of the others
-            pick = (rss_v1, p_value, best, gamma, proj, cv, pred_before, pred_after)
+            pick = (rss_v1, p_value, best, gamma, cv, pred_before, pred_after)
             break
         if pick is None:
             break
-        rss_v1, p_value, best, gamma, proj, cv, pred_before, pred_after = pick
+        rss_v1, p_value, best, gamma, cv, pred_before, pred_after = pick
         err_before = _rel(yv * (wt_v > 0), pred_before * (wt_v > 0))
         err_after = _rel(yv * (wt_v > 0), pred_after * (wt_v > 0))
         finding = Finding(best.effect, best.joint, _parameters(best, gamma), 1.0 - rss_v1 / rss_v, err_before, err_after)
