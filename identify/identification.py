@@ -50,6 +50,9 @@ class IdentifyOptions:
 
 PRIORS = ("modeled", "none")
 
+SEARCH_EQUATIONS = 20_000
+"""Equations per joint the grid search of a declared effect's setting scores its tries on."""
+
 
 def declared_effects(robot: Robot) -> list[LinearEffect]:
     """The robot file's effects as regressor columns (``joint: null`` means every joint)."""
@@ -328,10 +331,14 @@ def _search_settings(system: Array, names: list[str], effects: list[LinearEffect
                      segments: list[Segment], columns: Array, motion_delay: Array | None = None) -> tuple[list[LinearEffect], list[str]]:
     """Each searched effect's fixed parameter from its grid (``SETTINGS``), joint by joint:
     the value whose columns leave the least residual of the whole least-squares fit (one
-    sweep of coordinate descent; only the joint's own triangle is refactored per try)."""
+    sweep of coordinate descent; only the joint's own triangle is refactored per try). The
+    scores use every ``stride``-th equation, at most :data:`SEARCH_EQUATIONS` of them: a
+    grid choice needs no more, and refactoring a long log's triangles per try took most of
+    the identification's time."""
     nj = system.shape[0]
     keep = np.append(columns, system.shape[1] - 1)
-    r = [_triangle(system[j][keep]) for j in range(nj)]
+    stride = max(1, -(-system.shape[2] // SEARCH_EQUATIONS))
+    r = [_triangle(system[j][keep][:, ::stride]) for j in range(nj)]
     notes = []
 
     def rss(rs: list[Array]) -> float:
@@ -355,7 +362,7 @@ def _search_settings(system: Array, names: list[str], effects: list[LinearEffect
             system[j][col] = _equation_column(segments, trial, motion_delay)
             for m, c in follow:
                 system[j][c] = _equation_column(segments, effects[m].with_setting(smoothing=value), motion_delay)
-            rj = _triangle(system[j][keep])
+            rj = _triangle(system[j][keep][:, ::stride])
             score = rss(r[:j] + [rj] + r[j + 1 :])
             if score < best_rss * (1 - 1e-9):
                 best, best_rss, best_r = trial, score, rj
