@@ -391,8 +391,10 @@ def _factors(system: Array, columns: Array) -> JointFactors:
 def _robust(system: Array, columns: Array, residual: Array, est: LeastSquares, factors: JointFactors, weighting: str,
             penalty: Array | None = None) -> tuple[LeastSquares, int]:
     """``est`` with the batch-means sandwich covariance (:func:`batch_means_covariance`);
-    the information matrix comes from the QR triangles (plus a prior's ``penalty``), the
-    scores from one pass."""
+    the information matrix comes from the QR triangles, the scores from one pass. With a
+    prior (``penalty``, in the same scale) the prior counts as observations of its own: it
+    joins the bread and, with its own covariance, the meat, so a direction the data leave
+    to the prior keeps the prior's uncertainty instead of none."""
     weights = 1.0 / np.maximum(est.joint_sigma, 1e-300) if weighting == "wls" else np.ones(system.shape[0])
     scores = np.zeros((residual.shape[0], columns.size))
     for j in range(system.shape[0]):
@@ -405,6 +407,8 @@ def _robust(system: Array, columns: Array, residual: Array, est: LeastSquares, f
         bread = np.linalg.inv(r.T @ r + penalty)
     block = 4 * correlation_length(residual * weights)
     cov = batch_means_covariance(bread, scores, block)
+    if penalty is not None:
+        cov = cov + bread @ penalty @ bread.T
     return replace(est, covariance=cov, std=np.sqrt(np.maximum(np.diag(cov), 0.0))), block
 
 
