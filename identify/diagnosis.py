@@ -499,9 +499,11 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
         g_mat = np.linalg.solve(r_mat.T, (a_v * wt_v[:, None]).T).T
         h_vec, h_mat = g_mat.T @ res_v, g_mat.T @ g_mat
         gain_fit = _GainProfile(a_i, yw, a_v, yv, wt_v, nj, p_base)
+        joint_of_row = np.arange(yv.size) % nj
+        power_before = np.bincount(joint_of_row, res_v**2, nj)  # the held-out residual power per joint
         # (held-out RSS, p-value, candidate, parameters, projection on the model or None,
-        # held-out prediction of an exactly fitted one or None, per-joint held-out power before and after or None)
-        scored: list[tuple[float, float, Candidate, Array, Array | None, Array | None, tuple[Array, Array] | None]] = []
+        # held-out prediction of an exactly fitted one or None, per-joint held-out power after or None)
+        scored: list[tuple[float, float, Candidate, Array, Array | None, Array | None, Array | None]] = []
         for c in _candidates(robot, ident, present | absorbed_keys, ctx, opts):
             if c.effect == "torque_gain":
                 # fitted exactly, not linearised about the current fit: the joint's rigid-body
@@ -560,11 +562,11 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
             dof = n_used - a_i.shape[1] - k
             f_stat = ((rss - rss1) / k) / max(rss1 / dof, 1e-300)
             p_value = float(stats.f.sf(f_stat, k, dof))
-            per_joint: tuple[Array, Array] | None = None
-            if c.block is None:  # the held-out residual power it leaves on each joint, before and after
+            power_after: Array | None = None
+            if c.block is None:  # the held-out residual power it leaves on each joint
                 res_c = res_v + g_mat @ u - cv_full @ gamma
-                per_joint = (np.bincount(np.arange(yv.size) % nj, res_v**2, nj), np.bincount(np.arange(yv.size) % nj, res_c**2, nj))
-            scored.append((rss_v1, p_value, c, gamma, proj, None, per_joint))
+                power_after = np.bincount(joint_of_row, res_c**2, nj)
+            scored.append((rss_v1, p_value, c, gamma, proj, None, power_after))
         if not scored:
             break
         # the best by held-out residual power, each added parameter paying its penalty
@@ -584,7 +586,7 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
         # best-ranked candidate that clears its gates is taken (the ranking still favours the
         # larger effect); none clears them: the search ends.
         pick = None
-        for rss_v1, p_value, best, gamma, proj_s, pred_x, per_joint in scored[: opts.ranked]:
+        for rss_v1, p_value, best, gamma, proj_s, pred_x, power_after in scored[: opts.ranked]:
             if p_value > opts.alpha:
                 continue
             pred_before = a_v @ beta
@@ -598,14 +600,14 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
             if best.block is None:
                 if rss_v1 > (1.0 - opts.min_gain) * rss_v:
                     continue
-                if per_joint is not None and nj > 1:
+                if power_after is not None and nj > 1:
                     # an effect of the arm must show on the arm: what it removes from the joints
                     # other than the one it helps most must be min_gain of their power too (a
                     # tilt bent to fit one joint's unmodeled position-dependent torque helps that
                     # joint alone and leaves the others as they were, or worse)
-                    drop = per_joint[0] - per_joint[1]
+                    drop = power_before - power_after
                     top = int(np.argmax(drop))
-                    rest = float(np.sum(per_joint[0]) - per_joint[0][top])
+                    rest = float(np.sum(power_before) - power_before[top])
                     if float(np.sum(drop) - drop[top]) < opts.min_gain * rest:
                         continue
             else:
