@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import realtime
 
 from armid.cli import main
 
@@ -67,36 +68,10 @@ def _acquisition_priority() -> None:
         pass
 
 
-def _realtime(pid: int) -> bool:
-    """Every thread of process ``pid`` under the round-robin real-time policy at its lowest
-    priority (``SCHED_RR`` 1), where the system allows it (False where it does not).
-
-    Why the ``udp_multicast`` variant was stopped under load: the arm in its own process
-    answers each SYNC on the wall clock, and ``armid excite`` stops the arm when a joint's
-    frames miss 3 cycles in a row (12 ms at 4 ms) or when its commands come late enough for
-    the tracking or velocity limits. On a loaded 2-core machine ordinary (even nice 0)
-    processes wait that long for a core: at load average 5-6 the records' stamps of one run
-    had 58-76 steps over two cycles, 6 with these threads real-time (which run before every
-    ordinary one; these two only compute when a frame arrives, so they do not starve the
-    machine, and the kernel keeps 5 % of each second for ordinary threads anyway)."""
-    ok = False
-    try:
-        tasks = os.listdir(f"/proc/{pid}/task")
-    except OSError:
-        tasks = [str(pid)]
-    for tid in tasks:
-        try:
-            os.sched_setscheduler(int(tid), os.SCHED_RR, os.sched_param(1))
-            ok = True
-        except (OSError, AttributeError):  # not allowed here, or the thread has ended
-            pass
-    return ok
-
-
 def _sim_priority() -> None:
     """The simulated arm (its own process, nothing to design): real-time from its start."""
     _acquisition_priority()
-    _realtime(os.getpid())
+    realtime(os.getpid())
 
 
 def _relative(a: np.ndarray, b: np.ndarray) -> float:
@@ -143,7 +118,7 @@ def _check_whole(doc: dict, mcap: Path, tmp_path: Path) -> float:
 
 def _run_excite(cmd: list[str], realtime: bool) -> subprocess.CompletedProcess[str]:
     """``armid excite`` at the ordinary priority; with ``realtime``, every thread of it is made
-    real-time (:func:`_realtime`) once its trajectories are designed (the line saying they
+    real-time (:func:`conftest.realtime`) once its trajectories are designed (the line saying they
     were checked comes before the drives start): designing is seconds of arithmetic that must
     not hold a core against the rest of the machine, while the control loop must not wait."""
     proc = subprocess.Popen(cmd, cwd=ROOT, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -173,7 +148,7 @@ def _run_excite(cmd: list[str], realtime: bool) -> subprocess.CompletedProcess[s
                 pass
             applied = False
             while proc.poll() is None and time.monotonic() < deadline:  # and every thread it starts from then on
-                applied = _realtime(proc.pid) or applied
+                applied = realtime(proc.pid) or applied
                 time.sleep(0.2)
             print(f"\narmid excite's threads real-time once designed: {'yes' if applied else 'not allowed here'}")
         proc.wait(max(1.0, deadline - time.monotonic()))
