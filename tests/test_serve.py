@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import realtime
+from conftest import realtime as make_realtime
 
 from armid.cli import main
 
@@ -71,7 +71,7 @@ def _acquisition_priority() -> None:
 def _sim_priority() -> None:
     """The simulated arm (its own process, nothing to design): real-time from its start."""
     _acquisition_priority()
-    realtime(os.getpid())
+    make_realtime(os.getpid())
 
 
 def _relative(a: np.ndarray, b: np.ndarray) -> float:
@@ -148,7 +148,7 @@ def _run_excite(cmd: list[str], realtime: bool) -> subprocess.CompletedProcess[s
                 pass
             applied = False
             while proc.poll() is None and time.monotonic() < deadline:  # and every thread it starts from then on
-                applied = realtime(proc.pid) or applied
+                applied = make_realtime(proc.pid) or applied
                 time.sleep(0.2)
             print(f"\narmid excite's threads real-time once designed: {'yes' if applied else 'not allowed here'}")
         proc.wait(max(1.0, deadline - time.monotonic()))
