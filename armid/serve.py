@@ -362,9 +362,10 @@ class EstimatorService:
         from .cli import strict_json
 
         text = strict_json(doc)
-        self._pub.put(text)
+        # counted before the put: a subscriber that has the document must find it counted in `status`
         self.published += 1
         self.last = json.loads(text)
+        self._pub.put(text)
         if self.on_publish is not None:
             self.on_publish(self.last)
 
