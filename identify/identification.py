@@ -21,7 +21,7 @@ from .estimation import JointFactors, LeastSquares, batch_means_covariance, corr
 from .identifiability import UNIQUE, BaseParameters, Excitation, base_parameters, excitation, preferred_order
 from .metrics import summary
 from .preprocess import Prepared, Segment
-from .prior import RELATIVE_STD, Prior, base_prior, link_scales, widened
+from .prior import RELATIVE_STD, Prior, base_prior, link_scales, scaled, widened
 from .robot import Robot
 from .spatial import Array
 
@@ -46,6 +46,10 @@ class IdentifyOptions:
     # "modeled": the robot file's modeled values as a prior (identify.prior) for what the
     # data do not excite; "none": least squares alone
     prior: str = "modeled"
+    # the prior's widening (identify.prior.widened) fixed instead of estimated on these data:
+    # the diagnosis fits its findings with the declared model's, so that a finding is not
+    # paid for by a prior that lost its weight (None: estimated, empirical Bayes)
+    prior_widening: float | None = None
 
 
 PRIORS = ("modeled", "none")
@@ -488,7 +492,8 @@ def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     if prior is not None:
         weights = 1.0 / np.maximum(est.joint_sigma, 1e-300) if options.weighting == "wls" else np.ones(robot.n_joints)
         length = correlation_length((tau - tau_hat) * weights)
-        prior = widened(prior, est.beta, length * est.covariance)
+        prior = (widened(prior, est.beta, length * est.covariance) if options.prior_widening is None
+                 else scaled(prior, options.prior_widening))
         prior_doc = prior.to_json(length)
         if prior.covered:
             est, penalty = with_prior(factors, est, prior.mean, prior.precision, length)

@@ -135,4 +135,12 @@ def widened(prior: Prior, beta: Array, covariance: Array, limit: float = 1e12) -
     return Prior(prior.mean, prior.precision / scale, prior.covered, scale)
 
 
-__all__ = ["Prior", "RELATIVE_STD", "base_prior", "link_scales", "widened"]
+def scaled(prior: Prior, scale: float) -> Prior:
+    """The prior with its covariance scaled by ``scale`` (a widening found on other data);
+    ``inf``: no prior at all."""
+    if not np.isfinite(scale):
+        return Prior(prior.mean, np.zeros_like(prior.precision), 0, np.inf)
+    return Prior(prior.mean, prior.precision / scale, prior.covered, float(scale))
+
+
+__all__ = ["Prior", "RELATIVE_STD", "base_prior", "link_scales", "scaled", "widened"]
