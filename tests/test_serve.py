@@ -274,7 +274,7 @@ def test_record_and_watch_find_each_other_with_no_zenoh_flags(tmp_path: Path) ->
 set -e
 ip link set lo up
 cd {ROOT}
-{' '.join(armid)} watch --robot puma560 --duration 45 > {tmp_path}/watch.out 2> {tmp_path}/watch.err &
+{' '.join(armid)} watch --robot puma560 --duration 25 > {tmp_path}/watch.out 2> {tmp_path}/watch.err &
 W=$!
 sleep 4
 {' '.join(armid)} record --rig {RIG} --channel {channel} --out {tmp_path}/run --duration 3 2> {tmp_path}/record.err
