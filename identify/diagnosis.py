@@ -491,8 +491,9 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     conflicting: list[dict[str, Any]] = []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PoorExcitationWarning)
-        settled = _settled(robot0, identify(robot0, experiments, None, IdentifyOptions(covariance="white")))
-        widening_now = _prior_widening(settled, experiments, [])
+        declared_fit = identify(robot0, experiments, None, IdentifyOptions(covariance="white"))
+    settled = _settled(robot0, declared_fit)
+    widening_now = _widening(declared_fit)
     set_aside: set[tuple[str, int | None]] = set()
     for _ in range(opts.max_findings):
         a_i = np.column_stack([wi, extra_i]) * wt_i[:, None]
@@ -822,7 +823,11 @@ def _prior_widening(robot: Robot, experiments: list[Prepared], found: list[Findi
     modeled values along what the data barely excite (a tilt trading against the first
     moments) widens it: the data alone cannot tell that finding from a worse model."""
     model, options = findings_model(robot, found)
-    result = identify(model, experiments, None, replace(options, covariance="white"))
+    return _widening(identify(model, experiments, None, replace(options, covariance="white")))
+
+
+def _widening(result: IdentificationResult) -> float | None:
+    """The factor ``result``'s prior was widened by (``inf``: dropped; None: no prior)."""
     if result.prior is None:
         return None
     w = result.prior.get("widened_by")
