@@ -146,12 +146,20 @@ def write_diagnosis_report(diag: Any, robot_name: str, out_dir: Path, feasible: 
     b, a = diag.before, diag.after
     lines = [f"# Diagnosis: {robot_name}", "",
              f"Held-out (validation) relative error **{100 * b['relative_error']:.3g} % -> {100 * a['relative_error']:.3g} %** "
-             f"over {b.get('equations', '?')} joint equations (a joint's equation is left out while it is at rest or reversing).", ""]
+             + (f"at all {len(diag.predictions[0])} validation samples, each at its own time stamp, " if diag.predictions is not None else "")
+             + "against the raw measured torque.", ""]
     lines += ["## Findings", ""]
     lines += [f"- {f.sentence()}" for f in diag.found] or ["- nothing significant: the declared model explains the data to its noise"]
     if diag.absorbed:
         lines += ["", "## Absorbed by the rigid-body model (not findings)", ""]
         lines += [f"- {x['effect'].replace('_', ' ')} on joint {x['joint']}: its columns lie in the model's span; it joins `{x['into']}`" for x in diag.absorbed]
+    if diag.conflicting:
+        lines += ["", "## Set aside (not findings)", ""]
+        lines += [f"- {c['effect'].replace('_', ' ')} on {'the arm' if c['joint'] is None else 'joint ' + str(c['joint'])}: it cleared the "
+                  "held-out tests, but with it least squares on the identification data moves away from the robot file's modeled values "
+                  "(the prior would have to be " + ("widened beyond any width" if c["prior_widened_by"] is None else
+                                                    f"{c['prior_widened_by'] / c['before']:.3g}x wider") + "): the data cannot tell it from a worse model"
+                  for c in diag.conflicting]
     lines += ["", f"Declared in the robot file (part of the base model): {', '.join(diag.base_effects) or 'nothing'}.", "",
               "## Error per joint", "", "| joint | RMS before | RMS after | relative before | relative after |", "|---|---|---|---|---|"]
     for j in range(tau.shape[1]):
