@@ -57,7 +57,15 @@ from scipy import stats
 from .dynamics import regressor
 from .effects import ColumnFunction
 from .errors import PoorExcitationWarning
-from .identification import IdentificationResult, IdentifyOptions, declared_effects, identify, stacked_regressor, structural_base
+from .identification import (
+    IdentificationResult,
+    IdentifyOptions,
+    declared_effects,
+    declared_gains,
+    identify,
+    stacked_regressor,
+    structural_base,
+)
 from .metrics import masked_summary, summary
 from .preprocess import Prepared
 from .robot import DeclaredEffect, Robot
@@ -455,7 +463,13 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     base = structural_base(robot, effects)
     n_cols = robot.n_parameters + sum(len(e.parameter_names) for e in effects)
 
-    gain_scale = np.ones(nj)  # found drive gains: joint j measures gain_scale[j] times the model's torque
+    # the declared model as `identify` fits it: its settings, its declared drive gains and how
+    # far its prior had to widen (the search starts from its gains; gate (d) from its widening)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PoorExcitationWarning)
+        declared_fit = identify(robot, experiments, None, IdentifyOptions(covariance="white"))
+    # drive gains: joint j measures gain_scale[j] times the model's torque (declared, then found)
+    gain_scale = np.ones(nj) if declared_fit.torque_scale is None else np.array(declared_fit.torque_scale, float)
 
     def base_columns(d: _Data) -> Array:  # with the gravity as tilted so far and the drive gains found so far
         cols = stacked_regressor(robot, effects, d.q, d.qd, d.qdd)[:, base.independent]
@@ -480,7 +494,7 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     wt_v = (np.tile(1.0 / sigma, yv.size // nj) * used_v.reshape(-1))
     n_used = int(used_i.sum())
     extra_i, extra_v = np.zeros((yi.size, 0)), np.zeros((yv.size, 0))
-    present: set[tuple[str, int | None]] = {(e.effect, e.joint) for e in effects}
+    present: set[tuple[str, int | None]] = {(e.effect, e.joint) for e in effects} | {("torque_gain", j) for j in declared_gains(robot)}
     found: list[Finding] = []
     absorbed: list[dict[str, Any]] = []
     absorbed_keys: set[tuple[str, int | None]] = set()
@@ -489,9 +503,6 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     chosen: list[Candidate] = []
     beta = beta0
     conflicting: list[dict[str, Any]] = []
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", PoorExcitationWarning)
-        declared_fit = identify(robot0, experiments, None, IdentifyOptions(covariance="white"))
     settled = _settled(robot0, declared_fit)
     widening_now = _widening(declared_fit)
     set_aside: set[tuple[str, int | None]] = set()

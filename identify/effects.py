@@ -112,6 +112,11 @@ CATALOGUE = (
 """Every effect name INTERFACES.md fixes."""
 
 
+PROFILED = ("torque_gain",)
+"""Effects a robot file may declare whose parameter is not linear: a joint's torque gain (the
+joint measures ``gain`` times the model's torque: a torque constant off, where the recording
+gives currents), fitted by profiling the least-squares fit over it (identify.identification)."""
+
 FIXED: dict[str, str] = {"cogging": "period_rad"}
 """Effects linear given one fixed parameter that a robot file (or the diagnosis) must give:
 cogging's period in the joint's position (rad, or m for a prismatic joint)."""

@@ -13,9 +13,10 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+from scipy import optimize
 
 from .dynamics import regressor
-from .effects import SETTINGS, LinearEffect, effect_columns, linear_effect
+from .effects import PROFILED, SETTINGS, LinearEffect, effect_columns, linear_effect
 from .errors import IdentificationError, PoorExcitationWarning
 from .estimation import JointFactors, LeastSquares, batch_means_covariance, correlation_length, factor_columns, solve_factors, with_prior
 from .identifiability import UNIQUE, BaseParameters, Excitation, base_parameters, excitation, preferred_order
@@ -62,9 +63,43 @@ def declared_effects(robot: Robot) -> list[LinearEffect]:
     """The robot file's effects as regressor columns (``joint: null`` means every joint)."""
     out = []
     for eff in robot.effects:
+        if eff.effect in PROFILED:
+            continue  # not a column: fitted by profiling (_profile_gains)
         joints = range(robot.n_joints) if eff.joint is None else [eff.joint - 1]
         setting = {k: float(v) for k, v in eff.options.items() if k in ("velocity", "period_rad")}
         out += [linear_effect(eff.effect, j, **setting) for j in joints]
+    return out
+
+
+def declared_gains(robot: Robot) -> list[int]:
+    """0-based joints whose drive gain the robot file declares (``torque_gain``)."""
+    return sorted({j for e in robot.effects if e.effect in PROFILED
+                   for j in (range(robot.n_joints) if e.joint is None else [e.joint - 1])})
+
+
+def _profile_gains(factors: JointFactors, joints: list[int], weighting: str) -> Array:
+    """Per joint, the gain ``s`` with which joint j measures ``s`` times the model's torque,
+    for the joints in ``joints`` (1 elsewhere): the weighted least-squares fit profiled over
+    the gains (variable projection: the linear parameters eliminated for each try). Scaling
+    ``W_j`` by ``s`` scales the columns of its R factor, so a try costs one small QR and
+    never touches the data. Weights are the joints' noise levels of the fit without gains."""
+    p = factors.n_parameters
+    weights = np.ones(len(factors.r))
+    if weighting == "wls":
+        sigma = solve_factors(factors, weighting).joint_sigma
+        weights = 1.0 / np.maximum(sigma, max(float(sigma.max()) * 1e-6, 1e-300))
+
+    def rss(log_s: Array) -> float:
+        s = np.ones(len(factors.r))
+        s[joints] = np.exp(log_s)
+        stacked = np.vstack([wt * r * np.append(np.full(p, sj), 1.0) for wt, r, sj in zip(weights, factors.r, s)])
+        r_all: Array = np.linalg.qr(stacked, mode="r")  # type: ignore[assignment]
+        return float(r_all[p, p] ** 2)
+
+    bounds = [(np.log(0.1), np.log(10.0))] * len(joints)  # beyond: a wrong robot file or wiring, not a gain
+    best = optimize.minimize(rss, np.zeros(len(joints)), method="Powell", bounds=bounds, options={"xtol": 1e-8, "ftol": 1e-12})
+    out = np.ones(len(factors.r))
+    out[joints] = np.exp(best.x)
     return out
 
 
@@ -232,6 +267,8 @@ class IdentificationResult:
             "preprocessing": self.notes,
             "filtering": self.filtering,
             "prior": self.prior,
+            # joint j measures torque_scale[j] times the model's torque (a declared or found drive gain)
+            "torque_scale": None if self.torque_scale is None else [float(x) for x in self.torque_scale],
         }
 
 
@@ -475,6 +512,19 @@ def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepare
         factors = every.select(base.independent)
     for c in caught:
         warnings.warn(c.message, PoorExcitationWarning, stacklevel=2)
+    gains = declared_gains(robot)
+    if gains:
+        # each declared drive gain by profiling the fit over it, then the equations rebuilt
+        # with it (the measured torque brought back to the model's, as a found gain is)
+        found_gain = _profile_gains(factors, gains, options.weighting)
+        scale = found_gain if scale is None else scale * found_gain
+        system = _system(robot, effects, segments, scale, delay, motion_delay)
+        if options.exclude_reversals:
+            for j in range(robot.n_joints):
+                system[j][:, reversing[:, j]] = 0.0
+        factors = _factors(system, base.independent)
+        notes.append("torque gain chosen on the data (the joint measures gain x the model's torque): "
+                     + ", ".join(f"joint {j + 1} {found_gain[j]:.4g}" for j in gains))
     est = solve_factors(factors, options.weighting)
     tau = system[:, -1].T
     n = tau.shape[0]

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from armid.identify.effects import CATALOGUE, FIXED, LINEAR_EFFECTS, SETTINGS
+from armid.identify.effects import CATALOGUE, FIXED, LINEAR_EFFECTS, PROFILED, SETTINGS
 from armid.identify.errors import ImplausibleDataWarning, RobotFileError
 from armid.identify.robot import (
     DeclaredEffect,
@@ -217,8 +217,9 @@ def _effects(doc: Any, n_joints: int, src: str) -> list[DeclaredEffect]:
         name = e["effect"]
         if name not in CATALOGUE:
             raise RobotFileError(src, _field(where, "effect"), f"unknown effect {name!r} (catalogue: {', '.join(CATALOGUE)})")
-        if name not in LINEAR_EFFECTS and name not in SETTINGS and name not in FIXED:
-            raise RobotFileError(src, _field(where, "effect"), f"{name} cannot be declared yet (declarable: {', '.join([*LINEAR_EFFECTS, *SETTINGS, *FIXED])})")
+        if name not in LINEAR_EFFECTS and name not in SETTINGS and name not in FIXED and name not in PROFILED:
+            raise RobotFileError(src, _field(where, "effect"),
+                                 f"{name} cannot be declared yet (declarable: {', '.join([*LINEAR_EFFECTS, *SETTINGS, *FIXED, *PROFILED])})")
         if name in FIXED:
             key = FIXED[name]
             value = e.get(key)
@@ -230,6 +231,12 @@ def _effects(doc: Any, n_joints: int, src: str) -> list[DeclaredEffect]:
         if joint is not None and (isinstance(joint, bool) or not isinstance(joint, int) or not 1 <= joint <= n_joints):
             raise RobotFileError(src, _field(where, "joint"), f"must be a joint number 1..{n_joints} or null (all joints), got {joint!r}")
         out.append(DeclaredEffect(name, joint, {k2: v for k2, v in e.items() if k2 not in ("effect", "joint")}))
+    gains = {j for e in out if e.effect in PROFILED for j in (range(1, n_joints + 1) if e.joint is None else [e.joint])}
+    if n_joints > 0 and len(gains) == n_joints:
+        k = next(k for k, e in enumerate(out) if e.effect in PROFILED)
+        raise RobotFileError(src, f"effects[{k}]", "torque_gain on every joint: one overall scale of the torque is not identifiable from "
+                             "motion alone (every torque and every parameter scaled alike fit equally); declare it on at most "
+                             f"{n_joints - 1} joints (the others' torque constants set the scale), or use a torque reference")
     return out
 
 
