@@ -175,7 +175,9 @@ class IdentificationResult:
     def predict_motion(self, q: Array, qd: Array, qdd: Array) -> Array:
         """Torques (n, N) the model predicts at each sample of a motion."""
         w = stacked_regressor(self.robot, self.effects, q, qd, qdd)
-        tau = (w[:, self.base.independent] @ self.estimate.beta).reshape(q.shape[0], -1)
+        coef = np.zeros(w.shape[1])  # the base columns' coefficients, zero elsewhere: no copy of the columns
+        coef[self.base.independent] = self.estimate.beta
+        tau = (w @ coef).reshape(q.shape[0], -1)
         return tau if self.torque_scale is None else tau * self.torque_scale
 
     def predict_stamps(self, segments: list[Segment]) -> tuple[Array, Array, Array]:
@@ -311,8 +313,9 @@ def _advanced(x: Array, t: Array, delay: Array | None) -> Array:
 
 def equations(robot: Robot, effects: list[LinearEffect], seg: Segment, scale: Array | None = None, delay: Array | None = None,
               motion_delay: Array | None = None) -> Array:
-    """(n_eq, N, p+1): the regressor's columns and the torque of one segment, both through
-    the segment's parallel filter (low-pass, edges, decimation): eq. (18) as least squares sees it.
+    """(n, N, p+1): the regressor's columns and the torque of one segment, at its samples (at
+    the kept ones only when it has no low-pass); :func:`_into_system` puts them through the
+    segment's parallel filter (low-pass, edges, decimation): eq. (18) as least squares sees it.
     ``scale``/``delay`` (per joint) undo a found drive gain and sensor delay on the torque."""
     nj = robot.n_joints
     n_cols = 10 * nj + sum(len(e.parameter_names) for e in effects)
@@ -329,9 +332,21 @@ def equations(robot: Robot, effects: list[LinearEffect], seg: Segment, scale: Ar
     if effects:
         m[:, :, 10 * nj : n_cols] = effect_columns(effects, q, qd, qdd)
     m[:, :, n_cols] = tau
-    if filt.cutoff_hz is None:
-        return m
-    return np.stack([filt.apply(m[:, j, :]) for j in range(nj)], axis=1)
+    return m
+
+
+def _into_system(system: Array, start: int, m: Array, seg: Segment) -> int:
+    """Joint by joint, the segment's equations ``m`` (n, N, p+1) through its parallel filter
+    into ``system[j, :, start:]`` (no intermediate copy of all joints), transposed in blocks of
+    512 samples that stay in cache. Returns the equations written."""
+    filt = seg.parallel
+    n = 0
+    for j in range(m.shape[1]):
+        rows = m[:, j, :] if filt.cutoff_hz is None else filt.apply(m[:, j, :])
+        n = rows.shape[0]
+        for b in range(0, n, 512):
+            system[j, :, start + b : start + min(b + 512, n)] = rows[b : b + 512].T
+    return n
 
 
 def _system(robot: Robot, effects: list[LinearEffect], segments: list[Segment], scale: Array | None = None, delay: Array | None = None,
@@ -343,9 +358,7 @@ def _system(robot: Robot, effects: list[LinearEffect], segments: list[Segment], 
     system = np.empty((nj, n_cols + 1, sum(s.n_equations for s in segments)))
     start = 0
     for seg in segments:
-        eq = equations(robot, effects, seg, scale, delay, motion_delay)
-        system[:, :, start : start + eq.shape[0]] = eq.transpose(1, 2, 0)
-        start += eq.shape[0]
+        start += _into_system(system, start, equations(robot, effects, seg, scale, delay, motion_delay), seg)
     return system
 
 
