@@ -228,7 +228,7 @@ def _feasible(args: argparse.Namespace, robot: Any, result: Any, validation: lis
 
 
 def _diagnose(args: argparse.Namespace) -> int:
-    from armid.identify.diagnosis import diagnose
+    from armid.identify.diagnosis import diagnose, set_aside_sentence
     from armid.identify.preprocess import PrepareOptions, prepare
     from armid.io.recordings import write_csv
     from armid.io.robot_file import load_robot
@@ -268,10 +268,7 @@ def _diagnose(args: argparse.Namespace) -> int:
     for a in diag.absorbed:
         print(f"absorbed (not a finding): {a['effect']} on joint {a['joint']} joins {a['into']}")
     for c in diag.conflicting:
-        where = "the arm" if c["joint"] is None else f"joint {c['joint']}"
-        wider = "beyond any width" if c["prior_widened_by"] is None or not np.isfinite(c["prior_widened_by"]) else f"{c['prior_widened_by'] / c['before']:.3g}x wider"
-        print(f"set aside (not a finding): {c['effect'].replace('_', ' ')} on {where}: with it, least squares moves away from the "
-              f"robot file's modeled values (the prior would have to be {wider}); the data cannot tell it from a worse model")
+        print(f"set aside (not a finding): {set_aside_sentence(c)}")
     print(f"{robot.name}: validation error {100 * doc['before']['relative_error']:.3g} % -> {100 * doc['after']['relative_error']:.3g} %")
     if feasible_line:
         print(feasible_line)

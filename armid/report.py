@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from armid.identify.diagnosis import set_aside_sentence
 from armid.identify.identification import IdentificationResult
 from armid.identify.preprocess import Segment
 
@@ -155,11 +156,7 @@ def write_diagnosis_report(diag: Any, robot_name: str, out_dir: Path, feasible: 
         lines += [f"- {x['effect'].replace('_', ' ')} on joint {x['joint']}: its columns lie in the model's span; it joins `{x['into']}`" for x in diag.absorbed]
     if diag.conflicting:
         lines += ["", "## Set aside (not findings)", ""]
-        lines += [f"- {c['effect'].replace('_', ' ')} on {'the arm' if c['joint'] is None else 'joint ' + str(c['joint'])}: it cleared the "
-                  "held-out tests, but with it least squares on the identification data moves away from the robot file's modeled values "
-                  "(the prior would have to be " + ("widened beyond any width" if c["prior_widened_by"] is None else
-                                                    f"{c['prior_widened_by'] / c['before']:.3g}x wider") + "): the data cannot tell it from a worse model"
-                  for c in diag.conflicting]
+        lines += [f"- {set_aside_sentence(c)}" for c in diag.conflicting]
     lines += ["", f"Declared in the robot file (part of the base model): {', '.join(diag.base_effects) or 'nothing'}.", "",
               "## Error per joint", "", "| joint | RMS before | RMS after | relative before | relative after |", "|---|---|---|---|---|"]
     for j in range(tau.shape[1]):

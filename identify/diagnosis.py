@@ -471,13 +471,14 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     base = structural_base(robot, effects)
     n_cols = robot.n_parameters + sum(len(e.parameter_names) for e in effects)
 
-    # the declared model as `identify` fits it: its settings, its declared drive gains and how
-    # far its prior had to widen (the search starts from its gains; gate (d) from its widening)
+    # the declared model exactly as `armid identify` fits it ("before"): its settings, its
+    # declared drive gains and how far its prior had to widen (the search starts from its
+    # gains; gate (d) from its widening)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PoorExcitationWarning)
-        declared_fit = identify(robot, experiments, None, IdentifyOptions(covariance="white"))
+        result0 = identify(robot, experiments, validation)
     # drive gains: joint j measures gain_scale[j] times the model's torque (declared, then found)
-    gain_scale = np.ones(nj) if declared_fit.torque_scale is None else np.array(declared_fit.torque_scale, float)
+    gain_scale = np.ones(nj) if result0.torque_scale is None else np.array(result0.torque_scale, float)
 
     def base_columns(d: _Data) -> Array:  # with the gravity as tilted so far and the drive gains found so far
         cols = stacked_regressor(robot, effects, d.q, d.qd, d.qdd)[:, base.independent]
@@ -511,9 +512,9 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     chosen: list[Candidate] = []
     beta = beta0
     conflicting: list[dict[str, Any]] = []
-    settled = _settled(robot0, declared_fit)
+    settled = _settled(robot0, result0)
     noise_sd = _noise_levels(experiments, nj)
-    widening_now = _widening(declared_fit)
+    widening_now = _widening(result0)
     set_aside: set[tuple[str, int | None]] = set()
     for _ in range(opts.max_findings):
         a_i = np.column_stack([wi, extra_i]) * wt_i[:, None]
@@ -769,16 +770,14 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PoorExcitationWarning)
         robot = robot0
-        result0 = identify(robot, experiments, validation)
         _refine_delays(robot, found, experiments)
         model, model_options = findings_model(robot, found)
         # the prior as wide as the declared model's fit found it: a finding whose columns lean
         # on poorly excited parameters (a tilt on the first moments) moves least squares away
         # from the modeled values and would widen the prior for the whole model; on the KUKA
         # LWR4+ (1 -> 3) that cost more on another trajectory than the tilt gained
-        if result0.prior is not None and widening_now is not None:
-            declared_w = result0.prior.get("widened_by")
-            model_options = replace(model_options, prior_widening=min(float("inf") if declared_w is None else float(declared_w), widening_now))
+        if widening_now is not None:
+            model_options = replace(model_options, prior_widening=min(_widening(result0) or np.inf, widening_now))
         result1 = identify(model, experiments, validation, model_options) if found else result0
     _update_parameters(found, result1)
     st = [s for p in validation for s in p.segments]
@@ -840,6 +839,15 @@ def findings_model(robot: Robot, found: list[Finding]) -> tuple[Robot, IdentifyO
     return model, IdentifyOptions(torque_scale=tuple(scale) if np.any(scale != 1.0) else None,
                                   delay_s=tuple(delay) if np.any(delay != 0.0) else None,
                                   motion_delay_s=tuple(motion_delay) if np.any(motion_delay != 0.0) else None)
+
+
+def set_aside_sentence(c: dict[str, Any]) -> str:
+    """What the text and the report say of a candidate set aside by gate (d)."""
+    where = "the arm" if c["joint"] is None else f"joint {c['joint']}"
+    wider = "widened beyond any width" if c["prior_widened_by"] is None else f"{c['prior_widened_by'] / c['before']:.3g}x wider"
+    return (f"{c['effect'].replace('_', ' ')} on {where}: it cleared the held-out tests, but with it least squares on the "
+            f"identification data moves away from the robot file's modeled values (the prior would have to be {wider}): "
+            "the data cannot tell it from a worse model")
 
 
 def _prior_widening(robot: Robot, experiments: list[Prepared], found: list[Finding]) -> float | None:
@@ -956,17 +964,10 @@ def _blocks(d: _Data, parts: int = 10) -> tuple[_Data, _Data]:
 def _noise_floor(validation: list[Prepared]) -> dict[str, Any]:
     """The validation torque's noise, estimated as what a low-pass at the chosen cut-off
     removes (or, without one, at a tenth of the Nyquist frequency), as a relative error."""
-    from .filtering import ParallelFilter, noise_level
-
     num = den = 0.0
-    for p in validation:
-        for seg in p.segments:
-            filt = seg.parallel
-            if filt.cutoff_hz is None:
-                filt = ParallelFilter(filt.period_s, 0.05 / filt.period_s)
-            sd = noise_level(seg.tau, filt)
-            num += float(np.sum(sd**2)) * seg.n_samples
-            den += float(np.sum(seg.tau**2))
+    for seg, sd in _segment_noise(validation):
+        num += float(np.sum(sd**2)) * seg.n_samples
+        den += float(np.sum(seg.tau**2))
     value = float(np.sqrt(num / den)) if den > 0 else None
     return {"relative_error": value, "how": "the validation torque's content above the low-pass cut-off (white noise spreads "
             "over the whole band; what lies below the cut-off is not counted), over its norm"}
@@ -975,17 +976,24 @@ def _noise_floor(validation: list[Prepared]) -> dict[str, Any]:
 def _noise_levels(experiments: list[Prepared], n_joints: int) -> Array:
     """(N,) each joint's raw torque noise in the identification data: the rms of what a
     low-pass at the chosen cut-off removes (as :func:`_noise_floor`), over all segments."""
+    power, count = np.zeros(n_joints), 0
+    for seg, sd in _segment_noise(experiments):
+        power += sd**2 * seg.n_samples
+        count += seg.n_samples
+    return np.sqrt(power / max(count, 1))
+
+
+def _segment_noise(prepared: list[Prepared]) -> list[tuple[Any, Array]]:
+    """Each segment with its per-joint torque noise: what a low-pass at its chosen cut-off
+    removes (without one, at a tenth of the Nyquist frequency)."""
     from .filtering import ParallelFilter, noise_level
 
-    power, count = np.zeros(n_joints), 0
-    for p in experiments:
+    out = []
+    for p in prepared:
         for seg in p.segments:
-            filt = seg.parallel
-            if filt.cutoff_hz is None:
-                filt = ParallelFilter(filt.period_s, 0.05 / filt.period_s)
-            power += noise_level(seg.tau, filt) ** 2 * seg.n_samples
-            count += seg.n_samples
-    return np.sqrt(power / max(count, 1))
+            filt = seg.parallel if seg.parallel.cutoff_hz is not None else ParallelFilter(seg.parallel.period_s, 0.05 / seg.parallel.period_s)
+            out.append((seg, noise_level(seg.tau, filt)))
+    return out
 
 
 def _merge_offset_into_spring(found: list[Finding], chosen: list[Candidate]) -> tuple[list[Finding], list[Candidate]]:

@@ -527,15 +527,14 @@ def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepare
         warnings.warn(c.message, PoorExcitationWarning, stacklevel=2)
     gains = declared_gains(robot)
     if gains:
-        # each declared drive gain by profiling the fit over it, then the equations rebuilt
-        # with it (the measured torque brought back to the model's, as a found gain is)
+        # each declared drive gain by profiling the fit over it; the measured torque is then
+        # brought back to the model's, as a found gain is (_model_torque divides by it; the
+        # parallel filter is linear, so dividing the filtered row is the same, and dividing
+        # the last column of an R factor is the R factor of the divided system)
         found_gain = _profile_gains(factors, gains, options.weighting)
         scale = found_gain if scale is None else scale * found_gain
-        system = _system(robot, effects, segments, scale, delay, motion_delay)
-        if options.exclude_reversals:
-            for j in range(robot.n_joints):
-                system[j][:, reversing[:, j]] = 0.0
-        factors = _factors(system, base.independent)
+        system[:, -1] /= found_gain[:, None]
+        factors = JointFactors([r * np.append(np.ones(factors.n_parameters), 1.0 / g) for r, g in zip(factors.r, found_gain)], factors.counts)
         notes.append("torque gain chosen on the data (the joint measures gain x the model's torque): "
                      + ", ".join(f"joint {j + 1} {found_gain[j]:.4g}" for j in gains))
     est = solve_factors(factors, options.weighting)

@@ -126,13 +126,12 @@ def widened(prior: Prior, beta: Array, covariance: Array, limit: float = 1e12) -
     if excess(1.0) <= 0.0:
         return prior
     if excess(limit) > 0.0:
-        return Prior(prior.mean, np.zeros_like(prior.precision), 0, np.inf)
+        return scaled(prior, np.inf)
     lo, hi = 0.0, float(np.log(limit))
     for _ in range(60):  # bisection on log s^2: excess falls as the prior widens
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if excess(float(np.exp(mid))) > 0.0 else (lo, mid)
-    scale = float(np.exp(hi))
-    return Prior(prior.mean, prior.precision / scale, prior.covered, scale)
+    return scaled(prior, float(np.exp(hi)))
 
 
 def scaled(prior: Prior, scale: float) -> Prior:
