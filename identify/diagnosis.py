@@ -94,7 +94,7 @@ SEPARATE = {
     frozenset(("torque_offset", "spring")): "hold joint {j} still at several positions across its whole range (with the "
     "others fixed): a spring's torque changes with position, an offset does not; over a short range gravity absorbs a spring",
 }
-DISSIPATIVE = ("viscous_friction", "coulomb_friction", "stribeck_friction", "rotor_inertia")  # last parameter > 0
+DISSIPATIVE = ("viscous_friction", "coulomb_friction", "stribeck_friction", "rotor_inertia", "load_dependent_coulomb")  # last parameter > 0
 # the Stribeck velocity on a log grid 0.01-1 rad/s, a factor 1.33 apart (a coarser grid left
 # a third of a blind case's Stribeck term in the residual)
 STRIBECK_VELOCITIES = tuple(float(v) for v in np.round(np.geomspace(0.01, 1.0, 17), 4))
@@ -263,6 +263,7 @@ class Finding:
             "rotor_inertia": "residual follows qdd", "torque_gain": "residual is proportional to the torque",
             "time_delay": "residual follows the rate of change of the torque", "cogging": "residual is periodic in position",
             "spring": "residual grows linearly with position", "gravity_tilt": "residual follows a gravity load about a tilted axis",
+            "load_dependent_coulomb": "residual follows sign(qd), growing with the joint's load torque",
         }[self.effect]
         params = ", ".join(f"{k} {v:.4g}" for k, v in self.parameters.items())
         text = f"{where}: {signature}: {self.effect.replace('_', ' ')} {params}; held-out error (identification data) {100 * self.error_before:.2f} % -> {100 * self.error_after:.2f} %"
@@ -312,6 +313,13 @@ def _phi_hat(robot: Robot, base: Any, beta_base: Array, n_cols: int) -> Array:
     return phi0 + np.linalg.lstsq(b, beta_base - b @ phi0, rcond=None)[0]
 
 
+def _load_friction_columns(robot: Robot, phi: tuple[float, ...], q: Array, qd: Array, qdd: Array) -> Array:
+    """(n, N) every joint's ``|tau_load_j| sign(qd_j)``, the load the rigid-body torque of
+    ``phi``: computed where the torque was measured, before the parallel filter (the filtered
+    torque smooths the step at a reversal; the sign of the filtered velocity does not)."""
+    return np.abs(regressor(robot, q, qd, qdd) @ np.asarray(phi)) * np.sign(qd)
+
+
 def _rate(d: _Data, tau: Array) -> Array:
     """d(tau)/dt along the samples (n, N), by their stamps where they have them."""
     if tau.shape[0] < 2:
@@ -343,6 +351,10 @@ def _candidates(robot: Robot, data: _Data, present: set[tuple[str, int | None]],
                 cols = [s * np.exp(-((d.qd[:, j] / vs) ** 2))]
                 return np.column_stack(([s] if wc else []) + cols)
             lin("stribeck_friction", strib, (("fc",) if with_coulomb else ()) + ("fs",), setting=(("velocity", vs),))
+        def load_friction(d: _Data, j: int = j, wc: bool = with_coulomb) -> Array:
+            cols = d.filtered(functools.partial(_load_friction_columns, robot, ctx["load"]))
+            return np.column_stack(([np.sign(d.qd[:, j])] if wc else []) + [cols[:, j]])
+        lin("load_dependent_coulomb", load_friction, (("fc",) if with_coulomb else ()) + ("fl",))
         if revolute:
             span = float(np.ptp(data.q[:, j]))
             for k in range(2, opts.max_cogging_per_turn + 1):
@@ -509,6 +521,8 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     absorbed_keys: set[tuple[str, int | None]] = set()
     ctx: dict[str, Any] = {}
     rounds = []
+    phi0 = robot.modeled_parameters()
+    modeled = None if np.isnan(phi0).any() else phi0
     chosen: list[Candidate] = []
     beta = beta0
     conflicting: list[dict[str, Any]] = []
@@ -528,11 +542,15 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
         rss_v = float(res_v @ res_v)
         p_base = wi.shape[1]
         ctx["predict"] = lambda d, b=beta[:p_base]: (base_columns(d) @ b).reshape(-1, nj)
+
         # the delay's derivative leaves out Coulomb friction: a step in sign(qd) shifted by a
         # sample is a spike at every reversal, which would fit friction's misfit near rest
         smooth = beta[:p_base] * np.array([not base.names[c].startswith("fc") for c in base.independent])
         ctx["predict_smooth"] = lambda d, b=smooth: (base_columns(d) @ b).reshape(-1, nj)
         ctx["phi"] = _phi_hat(robot, base, beta[:p_base], n_cols)
+        # a load-dependent friction's load: the modeled rigid body where the robot file models
+        # every link (the fit so far has the friction it lacks in its rigid-body parameters), else the fit's
+        ctx["load"] = tuple(float(x) for x in (ctx["phi"] if modeled is None else modeled))
         # Frisch-Waugh on the whitened system A = QR with residual r (r is orthogonal to Q):
         # for columns C, P = Q^T C, gamma = (C^T C - P^T P)^-1 C^T r, the refit's beta is
         # beta - R^-1 P gamma, and the held-out residual is res_v + G P gamma - Cv gamma with
@@ -833,7 +851,7 @@ def findings_model(robot: Robot, found: list[Finding]) -> tuple[Robot, IdentifyO
             declared.append(DeclaredEffect(f.effect, f.joint + 1, fixed))
             if f.effect == "spring" and "rest_position" in f.parameters and ("torque_offset", f.joint + 1) not in have:
                 declared.append(DeclaredEffect("torque_offset", f.joint + 1))
-            if f.effect == "stribeck_friction" and "fc" in f.parameters and ("coulomb_friction", f.joint + 1) not in have:
+            if f.effect in ("stribeck_friction", "load_dependent_coulomb") and "fc" in f.parameters and ("coulomb_friction", f.joint + 1) not in have:
                 declared.append(DeclaredEffect("coulomb_friction", f.joint + 1))  # found with its Coulomb level
     model = replace(robot, gravity=gravity, effects=tuple(robot.effects) + tuple(declared))
     return model, IdentifyOptions(torque_scale=tuple(scale) if np.any(scale != 1.0) else None,

@@ -8,11 +8,13 @@ tilt) are searched by the diagnosis, which builds on the same interface.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
+from typing import Any
 
 import numpy as np
 
+from .dynamics import regressor
 from .spatial import Array
 
 ColumnFunction = Callable[[Array, Array, Array], Array]
@@ -43,6 +45,44 @@ class LinearEffect:
     def with_setting(self, **setting: float) -> LinearEffect:
         """The same effect with other fixed nonlinear parameters."""
         return linear_effect(self.effect, self.joint, **{**dict(self.setting), **setting})
+
+
+@dataclass(frozen=True)
+class LoadFriction(LinearEffect):
+    """Coulomb friction that grows with the torque the joint transmits,
+    ``fl |tau_load_j| smooth_sign(qd_j)``: a gear's (a harmonic drive's) friction under load,
+    its efficiency lower the more it carries. ``tau_load`` is the rigid-body torque of the
+    parameters ``load_parameters`` (Khosla's phi, 10 per link) along the whole motion, so the
+    column needs every joint's motion: :meth:`columns` takes the whole arrays (and, where the
+    caller has it, the rigid-body regressor). Linear in ``fl`` once the load is fixed; the
+    identification fixes it from its own estimate (identify.identification)."""
+
+    robot: Any = None  # identify.robot.Robot
+    load_parameters: tuple[float, ...] = ()
+
+    def load(self, q: Array, qd: Array, qdd: Array, rigid: Array | None = None) -> Array:
+        """(N, n) the rigid-body torque of ``load_parameters`` (eq. 18 with that phi)."""
+        w = regressor(self.robot, q, qd, qdd) if rigid is None else rigid
+        return np.asarray(w @ np.asarray(self.load_parameters))
+
+    def columns(self, q: Array, qd: Array, qdd: Array, load: Array | None = None) -> Array:
+        tau = self.load(q, qd, qdd) if load is None else load
+        smoothing = dict(self.setting).get("smoothing", 0.0)
+        return (np.abs(tau[:, self.joint]) * smooth_sign(qd[:, self.joint], smoothing))[:, None]
+
+    def with_setting(self, **setting: float) -> LinearEffect:
+        return replace(self, setting=tuple({**dict(self.setting), **setting}.items()))
+
+
+def load_friction(robot: Any, joint: int, load_parameters: Array, smoothing: float = 0.0) -> LoadFriction:
+    """``load_dependent_coulomb`` on 0-based ``joint``, its load the rigid-body torque of
+    ``load_parameters`` (NaN read as 0: a link without values carries nothing)."""
+    phi = tuple(float(x) for x in np.nan_to_num(np.asarray(load_parameters, float)[: robot.n_parameters]))
+    return LoadFriction("load_dependent_coulomb", joint, ("fl",), _whole_motion, (("smoothing", float(smoothing)),), robot, phi)
+
+
+def _whole_motion(q: Array, qd: Array, qdd: Array) -> Array:
+    raise TypeError("load_dependent_coulomb needs every joint's motion: call LoadFriction.columns")
 
 
 def _viscous(q: Array, qd: Array, qdd: Array) -> Array:
@@ -104,6 +144,7 @@ CATALOGUE = (
     "torque_offset",
     "rotor_inertia",
     "torque_gain",
+    "load_dependent_coulomb",
     "time_delay",
     "cogging",
     "spring",
@@ -116,6 +157,10 @@ PROFILED = ("torque_gain",)
 """Effects a robot file may declare whose parameter is not linear: a joint's torque gain (the
 joint measures ``gain`` times the model's torque: a torque constant off, where the recording
 gives currents), fitted by profiling the least-squares fit over it (identify.identification)."""
+
+LOAD_DEPENDENT = ("load_dependent_coulomb",)
+"""Effects whose column needs the model's own rigid-body torque (:class:`LoadFriction`): its
+sign's smoothing follows the same joint's Coulomb friction unless ``velocity`` is declared."""
 
 FIXED: dict[str, str] = {"cogging": "period_rad"}
 """Effects linear given one fixed parameter that a robot file (or the diagnosis) must give:
@@ -143,13 +188,22 @@ def linear_effect(name: str, joint: int, **setting: float) -> LinearEffect:
     return LinearEffect(name, joint, params, fn)
 
 
-def effect_columns(effects: list[LinearEffect], q: Array, qd: Array, qdd: Array) -> Array:
-    """(n, N, k_total) extra regressor columns: each effect's columns in its joint's row."""
+def effect_columns(effects: list[LinearEffect], q: Array, qd: Array, qdd: Array, rigid: Array | None = None) -> Array:
+    """(n, N, k_total) extra regressor columns: each effect's columns in its joint's row.
+    ``rigid``: the motion's rigid-body regressor (n, N, 10 N) where the caller has it, so a
+    load-dependent friction's load costs no second regressor."""
     n, nj = q.shape
     widths = [len(e.parameter_names) for e in effects]
     out = np.zeros((n, nj, sum(widths)))
+    loads: dict[tuple[int, tuple[float, ...]], Array] = {}  # one load per parameter set, not per joint
     k = 0
     for e, wdt in zip(effects, widths):
-        out[:, e.joint, k : k + wdt] = e.columns(q, qd, qdd)
+        if isinstance(e, LoadFriction):
+            key = (id(e.robot), e.load_parameters)
+            if key not in loads:
+                loads[key] = e.load(q, qd, qdd, rigid)
+            out[:, e.joint, k : k + wdt] = e.columns(q, qd, qdd, load=loads[key])
+        else:
+            out[:, e.joint, k : k + wdt] = e.columns(q, qd, qdd)
         k += wdt
     return out

@@ -59,7 +59,7 @@ from .identifiability import BaseParameters
 from .robot import inertia_matrix
 from .spatial import Array
 
-SIGNED_EFFECTS = ("viscous_friction", "coulomb_friction", "rotor_inertia")
+SIGNED_EFFECTS = ("viscous_friction", "coulomb_friction", "rotor_inertia", "load_dependent_coulomb")
 """Declared effects whose parameter cannot be negative (dissipation, an inertia)."""
 
 PRIOR_FLOOR = 1e-2

@@ -16,7 +16,7 @@ import numpy as np
 from scipy import optimize
 
 from .dynamics import regressor
-from .effects import PROFILED, SETTINGS, LinearEffect, effect_columns, linear_effect
+from .effects import LOAD_DEPENDENT, PROFILED, SETTINGS, LinearEffect, LoadFriction, effect_columns, linear_effect, load_friction
 from .errors import IdentificationError, PoorExcitationWarning
 from .estimation import JointFactors, LeastSquares, batch_means_covariance, correlation_length, factor_columns, solve_factors, with_prior
 from .identifiability import UNIQUE, BaseParameters, Excitation, base_parameters, excitation, preferred_order
@@ -59,13 +59,22 @@ SEARCH_EQUATIONS = 20_000
 """Equations per joint the grid search of a declared effect's setting scores its tries on."""
 
 
-def declared_effects(robot: Robot) -> list[LinearEffect]:
-    """The robot file's effects as regressor columns (``joint: null`` means every joint)."""
-    out = []
+def declared_effects(robot: Robot, load_parameters: Array | None = None) -> list[LinearEffect]:
+    """The robot file's effects as regressor columns (``joint: null`` means every joint).
+    A load-dependent friction's load is the rigid-body torque of ``load_parameters`` (default:
+    the robot file's modeled values); its sign's smoothing is the same joint's declared
+    Coulomb velocity unless it declares its own (the identification's search moves both)."""
+    phi = robot.modeled_parameters() if load_parameters is None else load_parameters
+    coulomb = {j: float(e.options["velocity"]) for e in robot.effects if e.effect == "coulomb_friction" and "velocity" in e.options
+               for j in (range(robot.n_joints) if e.joint is None else [e.joint - 1])}
+    out: list[LinearEffect] = []
     for eff in robot.effects:
         if eff.effect in PROFILED:
             continue  # not a column: fitted by profiling (_profile_gains)
         joints = range(robot.n_joints) if eff.joint is None else [eff.joint - 1]
+        if eff.effect in LOAD_DEPENDENT:
+            out += [load_friction(robot, j, phi, float(eff.options.get("velocity", coulomb.get(j, 0.0)))) for j in joints]
+            continue
         setting = {k: float(v) for k, v in eff.options.items() if k in ("velocity", "period_rad")}
         out += [linear_effect(eff.effect, j, **setting) for j in joints]
     return out
@@ -129,11 +138,10 @@ def random_motion(robot: Robot, n_samples: int, seed: int = 0) -> tuple[Array, A
 def stacked_regressor(robot: Robot, effects: list[LinearEffect], q: Array, qd: Array, qdd: Array) -> Array:
     """(n N, 10 N + k) rows of eq. (18) with effect columns, sample by sample."""
     n, nj = np.shape(q)
-    cols = effect_columns(effects, q, qd, qdd) if effects else None
-    m = np.empty((n, nj, 10 * nj + (cols.shape[2] if cols is not None else 0)))
+    m = np.empty((n, nj, 10 * nj + sum(len(e.parameter_names) for e in effects)))
     regressor(robot, q, qd, qdd, out=m[:, :, : 10 * nj])
-    if cols is not None:
-        m[:, :, 10 * nj :] = cols
+    if effects:
+        m[:, :, 10 * nj :] = effect_columns(effects, q, qd, qdd, rigid=m[:, :, : 10 * nj])
     return m.reshape(-1, m.shape[2])
 
 
@@ -330,7 +338,7 @@ def equations(robot: Robot, effects: list[LinearEffect], seg: Segment, scale: Ar
     m = np.empty((q.shape[0], nj, n_cols + 1))
     regressor(robot, q, qd, qdd, out=m[:, :, : 10 * nj])
     if effects:
-        m[:, :, 10 * nj : n_cols] = effect_columns(effects, q, qd, qdd)
+        m[:, :, 10 * nj : n_cols] = effect_columns(effects, q, qd, qdd, rigid=m[:, :, : 10 * nj])
     m[:, :, n_cols] = tau
     return m
 
@@ -367,18 +375,27 @@ def _equation_motion(segments: list[Segment], name: str) -> Array:
     return np.concatenate([s.parallel.apply(getattr(s, name)) for s in segments])
 
 
-def _equation_column(segments: list[Segment], effect: LinearEffect, motion_delay: Array | None = None) -> Array:
-    """An effect's one column through each segment's parallel filter, concatenated."""
+def _equation_column(segments: list[Segment], effect: LinearEffect, motion_delay: Array | None = None,
+                     loads: list[Array] | None = None) -> Array:
+    """An effect's one column through each segment's parallel filter, concatenated
+    (``loads``: each segment's load torque for a load-dependent friction, computed once)."""
     out = []
-    for seg in segments:
+    for k, seg in enumerate(segments):
         filt = seg.parallel
         q, qd, qdd = (_advanced(x, seg.t, motion_delay) for x in (seg.q, seg.qd, seg.qdd))
-        if filt.cutoff_hz is None:
-            idx = filt.kept(seg.n_samples)
-            out.append(effect.columns(q[idx], qd[idx], qdd[idx])[:, 0])
+        idx = filt.kept(seg.n_samples) if filt.cutoff_hz is None else slice(None)
+        if isinstance(effect, LoadFriction):
+            load = effect.load(q, qd, qdd) if loads is None else loads[k]
+            col = effect.columns(q[idx], qd[idx], qdd[idx], load=load[idx])[:, 0]
         else:
-            out.append(filt.apply(effect.columns(q, qd, qdd)[:, 0]))
+            col = effect.columns(q[idx], qd[idx], qdd[idx])[:, 0]
+        out.append(col if filt.cutoff_hz is None else filt.apply(col))
     return np.concatenate(out)
+
+
+def _segment_loads(segments: list[Segment], effect: LoadFriction, motion_delay: Array | None = None) -> list[Array]:
+    """Each segment's load torque (N, n) for a load-dependent friction, at its samples."""
+    return [effect.load(*(_advanced(x, seg.t, motion_delay) for x in (seg.q, seg.qd, seg.qdd))) for seg in segments]
 
 
 def _search_settings(system: Array, names: list[str], effects: list[LinearEffect], searched: set[tuple[str, int]],
@@ -399,6 +416,7 @@ def _search_settings(system: Array, names: list[str], effects: list[LinearEffect
         return float(JointFactors(rs, np.ones(nj)).combined()[-1, -1] ** 2)
 
     effects = list(effects)
+    loads: list[Array] | None = None
     for k, e in enumerate(effects):
         if (e.effect, e.joint) not in searched or len(e.parameter_names) != 1:
             continue
@@ -407,15 +425,19 @@ def _search_settings(system: Array, names: list[str], effects: list[LinearEffect
             continue
         j = e.joint
         key, grid = SETTINGS[e.effect]
-        # a Stribeck term on the same joint shares Coulomb's smoothing of sign(qd)
+        # a Stribeck or load-dependent term on the same joint shares Coulomb's smoothing of sign(qd)
         follow = [(m, names.index(f.labels()[0])) for m, f in enumerate(effects)
-                  if e.effect == "coulomb_friction" and f.effect == "stribeck_friction" and f.joint == j]
+                  if e.effect == "coulomb_friction" and f.effect in ("stribeck_friction", *LOAD_DEPENDENT) and f.joint == j]
+        for m, _ in follow:
+            following = effects[m]
+            if isinstance(following, LoadFriction) and loads is None:
+                loads = _segment_loads(segments, following, motion_delay)  # every load effect shares one load
         best, best_rss, best_r = e, np.inf, r[j]
         for value in grid:
             trial = e.with_setting(**{key: value})
             system[j][col] = _equation_column(segments, trial, motion_delay)
             for m, c in follow:
-                system[j][c] = _equation_column(segments, effects[m].with_setting(smoothing=value), motion_delay)
+                system[j][c] = _equation_column(segments, effects[m].with_setting(smoothing=value), motion_delay, loads)
             rj = _triangle(system[j][keep][:, ::stride])
             score = rss(r[:j] + [rj] + r[j + 1 :])
             if score < best_rss * (1 - 1e-9):
@@ -424,7 +446,7 @@ def _search_settings(system: Array, names: list[str], effects: list[LinearEffect
         chosen = dict(best.setting)[key]
         for m, c in follow:
             effects[m] = effects[m].with_setting(smoothing=chosen)
-            system[j][c] = _equation_column(segments, effects[m], motion_delay)
+            system[j][c] = _equation_column(segments, effects[m], motion_delay, loads)
         r[j] = best_r
         effects[k] = best
         notes.append(f"{e.effect} on joint {j + 1}: {key} {dict(best.setting)[key]:g} (grid {', '.join(f'{v:g}' for v in grid)})")
@@ -486,10 +508,45 @@ def _modeled_prior(robot: Robot, names: list[str], effects: list[LinearEffect], 
     return base_prior(base, mean, std)
 
 
+LOAD_PASSES = 2
+"""Fits with a load-dependent friction's load taken from the fit before (the first from the
+fit without it): ``fl`` is a few percent, so the load moves a few percent of a few percent
+between passes."""
+
+
 def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepared] | None = None, options: IdentifyOptions | None = None) -> IdentificationResult:
-    """Estimate the base parameters from ``experiments``; measure the error on ``validation``."""
+    """Estimate the base parameters from ``experiments``; measure the error on ``validation``.
+
+    A declared load-dependent friction (``fl |tau_load| sign(qd)``) is bilinear in the
+    parameters; with its load fixed it is one more column. The load is the model's own
+    rigid-body torque, so it is found by fixed-point passes (:data:`LOAD_PASSES`): the fit
+    without the effect gives the first load, each fit the next (Gauss-Seidel on the two
+    factors; cheaper than Gauss-Newton on all parameters and, with ``fl`` small, as good)."""
     options = options or IdentifyOptions()
-    effects = declared_effects(robot)
+    if not any(e.effect in LOAD_DEPENDENT for e in robot.effects):
+        return _identify(robot, experiments, validation, options)
+    plain = replace(robot, effects=tuple(e for e in robot.effects if e.effect not in LOAD_DEPENDENT))
+    load = rigid_parameters(_identify(plain, experiments, None, options))
+    for k in range(LOAD_PASSES):
+        result = _identify(robot, experiments, validation if k == LOAD_PASSES - 1 else None, options, load)
+        moved = float(np.linalg.norm(rigid_parameters(result) - load) / max(float(np.linalg.norm(load)), 1e-300))
+        load = rigid_parameters(result)
+    result.notes.append(f"load-dependent friction: its load the estimate's own rigid-body torque ({LOAD_PASSES} passes from the fit "
+                        f"without it; the last moved the rigid-body parameters {100 * moved:.2g} %)")
+    return result
+
+
+def rigid_parameters(result: IdentificationResult) -> Array:
+    """A standard parameter vector (10 N,) whose rigid-body torque is the estimate's: the base
+    parameters in their own columns, zero in the dependent ones (eq. 18's torque is the same)."""
+    coef = np.zeros(len(result.names))
+    coef[result.base.independent] = result.estimate.beta
+    return coef[: result.robot.n_parameters]
+
+
+def _identify(robot: Robot, experiments: list[Prepared], validation: list[Prepared] | None, options: IdentifyOptions,
+              load_parameters: Array | None = None) -> IdentificationResult:
+    effects = declared_effects(robot, load_parameters)
     names = column_names(robot, effects)
     segments = [s for p in experiments for s in p.segments]
     if not segments:

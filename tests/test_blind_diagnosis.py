@@ -28,7 +28,7 @@ import pytest
 from armid.cli import main
 
 CATALOGUE = ["viscous_friction", "coulomb_friction", "stribeck_friction", "torque_offset", "rotor_inertia", "torque_gain",
-             "time_delay", "cogging", "spring", "gravity_tilt", "friction_all"]
+             "time_delay", "cogging", "spring", "gravity_tilt", "friction_all", "load_coulomb"]
 # the whole sweep (5 seeds per effect, 20 clean seeds: 311 s on 2 cores at load 3-4) runs with
 # ARMID_BLIND_FULL=1; CI runs its first seed of every effect and four clean seeds (one per rate,
 # every noise level, with and without jitter): the whole suite must stay within CI's 15 minutes

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from armid.identify.effects import CATALOGUE, FIXED, LINEAR_EFFECTS, PROFILED, SETTINGS
+from armid.identify.effects import CATALOGUE, FIXED, LINEAR_EFFECTS, LOAD_DEPENDENT, PROFILED, SETTINGS
 from armid.identify.errors import ImplausibleDataWarning, RobotFileError
 from armid.identify.robot import (
     DeclaredEffect,
@@ -217,15 +217,15 @@ def _effects(doc: Any, n_joints: int, src: str) -> list[DeclaredEffect]:
         name = e["effect"]
         if name not in CATALOGUE:
             raise RobotFileError(src, _field(where, "effect"), f"unknown effect {name!r} (catalogue: {', '.join(CATALOGUE)})")
-        if name not in LINEAR_EFFECTS and name not in SETTINGS and name not in FIXED and name not in PROFILED:
-            raise RobotFileError(src, _field(where, "effect"),
-                                 f"{name} cannot be declared yet (declarable: {', '.join([*LINEAR_EFFECTS, *SETTINGS, *FIXED, *PROFILED])})")
+        declarable = [*LINEAR_EFFECTS, *SETTINGS, *FIXED, *PROFILED, *LOAD_DEPENDENT]
+        if name not in declarable:
+            raise RobotFileError(src, _field(where, "effect"), f"{name} cannot be declared yet (declarable: {', '.join(declarable)})")
         if name in FIXED:
             key = FIXED[name]
             value = e.get(key)
             if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
                 raise RobotFileError(src, _field(where, key), f"{name} needs {key}: a period > 0 in the joint's position (rad, or m), got {value!r}")
-        if name in SETTINGS and "velocity" in e and (isinstance(e["velocity"], bool) or not isinstance(e["velocity"], int | float) or e["velocity"] < 0):
+        if (name in SETTINGS or name in LOAD_DEPENDENT) and "velocity" in e and (isinstance(e["velocity"], bool) or not isinstance(e["velocity"], int | float) or e["velocity"] < 0):
             raise RobotFileError(src, _field(where, "velocity"), f"must be a velocity >= 0 (rad/s or m/s), got {e['velocity']!r}")
         joint = e.get("joint")
         if joint is not None and (isinstance(joint, bool) or not isinstance(joint, int) or not 1 <= joint <= n_joints):
