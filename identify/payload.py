@@ -63,7 +63,7 @@ from typing import Any
 import numpy as np
 
 from .dynamics import forward_recursion, kinematic_matrix, pseudo_rotation, selection_vector
-from .effects import LinearEffect, effect_columns
+from .effects import LinearEffect, LoadFriction, effect_columns
 from .robot import Robot, inertia_entries, inertia_matrix, inertial_from_parameters
 from .spatial import Array
 
@@ -1062,4 +1062,9 @@ def arm_model_from_identification(robot: Robot, doc: dict[str, Any], seed: int =
             f"{got[first] if first < len(got) else '(none)'!r} vs {exprs[first] if first < len(exprs) else '(none)'!r}")
     beta = np.array([b["value"] for b in doc["base_parameters"]], float)
     sigma = np.asarray(doc.get("joint_noise_sigma") or [1.0] * robot.n_joints, float)
+    if any(isinstance(e, LoadFriction) for e in effects):
+        # a load-dependent friction's load is the estimate's own rigid-body torque, as identify fitted it
+        coef = np.zeros(robot.n_parameters + sum(len(e.parameter_names) for e in effects))
+        coef[base.independent] = beta
+        effects = declared_effects(robot, coef[: robot.n_parameters])
     return ArmModel(robot, tuple(effects), base.independent, beta, sigma)
