@@ -542,7 +542,6 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
         rss_v = float(res_v @ res_v)
         p_base = wi.shape[1]
         ctx["predict"] = lambda d, b=beta[:p_base]: (base_columns(d) @ b).reshape(-1, nj)
-
         # the delay's derivative leaves out Coulomb friction: a step in sign(qd) shifted by a
         # sample is a spike at every reversal, which would fit friction's misfit near rest
         smooth = beta[:p_base] * np.array([not base.names[c].startswith("fc") for c in base.independent])

@@ -2,7 +2,9 @@
 
 The catalogue names are fixed by INTERFACES.md. Effects linear in their parameters are
 columns here; the ones nonlinear in a parameter (Stribeck velocity, cogging period, delay,
-tilt) are searched by the diagnosis, which builds on the same interface.
+tilt) are searched by the diagnosis, which builds on the same interface. Load-dependent
+Coulomb friction is bilinear (its load is the model's own torque): a column once the load is
+fixed, which the identification does by fixed-point passes.
 """
 
 from __future__ import annotations
@@ -10,11 +12,11 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import partial
-from typing import Any
 
 import numpy as np
 
 from .dynamics import regressor
+from .robot import Robot
 from .spatial import Array
 
 ColumnFunction = Callable[[Array, Array, Array], Array]
@@ -57,11 +59,12 @@ class LoadFriction(LinearEffect):
     caller has it, the rigid-body regressor). Linear in ``fl`` once the load is fixed; the
     identification fixes it from its own estimate (identify.identification)."""
 
-    robot: Any = None  # identify.robot.Robot
+    robot: Robot | None = None
     load_parameters: tuple[float, ...] = ()
 
     def load(self, q: Array, qd: Array, qdd: Array, rigid: Array | None = None) -> Array:
         """(N, n) the rigid-body torque of ``load_parameters`` (eq. 18 with that phi)."""
+        assert self.robot is not None, "a load-dependent friction needs its robot (load_friction())"
         w = regressor(self.robot, q, qd, qdd) if rigid is None else rigid
         return np.asarray(w @ np.asarray(self.load_parameters))
 
@@ -74,7 +77,7 @@ class LoadFriction(LinearEffect):
         return replace(self, setting=tuple({**dict(self.setting), **setting}.items()))
 
 
-def load_friction(robot: Any, joint: int, load_parameters: Array, smoothing: float = 0.0) -> LoadFriction:
+def load_friction(robot: Robot, joint: int, load_parameters: Array, smoothing: float = 0.0) -> LoadFriction:
     """``load_dependent_coulomb`` on 0-based ``joint``, its load the rigid-body torque of
     ``load_parameters`` (NaN read as 0: a link without values carries nothing)."""
     phi = tuple(float(x) for x in np.nan_to_num(np.asarray(load_parameters, float)[: robot.n_parameters]))
