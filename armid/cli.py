@@ -228,7 +228,7 @@ def _feasible(args: argparse.Namespace, robot: Any, result: Any, validation: lis
 
 
 def _diagnose(args: argparse.Namespace) -> int:
-    from armid.identify.diagnosis import diagnose, set_aside_sentence
+    from armid.identify.diagnosis import diagnose, extrapolation_sentence, set_aside_sentence
     from armid.identify.preprocess import PrepareOptions, prepare
     from armid.io.recordings import write_csv
     from armid.io.robot_file import load_robot
@@ -269,6 +269,8 @@ def _diagnose(args: argparse.Namespace) -> int:
         print(f"absorbed (not a finding): {a['effect']} on joint {a['joint']} joins {a['into']}")
     for c in diag.conflicting:
         print(f"set aside (not a finding): {set_aside_sentence(c)}")
+    for x in diag.extrapolated:
+        print(f"extrapolated: {extrapolation_sentence(x)}")
     print(f"{robot.name}: validation error {100 * doc['before']['relative_error']:.3g} % -> {100 * doc['after']['relative_error']:.3g} %")
     if feasible_line:
         print(feasible_line)

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from armid.identify.diagnosis import set_aside_sentence
+from armid.identify.diagnosis import extrapolation_sentence, set_aside_sentence
 from armid.identify.identification import IdentificationResult
 from armid.identify.preprocess import Segment
 
@@ -157,6 +157,9 @@ def write_diagnosis_report(diag: Any, robot_name: str, out_dir: Path, feasible: 
     if diag.conflicting:
         lines += ["", "## Set aside (not findings)", ""]
         lines += [f"- {set_aside_sentence(c)}" for c in diag.conflicting]
+    if diag.extrapolated:
+        lines += ["", "## Extrapolated by the validation", ""]
+        lines += [f"- {extrapolation_sentence(x)}" for x in diag.extrapolated]
     lines += ["", f"Declared in the robot file (part of the base model): {', '.join(diag.base_effects) or 'nothing'}.", "",
               "## Error per joint", "", "| joint | RMS before | RMS after | relative before | relative after |", "|---|---|---|---|---|"]
     for j in range(tau.shape[1]):

@@ -296,10 +296,12 @@ class Diagnosis:
     # candidates that cleared every other gate but pulled the estimate away from the modeled
     # values (DiagnoseOptions.max_prior_widening): set aside, not findings
     conflicting: list[dict[str, Any]] = field(default_factory=list)
+    # position-dependent findings the validation uses beyond the positions they were found on
+    extrapolated: list[dict[str, Any]] = field(default_factory=list)
 
     def to_json(self) -> dict[str, Any]:
         return {"found": [f.to_json() for f in self.found], "absorbed": self.absorbed, "declared": self.base_effects,
-                "set_aside": self.conflicting,
+                "set_aside": self.conflicting, "extrapolated": self.extrapolated,
                 "before": self.before, "after": self.after, "noise_floor": self.noise_floor,
                 "chosen_on": "the identification data: fitted on its even tenths, scored on its odd tenths",
                 "measured_on": "the validation data (before and after), at every sample's own stamp against the raw torque"}
@@ -812,7 +814,39 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     noise = _noise_floor(validation)
     return Diagnosis(found, absorbed, before, after, [f"{e.effect}@{e.joint + 1}" for e in effects], rounds,
                      (valid.tau, before_pred), (valid.tau, after_pred), (t_v, valid.q, valid.qd, valid.qdd), used_v,
-                     (np.asarray(t_s), tau_s, after_stamps), noise, conflicting)
+                     (np.asarray(t_s), tau_s, after_stamps), noise, conflicting, _extrapolated(found, ident_all.q, valid.q))
+
+
+POSITION_DEPENDENT = ("spring", "cogging")
+"""Effects that are functions of one joint's position: beyond the positions a finding was
+fitted on, it is an extrapolation (a spring may be the local slope of a ripple longer than
+the motion; held-out tenths of the same motion cannot tell)."""
+
+
+def _extrapolated(found: list[Finding], q_ident: Array, q_valid: Array, tolerance: float = 0.05) -> list[dict[str, Any]]:
+    """The position-dependent findings whose joint the validation takes more than
+    ``tolerance`` of the identified range beyond it, with both ranges."""
+    out = []
+    for f in found:
+        if f.effect not in POSITION_DEPENDENT or f.joint is None:
+            continue
+        lo, hi = float(q_ident[:, f.joint].min()), float(q_ident[:, f.joint].max())
+        vlo, vhi = float(q_valid[:, f.joint].min()), float(q_valid[:, f.joint].max())
+        beyond = (max(lo - vlo, 0.0) + max(vhi - hi, 0.0)) / max(hi - lo, 1e-12)
+        if beyond > tolerance:
+            out.append({"effect": f.effect, "joint": f.joint + 1, "identified_range": [lo, hi], "validation_range": [vlo, vhi],
+                        "beyond_fraction": beyond})
+    return out
+
+
+def extrapolation_sentence(x: dict[str, Any]) -> str:
+    """One line for a finding the validation extrapolates (the text output and the report)."""
+    lo, hi = x["identified_range"]
+    vlo, vhi = x["validation_range"]
+    return (f"{x['effect'].replace('_', ' ')} on joint {x['joint']} was found on positions {lo:.4g}..{hi:.4g}; the validation "
+            f"goes to {vlo:.4g}..{vhi:.4g}, {100 * x['beyond_fraction']:.0f} % of that range beyond it: there the finding is "
+            "an extrapolation, and a local fit of something else (a ripple longer than the motion) extrapolates badly. "
+            "Identify on a motion that covers the validation's positions to tell")
 
 
 FIXED_OPTIONS = ("velocity", "period_rad")

@@ -96,6 +96,17 @@ def test_one_joint_residual_is_not_an_arm_wide_finding(tmp_path: Path) -> None:
     assert not [f for f in doc["found"] if f["joint"] is None], doc["found"]
 
 
+def test_a_position_dependent_finding_used_beyond_its_range_is_reported(tmp_path: Path) -> None:
+    """The same case: the spring found on the prismatic joint 2 (the local slope of the
+    0.18 m ripple over 0.145 m of motion) is found on -0.093..0.053 m and the validation goes
+    to 0.092 m; validation 5.96 % -> 12.2 %. Nothing in the identification data can tell, so
+    the output says where the finding is an extrapolation."""
+    _, doc, _ = _diagnose(ONE_JOINT_RESIDUAL, tmp_path)
+    (x,) = [x for x in doc["extrapolated"] if x["joint"] == 2]
+    assert x["effect"] == "spring" and x["beyond_fraction"] > 0.2
+    assert x["validation_range"][1] > x["identified_range"][1]
+
+
 def test_before_is_what_identify_predicts(tmp_path: Path) -> None:
     """diagnose's 'before' is the declared model exactly as `armid identify` fits it."""
     case = blindgen.make_case(out_dir=tmp_path / "case", **EFFECTS[0])
