@@ -1,6 +1,6 @@
 """How low can the declared model go on the KUKA LWR4+ recordings? (issue 15's 1.6 % line)
 
-    python examples/kuka_declared_model_floor.py [--data ../shared/data/kuka_lwr4]
+    python examples/kuka_declared_model_floor.py [--data ../shared/data/kuka_lwr4] [--residuals P11.csv P12.csv]
 
 Independent of armid (Pinocchio's regressor and numpy's least squares only). The declared
 model is the rigid body plus Coulomb (``fc tanh(qd / v)``), viscous friction and an offset on
@@ -12,6 +12,13 @@ recording 1's own best parameters on recording 2 (same trajectory, repeated), wh
 an identification on 1 can at best hope for, and splits the difference; last, recording 1's
 measured torque itself replayed as the prediction of recording 2 (what a perfect memory of
 recording 1, its noise included, would score).
+
+With ``--residuals``, two ``--predictions`` files of a model identified on recording 1 (any
+tool's: validated on recording 1 itself, then on 2), it splits that model's error on
+recording 2 per joint into the noise no model of the motion predicts (the two runs'
+difference over sqrt 2) and the model's own error, and tries a Fourier series in each
+distal joint's position (8 harmonics, per direction of motion) fitted to recording 1's
+residual.
 """
 
 from __future__ import annotations
@@ -86,6 +93,8 @@ def best_fit(rigid: np.ndarray, friction: dict[float, np.ndarray], tau: np.ndarr
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", default=str(pathlib.Path(__file__).resolve().parents[2] / "shared/data/kuka_lwr4"))
+    ap.add_argument("--residuals", nargs=2, metavar=("P11", "P12"),
+                    help="predictions of a model identified on recording 1, at recording 1's and at recording 2's stamps")
     args = ap.parse_args()
     data = pathlib.Path(args.data)
     model = load_model(data)
@@ -108,6 +117,39 @@ def main() -> None:
     # the repetition itself as a predictor: recording 1's measured torque, sample for sample
     print(f"recording 1's raw torque replayed as the prediction of recording 2: "
           f"{100 * np.linalg.norm(diff) / np.linalg.norm(recs[2]['torques']):.3f} %")
+    if args.residuals:
+        split_error(recs, read_predictions(args.residuals[0]), read_predictions(args.residuals[1]))
+
+
+def read_predictions(path: str) -> np.ndarray:
+    p = np.genfromtxt(path, delimiter=",", names=True)
+    return np.column_stack([p[n] for n in p.dtype.names[1:]])
+
+
+def split_error(recs: dict[int, dict[str, np.ndarray]], fitted_1: np.ndarray, predicted_2: np.ndarray) -> None:
+    """The model's error on recording 2, per joint: noise (unpredictable) and model error."""
+    tau1, tau2 = recs[1]["torques"], recs[2]["torques"]
+    err = np.sqrt(np.mean((tau2 - predicted_2) ** 2, axis=0))
+    noise = np.sqrt(np.mean((tau1 - tau2) ** 2, axis=0) / 2)
+    model = np.sqrt(np.maximum(err**2 - noise**2, 0.0))
+    scale = np.linalg.norm(tau2) / np.sqrt(len(tau2))
+    print("model's RMS error on recording 2, N*m, joints 1..7: " + ", ".join(f"{v:.3f}" for v in err))
+    print("  noise (runs' difference / sqrt 2):               " + ", ".join(f"{v:.3f}" for v in noise))
+    print("  model error:                                      " + ", ".join(f"{v:.3f}" for v in model))
+    print(f"  in all: noise {100 * np.sqrt(np.sum(noise**2)) / scale:.2f} %, model error {100 * np.sqrt(np.sum(model**2)) / scale:.2f} % "
+          f"(relative error {100 * np.linalg.norm(tau2 - predicted_2) / np.linalg.norm(tau2):.3f} %)")
+
+    def series(rec: dict[str, np.ndarray], j: int) -> np.ndarray:
+        q, s = rec["positions"][:, j], np.tanh(rec["velocities"][:, j] / 0.03)
+        cols = [np.ones_like(q)] + [f(k * q) for k in range(1, 9) for f in (np.sin, np.cos)]
+        return np.column_stack(cols + [c * s for c in cols])
+
+    residual_1, corrected = tau1 - fitted_1, predicted_2.copy()
+    for j in (4, 5, 6):
+        coef = np.linalg.lstsq(series(recs[1], j), residual_1[:, j], rcond=None)[0]
+        corrected[:, j] += series(recs[2], j) @ coef
+    print(f"with a Fourier series in q (8 harmonics, per direction) on joints 5-7, fitted to recording 1's residual: "
+          f"{100 * np.linalg.norm(tau2 - corrected) / np.linalg.norm(tau2):.3f} %")
 
 
 if __name__ == "__main__":

@@ -4,7 +4,9 @@ The base model is the rigid body (eq. 18) with the robot file's declared effects
 entry of the catalogue becomes candidate regressor columns on a joint (or the arm):
 
 - linear in its parameters: viscous (``qd``), Coulomb (``sign qd``), offset (``1``), rotor
-  inertia (``qdd``), spring (``q``, with an offset), and friction on every joint at once;
+  inertia (``qdd``), spring (``q``, with an offset), load-dependent Coulomb
+  (``|tau_load| sign qd``, its load the modeled rigid body, or the fit's where the robot file
+  models no inertials), and friction on every joint at once;
 - nonlinear in one parameter, searched on a grid and linear given it: Stribeck friction
   (``sign(qd) exp(-(qd/v_s)^2)`` over ``v_s``), cogging (``sin, cos(2 pi q / P)`` over the
   period ``P``, an integer number of periods per turn from 2 to 120);
@@ -44,6 +46,9 @@ separate them.
 
 Before and after are then fitted as ``identify`` fits (:func:`findings_model`): before is the
 declared model exactly as ``armid identify`` gives it, after the same with the findings added.
+A position-dependent finding (spring, cogging) whose joint the validation moves beyond the
+positions it was found on is reported as extrapolated: held-out tenths of one motion cannot
+tell a spring from the local slope of a ripple longer than that motion.
 """
 
 from __future__ import annotations
@@ -66,6 +71,7 @@ from .identification import (
     declared_effects,
     declared_gains,
     identify,
+    rigid_parameters,
     stacked_regressor,
     structural_base,
 )
@@ -83,6 +89,7 @@ LOOKALIKES = {
     "viscous_friction": "time_delay",
     "torque_offset": "spring",
     "spring": "torque_offset",
+    "load_dependent_coulomb": "coulomb_friction",
 }
 SEPARATE = {
     frozenset(("coulomb_friction", "stribeck_friction")): "slow constant-velocity moves of joint {j} at several speeds "
@@ -91,6 +98,9 @@ SEPARATE = {
     "with and without a known payload: a torque-constant error scales the static torque, rotor inertia adds none at rest",
     frozenset(("time_delay", "viscous_friction")): "excite joint {j} at two frequencies with the same velocity amplitude: "
     "a delay's error grows with frequency, viscous friction depends on velocity alone",
+    frozenset(("load_dependent_coulomb", "coulomb_friction")): "move joint {j} at the same speeds under different loads (poses "
+    "with different gravity torque on it, or with and without a known payload): load-dependent friction grows with the load, "
+    "Coulomb friction does not",
     frozenset(("torque_offset", "spring")): "hold joint {j} still at several positions across its whole range (with the "
     "others fixed): a spring's torque changes with position, an offset does not; over a short range gravity absorbs a spring",
 }
@@ -481,16 +491,18 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     ident_all, valid = _stack(experiments), _stack(validation)
     ident, held = _blocks(ident_all)
     nj = robot.n_joints
-    effects = declared_effects(robot)
-    base = structural_base(robot, effects)
-    n_cols = robot.n_parameters + sum(len(e.parameter_names) for e in effects)
-
     # the declared model exactly as `armid identify` fits it ("before"): its settings, its
     # declared drive gains and how far its prior had to widen (the search starts from its
     # gains; gate (d) from its widening)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PoorExcitationWarning)
         result0 = identify(robot, experiments, validation)
+    # a declared load-dependent friction's load: that fit's own rigid-body torque, here and in
+    # every refit of a candidate (one fit each instead of identify's fixed-point passes)
+    load0 = rigid_parameters(result0)
+    effects = declared_effects(robot, load0)
+    base = structural_base(robot, effects)
+    n_cols = robot.n_parameters + sum(len(e.parameter_names) for e in effects)
     # drive gains: joint j measures gain_scale[j] times the model's torque (declared, then found)
     gain_scale = np.ones(nj) if result0.torque_scale is None else np.array(result0.torque_scale, float)
 
@@ -546,12 +558,18 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
         ctx["predict"] = lambda d, b=beta[:p_base]: (base_columns(d) @ b).reshape(-1, nj)
         # the delay's derivative leaves out Coulomb friction: a step in sign(qd) shifted by a
         # sample is a spike at every reversal, which would fit friction's misfit near rest
-        smooth = beta[:p_base] * np.array([not base.names[c].startswith("fc") for c in base.independent])
+        smooth = beta[:p_base] * np.array([not base.names[c].startswith(("fc", "fs", "fl")) for c in base.independent])
         ctx["predict_smooth"] = lambda d, b=smooth: (base_columns(d) @ b).reshape(-1, nj)
         ctx["phi"] = _phi_hat(robot, base, beta[:p_base], n_cols)
         # a load-dependent friction's load: the modeled rigid body where the robot file models
-        # every link (the fit so far has the friction it lacks in its rigid-body parameters), else the fit's
-        ctx["load"] = tuple(float(x) for x in (ctx["phi"] if modeled is None else modeled))
+        # every link (the fit so far has the friction it lacks in its rigid-body parameters),
+        # else the fit's own (its base parameters in their columns, as identify's passes take it)
+        load = modeled
+        if load is None:
+            fitted = np.zeros(n_cols)
+            fitted[base.independent] = beta[:p_base]
+            load = fitted[: robot.n_parameters]
+        ctx["load"] = tuple(float(x) for x in load)
         # Frisch-Waugh on the whitened system A = QR with residual r (r is orthogonal to Q):
         # for columns C, P = Q^T C, gamma = (C^T C - P^T P)^-1 C^T r, the refit's beta is
         # beta - R^-1 P gamma, and the held-out residual is res_v + G P gamma - Cv gamma with
@@ -694,7 +712,7 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
                 trial = Finding(best.effect, best.joint, _parameters(best, gamma), 0.0, 0.0, 0.0)
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", PoorExcitationWarning)
-                    widening = _prior_widening(settled, experiments, found + [trial])
+                    widening = _prior_widening(settled, experiments, found + [trial], load0)
                 if widening is None or widening > opts.max_prior_widening * widening_now:
                     conflicting.append({"effect": best.effect, "joint": None if best.joint is None else best.joint + 1,
                                         "parameters": trial.parameters, "before": widening_now,
@@ -776,6 +794,8 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
         found.append(finding)
         chosen.append(best)
         present.add((best.effect, best.joint))
+        if best.effect in ("stribeck_friction", "load_dependent_coulomb") and "fc" in best.labels:  # found with its Coulomb level
+            present.add(("coulomb_friction", best.joint))
         if best.joint is None and best.effect == "coulomb_friction":  # friction on every joint it covers
             present |= {(e, int(label[len(p) :]) - 1) for label in best.labels
                         for e, p in (("coulomb_friction", "fc"), ("viscous_friction", "fv"), ("torque_offset", "offset")) if label.startswith(p)}
@@ -789,7 +809,7 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PoorExcitationWarning)
         robot = robot0
-        _refine_delays(robot, found, experiments)
+        _refine_delays(robot, found, experiments, load0)
         model, model_options = findings_model(robot, found)
         # the prior as wide as the declared model's fit found it: a finding whose columns lean
         # on poorly excited parameters (a tilt on the first moments) moves least squares away
@@ -901,14 +921,14 @@ def set_aside_sentence(c: dict[str, Any]) -> str:
             "the data cannot tell it from a worse model")
 
 
-def _prior_widening(robot: Robot, experiments: list[Prepared], found: list[Finding]) -> float | None:
+def _prior_widening(robot: Robot, experiments: list[Prepared], found: list[Finding], load: Array) -> float | None:
     """How far the prior on the modeled values (identify.prior) must widen to agree with
     least squares on the model with ``found`` added (``inf``: beyond any width; None: the
     robot file models no inertial values). A finding that lets least squares wander from the
     modeled values along what the data barely excite (a tilt trading against the first
     moments) widens it: the data alone cannot tell that finding from a worse model."""
     model, options = findings_model(robot, found)
-    return _widening(identify(model, experiments, None, replace(options, covariance="white")))
+    return _widening(identify(model, experiments, None, replace(options, covariance="white", load_parameters=tuple(load))))
 
 
 def _widening(result: IdentificationResult) -> float | None:
@@ -931,7 +951,7 @@ def _settled(robot: Robot, result: IdentificationResult) -> Robot:
     return replace(robot, effects=tuple(out))
 
 
-def _refine_delays(robot: Robot, found: list[Finding], experiments: list[Prepared]) -> None:
+def _refine_delays(robot: Robot, found: list[Finding], experiments: list[Prepared], load: Array) -> None:
     """Each found delay, refined on the identification data with the exact model (the motion
     or the torque shifted in time) as `identify` fits it: the fit's error on a grid of
     0.6-1.6 times the search's estimate (not unimodal: a shift by about a period of the
@@ -946,7 +966,7 @@ def _refine_delays(robot: Robot, found: list[Finding], experiments: list[Prepare
         def error(d: float, f: Finding = f) -> float:
             f.parameters["delay_s"] = float(d)
             model, options = findings_model(robot, found)
-            return float(identify(model, experiments, None, options).fit["relative_error"])
+            return float(identify(model, experiments, None, replace(options, load_parameters=tuple(load))).fit["relative_error"])
 
         grid = d0 * np.array([0.6, 0.8, 1.0, 1.25, 1.6])
         errors = [error(d) for d in grid]

@@ -10,7 +10,7 @@ fixed, which the identification does by fixed-point passes.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import partial
 
 import numpy as np
@@ -56,32 +56,37 @@ class LoadFriction(LinearEffect):
     its efficiency lower the more it carries. ``tau_load`` is the rigid-body torque of the
     parameters ``load_parameters`` (Khosla's phi, 10 per link) along the whole motion, so the
     column needs every joint's motion: :meth:`columns` takes the whole arrays (and, where the
-    caller has it, the rigid-body regressor). Linear in ``fl`` once the load is fixed; the
-    identification fixes it from its own estimate (identify.identification)."""
+    caller has it, the load itself). Linear in ``fl`` once the load is fixed; the
+    identification fixes it from its own estimate (identify.identification).
+    ``follows_coulomb``: its sign's smoothing moves with the same joint's searched Coulomb
+    smoothing (False: the robot file fixed it)."""
 
-    robot: Robot | None = None
-    load_parameters: tuple[float, ...] = ()
+    robot: Robot = field(kw_only=True)
+    load_parameters: tuple[float, ...] = field(kw_only=True)
+    follows_coulomb: bool = field(default=True, kw_only=True)
 
-    def load(self, q: Array, qd: Array, qdd: Array, rigid: Array | None = None) -> Array:
-        """(N, n) the rigid-body torque of ``load_parameters`` (eq. 18 with that phi)."""
-        assert self.robot is not None, "a load-dependent friction needs its robot (load_friction())"
-        w = regressor(self.robot, q, qd, qdd) if rigid is None else rigid
-        return np.asarray(w @ np.asarray(self.load_parameters))
+    def load(self, q: Array, qd: Array, qdd: Array) -> Array:
+        """(n, N) the rigid-body torque of ``load_parameters`` (eq. 18 with that phi)."""
+        return np.asarray(regressor(self.robot, q, qd, qdd) @ np.asarray(self.load_parameters))
 
     def columns(self, q: Array, qd: Array, qdd: Array, load: Array | None = None) -> Array:
         tau = self.load(q, qd, qdd) if load is None else load
-        smoothing = dict(self.setting).get("smoothing", 0.0)
-        return (np.abs(tau[:, self.joint]) * smooth_sign(qd[:, self.joint], smoothing))[:, None]
+        return (np.abs(tau[:, self.joint]) * self.direction(qd))[:, None]
+
+    def direction(self, qd: Array) -> Array:
+        """``smooth_sign(qd_j)`` with the effect's smoothing."""
+        return smooth_sign(qd[:, self.joint], dict(self.setting).get("smoothing", 0.0))
 
     def with_setting(self, **setting: float) -> LinearEffect:
         return replace(self, setting=tuple({**dict(self.setting), **setting}.items()))
 
 
-def load_friction(robot: Robot, joint: int, load_parameters: Array, smoothing: float = 0.0) -> LoadFriction:
+def load_friction(robot: Robot, joint: int, load_parameters: Array, smoothing: float = 0.0, follows_coulomb: bool = True) -> LoadFriction:
     """``load_dependent_coulomb`` on 0-based ``joint``, its load the rigid-body torque of
-    ``load_parameters`` (NaN read as 0: a link without values carries nothing)."""
-    phi = tuple(float(x) for x in np.nan_to_num(np.asarray(load_parameters, float)[: robot.n_parameters]))
-    return LoadFriction("load_dependent_coulomb", joint, ("fl",), _whole_motion, (("smoothing", float(smoothing)),), robot, phi)
+    ``load_parameters`` (10 N,)."""
+    phi = tuple(float(x) for x in np.asarray(load_parameters, float)[: robot.n_parameters])
+    return LoadFriction("load_dependent_coulomb", joint, ("fl",), _whole_motion, (("smoothing", float(smoothing)),),
+                        robot=robot, load_parameters=phi, follows_coulomb=follows_coulomb)
 
 
 def _whole_motion(q: Array, qd: Array, qdd: Array) -> Array:
@@ -191,20 +196,22 @@ def linear_effect(name: str, joint: int, **setting: float) -> LinearEffect:
     return LinearEffect(name, joint, params, fn)
 
 
-def effect_columns(effects: list[LinearEffect], q: Array, qd: Array, qdd: Array, rigid: Array | None = None) -> Array:
+def effect_columns(effects: list[LinearEffect], q: Array, qd: Array, qdd: Array, rigid: Array | None = None,
+                   load: Array | None = None) -> Array:
     """(n, N, k_total) extra regressor columns: each effect's columns in its joint's row.
-    ``rigid``: the motion's rigid-body regressor (n, N, 10 N) where the caller has it, so a
-    load-dependent friction's load costs no second regressor."""
+    Where the caller has them, ``rigid`` is the motion's rigid-body regressor (n, N, 10 N) of
+    the effects' robot, and ``load`` the load-dependent friction's load (n, N) itself (the
+    model's own rigid-body torque): then its load costs no second regressor."""
     n, nj = q.shape
     widths = [len(e.parameter_names) for e in effects]
     out = np.zeros((n, nj, sum(widths)))
-    loads: dict[tuple[int, tuple[float, ...]], Array] = {}  # one load per parameter set, not per joint
+    loads: dict[tuple[Robot, tuple[float, ...]], Array] = {}  # one load per parameter set, not per joint
     k = 0
     for e, wdt in zip(effects, widths):
         if isinstance(e, LoadFriction):
-            key = (id(e.robot), e.load_parameters)
+            key = (e.robot, e.load_parameters)
             if key not in loads:
-                loads[key] = e.load(q, qd, qdd, rigid)
+                loads[key] = load if load is not None else (e.load(q, qd, qdd) if rigid is None else rigid @ np.asarray(e.load_parameters))
             out[:, e.joint, k : k + wdt] = e.columns(q, qd, qdd, load=loads[key])
         else:
             out[:, e.joint, k : k + wdt] = e.columns(q, qd, qdd)

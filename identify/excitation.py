@@ -209,7 +209,7 @@ class _Candidates:
         w = self._buffer[: m * T]
         regressor(self.robot, q, qd, qdd, out=w[:, :, : 10 * n])
         if self.effects:
-            w[:, :, 10 * n :] = effect_columns(self.effects, q, qd, qdd)
+            w[:, :, 10 * n :] = effect_columns(self.effects, q, qd, qdd, rigid=w[:, :, : 10 * n])
         return w.reshape(m, T, n, -1)
 
     def scaled(self, a: Array, b: Array, reduce: Callable[[Array], Array]) -> tuple[Array, Array, Array, Array]:

@@ -51,6 +51,9 @@ class IdentifyOptions:
     # the diagnosis fits its findings with the declared model's, so that a finding is not
     # paid for by a prior that lost its weight (None: estimated, empirical Bayes)
     prior_widening: float | None = None
+    # a load-dependent friction's load parameters (10 per link) fixed: one fit with that load
+    # instead of the fixed-point passes (a refit close to a fit already made: the diagnosis)
+    load_parameters: tuple[float, ...] | None = None
 
 
 PRIORS = ("modeled", "none")
@@ -61,10 +64,10 @@ SEARCH_EQUATIONS = 20_000
 
 def declared_effects(robot: Robot, load_parameters: Array | None = None) -> list[LinearEffect]:
     """The robot file's effects as regressor columns (``joint: null`` means every joint).
-    A load-dependent friction's load is the rigid-body torque of ``load_parameters`` (default:
-    the robot file's modeled values); its sign's smoothing is the same joint's declared
-    Coulomb velocity unless it declares its own (the identification's search moves both)."""
-    phi = robot.modeled_parameters() if load_parameters is None else load_parameters
+    A load-dependent friction's load is the rigid-body torque of ``load_parameters`` (default
+    :func:`nominal_load`); its sign's smoothing is the same joint's declared Coulomb velocity
+    unless it declares its own, and follows the search of an undeclared one."""
+    phi = nominal_load(robot) if load_parameters is None else np.asarray(load_parameters, float)
     coulomb = {j: float(e.options["velocity"]) for e in robot.effects if e.effect == "coulomb_friction" and "velocity" in e.options
                for j in (range(robot.n_joints) if e.joint is None else [e.joint - 1])}
     out: list[LinearEffect] = []
@@ -73,11 +76,30 @@ def declared_effects(robot: Robot, load_parameters: Array | None = None) -> list
             continue  # not a column: fitted by profiling (_profile_gains)
         joints = range(robot.n_joints) if eff.joint is None else [eff.joint - 1]
         if eff.effect in LOAD_DEPENDENT:
-            out += [load_friction(robot, j, phi, float(eff.options.get("velocity", coulomb.get(j, 0.0)))) for j in joints]
+            own = "velocity" in eff.options
+            out += [load_friction(robot, j, phi, float(eff.options["velocity"]) if own else coulomb.get(j, 0.0), follows_coulomb=not own)
+                    for j in joints]
             continue
         setting = {k: float(v) for k, v in eff.options.items() if k in ("velocity", "period_rad")}
         out += [linear_effect(eff.effect, j, **setting) for j in joints]
     return out
+
+
+STAND_IN_LINK = np.array([1.0, 0.0, 0.0, 0.0, 0.01, 0.0, 0.0, 0.01, 0.0, 0.01])
+"""A 1 kg link with its mass at its frame's origin: the load of a link the robot file does not
+model, before any estimate (it only gives the column its structure)."""
+
+
+def nominal_load(robot: Robot) -> Array:
+    """The load parameters before any estimate: the robot file's modeled values, a stand-in
+    link where it has none (:data:`STAND_IN_LINK`). Used where only the column's structure
+    matters (structural base parameters, excitation design); an identification replaces it
+    by its own estimate (:func:`identify`)."""
+    phi = robot.modeled_parameters()
+    for i in range(robot.n_joints):
+        if np.isnan(phi[10 * i : 10 * i + 10]).any():
+            phi[10 * i : 10 * i + 10] = STAND_IN_LINK
+    return phi
 
 
 def declared_gains(robot: Robot) -> list[int]:
@@ -394,7 +416,7 @@ def _equation_column(segments: list[Segment], effect: LinearEffect, motion_delay
 
 
 def _segment_loads(segments: list[Segment], effect: LoadFriction, motion_delay: Array | None = None) -> list[Array]:
-    """Each segment's load torque (N, n) for a load-dependent friction, at its samples."""
+    """Each segment's load torque (n, N) for a load-dependent friction, at its samples."""
     return [effect.load(*(_advanced(x, seg.t, motion_delay) for x in (seg.q, seg.qd, seg.qdd))) for seg in segments]
 
 
@@ -427,7 +449,8 @@ def _search_settings(system: Array, names: list[str], effects: list[LinearEffect
         key, grid = SETTINGS[e.effect]
         # a Stribeck or load-dependent term on the same joint shares Coulomb's smoothing of sign(qd)
         follow = [(m, names.index(f.labels()[0])) for m, f in enumerate(effects)
-                  if e.effect == "coulomb_friction" and f.effect in ("stribeck_friction", *LOAD_DEPENDENT) and f.joint == j]
+                  if e.effect == "coulomb_friction" and f.joint == j
+                  and (f.effect == "stribeck_friction" or (isinstance(f, LoadFriction) and f.follows_coulomb))]
         for m, _ in follow:
             following = effects[m]
             if isinstance(following, LoadFriction) and loads is None:
@@ -525,12 +548,18 @@ def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     options = options or IdentifyOptions()
     if not any(e.effect in LOAD_DEPENDENT for e in robot.effects):
         return _identify(robot, experiments, validation, options)
+    if options.load_parameters is not None:
+        result = _identify(robot, experiments, validation, options, np.asarray(options.load_parameters, float))
+        result.notes.append("load-dependent friction: its load the rigid-body torque of the given parameters (one fit)")
+        return result
     plain = replace(robot, effects=tuple(e for e in robot.effects if e.effect not in LOAD_DEPENDENT))
-    load = rigid_parameters(_identify(plain, experiments, None, options))
-    for k in range(LOAD_PASSES):
-        result = _identify(robot, experiments, validation if k == LOAD_PASSES - 1 else None, options, load)
-        moved = float(np.linalg.norm(rigid_parameters(result) - load) / max(float(np.linalg.norm(load)), 1e-300))
-        load = rigid_parameters(result)
+    with warnings.catch_warnings():  # the final pass warns what there is to warn
+        warnings.simplefilter("ignore", PoorExcitationWarning)
+        load = rigid_parameters(_identify(plain, experiments, None, options))
+        for _ in range(LOAD_PASSES - 1):
+            load = rigid_parameters(_identify(robot, experiments, None, options, load))
+    result = _identify(robot, experiments, validation, options, load)
+    moved = float(np.linalg.norm(rigid_parameters(result) - load) / max(float(np.linalg.norm(load)), 1e-300))
     result.notes.append(f"load-dependent friction: its load the estimate's own rigid-body torque ({LOAD_PASSES} passes from the fit "
                         f"without it; the last moved the rigid-body parameters {100 * moved:.2g} %)")
     return result

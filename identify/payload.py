@@ -379,7 +379,16 @@ class ArmModel:
             tau[:, i] = g @ s
             cols[:, i] = np.einsum("a,nab->nb", s, c)
         if self.effects:
-            tau += effect_columns(list(self.effects), np.atleast_2d(q), np.atleast_2d(qd), np.atleast_2d(qdd)) @ phi[10 * nj :]
+            q2, qd2, qdd2 = np.atleast_2d(q), np.atleast_2d(qd), np.atleast_2d(qdd)
+            # a load-dependent friction's load is the arm's own rigid-body torque, just computed
+            tau_rigid = tau.copy()
+            tau += effect_columns(list(self.effects), q2, qd2, qdd2, load=tau_rigid) @ phi[10 * nj :]
+            col = 10 * nj
+            for e in self.effects:
+                if isinstance(e, LoadFriction):
+                    # the payload's torque goes through the same gear: fl |tau + tau_p| ~ fl |tau| + fl sign(tau) tau_p
+                    cols[:, e.joint] *= (1.0 + phi[col] * np.sign(tau_rigid[:, e.joint]) * e.direction(qd2))[:, None]
+                col += len(e.parameter_names)
         return tau, cols
 
     def torque(self, q: Array, qd: Array, qdd: Array) -> Array:
@@ -1062,9 +1071,7 @@ def arm_model_from_identification(robot: Robot, doc: dict[str, Any], seed: int =
             f"{got[first] if first < len(got) else '(none)'!r} vs {exprs[first] if first < len(exprs) else '(none)'!r}")
     beta = np.array([b["value"] for b in doc["base_parameters"]], float)
     sigma = np.asarray(doc.get("joint_noise_sigma") or [1.0] * robot.n_joints, float)
-    if any(isinstance(e, LoadFriction) for e in effects):
-        # a load-dependent friction's load is the estimate's own rigid-body torque, as identify fitted it
-        coef = np.zeros(robot.n_parameters + sum(len(e.parameter_names) for e in effects))
-        coef[base.independent] = beta
-        effects = declared_effects(robot, coef[: robot.n_parameters])
+    # each effect with the setting the identification chose on the data (a Coulomb model's smoothing)
+    chosen = {(e["effect"], e["joint"] - 1): e.get("setting", {}) for e in doc.get("effects", [])}
+    effects = [e.with_setting(**chosen[(e.effect, e.joint)]) if chosen.get((e.effect, e.joint)) else e for e in effects]
     return ArmModel(robot, tuple(effects), base.independent, beta, sigma)
