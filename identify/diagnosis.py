@@ -105,6 +105,9 @@ SEPARATE = {
     "others fixed): a spring's torque changes with position, an offset does not; over a short range gravity absorbs a spring",
 }
 DISSIPATIVE = ("viscous_friction", "coulomb_friction", "stribeck_friction", "rotor_inertia", "load_dependent_coulomb")  # last parameter > 0
+DISSIPATIVE_PARAMETER = {"viscous_friction": "fv", "coulomb_friction": "fc", "stribeck_friction": "fs", "rotor_inertia": "ia",
+                         "load_dependent_coulomb": "fl"}
+"""... the parameter of each that must be > 0, by its name in a finding."""
 # the Stribeck velocity on a log grid 0.01-1 rad/s, a factor 1.33 apart (a coarser grid left
 # a third of a blind case's Stribeck term in the residual)
 STRIBECK_VELOCITIES = tuple(float(v) for v in np.round(np.geomspace(0.01, 1.0, 17), 4))
@@ -716,7 +719,7 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
                 if widening is None or widening > opts.max_prior_widening * widening_now:
                     conflicting.append({"effect": best.effect, "joint": None if best.joint is None else best.joint + 1,
                                         "parameters": trial.parameters, "before": widening_now,
-                                        "prior_widened_by": widening if widening is not None and np.isfinite(widening) else None})
+                                        "prior_widened_by": widening if widening is not None and np.isfinite(widening) else None, "reason": "prior"})
                     present.add((best.effect, best.joint))
                     set_aside.add((best.effect, best.joint))
                     continue
@@ -810,15 +813,28 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
         warnings.simplefilter("ignore", PoorExcitationWarning)
         robot = robot0
         _refine_delays(robot, found, experiments, load0)
-        model, model_options = findings_model(robot, found)
-        # the prior as wide as the declared model's fit found it: a finding whose columns lean
-        # on poorly excited parameters (a tilt on the first moments) moves least squares away
-        # from the modeled values and would widen the prior for the whole model; on the KUKA
-        # LWR4+ (1 -> 3) that cost more on another trajectory than the tilt gained
-        if widening_now is not None:
-            model_options = replace(model_options, prior_widening=min(_widening(result0) or np.inf, widening_now))
-        result1 = identify(model, experiments, validation, model_options) if found else result0
-    _update_parameters(found, result1)
+
+        def fit_findings(found: list[Finding]) -> IdentificationResult:
+            model, model_options = findings_model(robot, found)
+            # the prior as wide as the declared model's fit found it: a finding whose columns lean
+            # on poorly excited parameters (a tilt on the first moments) moves least squares away
+            # from the modeled values and would widen the prior for the whole model; on the KUKA
+            # LWR4+ (1 -> 3) that cost more on another trajectory than the tilt gained
+            if widening_now is not None:
+                model_options = replace(model_options, prior_widening=min(_widening(result0) or np.inf, widening_now))
+            result = identify(model, experiments, validation, model_options) if found else result0
+            _update_parameters(found, result)
+            return result
+
+        result1 = fit_findings(found)
+        # friction or inertia whose sign the whole fit turns (the search saw it positive on its
+        # blocks): not physical, so not a finding; the rest refitted without it
+        reversed_sign = _sign_reversed(found)
+        if reversed_sign:
+            conflicting += [{"effect": f.effect, "joint": f.joint + 1, "parameters": dict(f.parameters), "reason": "sign"}
+                            for f in reversed_sign if f.joint is not None]
+            found = [f for f in found if f not in reversed_sign]
+            result1 = fit_findings(found)
     st = [s for p in validation for s in p.segments]
     t_s, tau_s, before_stamps = result0.predict_stamps(st)
     _, _, after_stamps = result1.predict_stamps(st)
@@ -912,9 +928,21 @@ def findings_model(robot: Robot, found: list[Finding]) -> tuple[Robot, IdentifyO
                                   motion_delay_s=tuple(motion_delay) if np.any(motion_delay != 0.0) else None)
 
 
+def _sign_reversed(found: list[Finding]) -> list[Finding]:
+    """The one-joint friction or inertia findings whose fitted parameter is not positive."""
+    return [f for f in found if f.joint is not None and f.effect in DISSIPATIVE
+            and f.parameters.get(DISSIPATIVE_PARAMETER[f.effect], 1.0) <= 0.0]
+
+
 def set_aside_sentence(c: dict[str, Any]) -> str:
-    """What the text and the report say of a candidate set aside by gate (d)."""
+    """What the text and the report say of a candidate set aside: by gate (d), or because the
+    final fit turned the sign of its friction or inertia."""
     where = "the arm" if c["joint"] is None else f"joint {c['joint']}"
+    if c.get("reason") == "sign":
+        name = DISSIPATIVE_PARAMETER[c["effect"]]
+        return (f"{c['effect'].replace('_', ' ')} on {where}: it cleared the held-out tests, but refitted with the other findings "
+                f"on all the identification data its {name} came out {c['parameters'][name]:.4g}: friction that pushes the joint "
+                "along, or a negative inertia, is not physical (another effect's shape it was bent to)")
     wider = "widened beyond any width" if c["prior_widened_by"] is None else f"{c['prior_widened_by'] / c['before']:.3g}x wider"
     return (f"{c['effect'].replace('_', ' ')} on {where}: it cleared the held-out tests, but with it least squares on the "
             f"identification data moves away from the robot file's modeled values (the prior would have to be {wider}): "

@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 
 from armid.cli import main
-from armid.identify.diagnosis import Finding, _extrapolated
+from armid.identify.diagnosis import Finding, _extrapolated, _sign_reversed, set_aside_sentence
 
 CATALOGUE = ["viscous_friction", "coulomb_friction", "stribeck_friction", "torque_offset", "rotor_inertia", "torque_gain",
              "time_delay", "cogging", "spring", "gravity_tilt", "friction_all", "load_coulomb"]
@@ -136,3 +136,15 @@ LOW_NOISE_CLEAN = {"seed": 1001, "rate_hz": 200.0, "currents": False, "velocity"
 
 def test_an_effect_far_below_the_noise_is_not_a_finding(tmp_path: Path) -> None:
     test_blind_clean_case_finds_nothing(LOW_NOISE_CLEAN, tmp_path)
+
+
+def test_a_finding_whose_final_fit_turns_its_sign_is_set_aside() -> None:
+    """Seen on an independent generator's 1 kHz KUKA-like arm: a Stribeck term on joint 6 at the
+    grid's edge (v_s 1 rad/s) positive on the search's blocks came out fs -0.69 in the final
+    fit with the other findings; it is set aside with the reason, the others refitted."""
+    stribeck = Finding("stribeck_friction", 5, {"fs": -0.6926, "velocity": 1.0}, 0.05, 0.02, 0.019)
+    kept = [Finding("rotor_inertia", 3, {"ia": 0.94}, 0.2, 0.05, 0.03), Finding("spring", 2, {"stiffness": -3.0}, 0.1, 0.03, 0.02),
+            Finding("load_dependent_coulomb", 1, {"fc": -0.1, "fl": 0.05}, 0.1, 0.03, 0.02)]
+    assert _sign_reversed([*kept, stribeck]) == [stribeck]
+    text = set_aside_sentence({"effect": "stribeck_friction", "joint": 6, "parameters": stribeck.parameters, "reason": "sign"})
+    assert "fs came out -0.6926" in text and "not physical" in text
