@@ -42,6 +42,37 @@ def random_robot(n: int, convention: str, prismatic_at: int | None, seed: int) -
     return Robot(f"random_{convention}_{seed}", np.array([0.3, -0.2, -9.81]), tuple(joints))
 
 
+def declare(robot_yaml: Path, path: Path, effects: list[dict[str, Any]], inertials: bool = True) -> Path:
+    """A copy of a robot file at ``path`` with ``effects`` declared too (and, with
+    ``inertials`` False, no link's modeled inertial values)."""
+    import yaml
+
+    doc = yaml.safe_load(robot_yaml.read_text())
+    doc["effects"] = [*(doc.get("effects") or []), *effects]
+    if not inertials:
+        for joint in doc["joints"]:
+            joint.pop("inertial", None)
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def identify_blind(case: Any, robot: Path, out: Path) -> tuple[float, dict[str, Any]]:
+    """`armid identify` on a blind case (tests/blindgen.py) with ``robot``: the held-out error
+    of its ``--predictions`` against the raw validation torque (every stamp predicted), and its JSON."""
+    import json
+
+    import blindgen
+
+    from armid.cli import main
+
+    pred, doc = out.with_suffix(".csv"), out.with_suffix(".json")
+    assert main(["identify", *map(str, case.ident_csvs), "--robot", str(robot), "--validate", str(case.valid_csv),
+                 "--predictions", str(pred), "--json", str(doc)]) == 0
+    err, covered = blindgen.relative_error(case.valid_csv, pred)
+    assert covered == 1.0
+    return err, json.loads(doc.read_text())
+
+
 def random_motion(n_samples: int, n_joints: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     rng = np.random.default_rng(seed)
     return rng.uniform(-2, 2, (n_samples, n_joints)), rng.normal(size=(n_samples, n_joints)), rng.normal(size=(n_samples, n_joints))

@@ -18,22 +18,12 @@ from pathlib import Path
 
 import blindgen
 import pytest
-import yaml
+from conftest import declare, identify_blind
 
-from armid.cli import main
 from armid.io.robot_file import load_robot
 from armid.schema.errors import RobotFileError
 
 SPECS = {s["seed"]: s for s in blindgen.blind_specs("effects", 5, effects=["torque_gain"])}
-
-
-def _identify(case: blindgen.Case, robot: Path, out: Path) -> tuple[float, dict]:
-    pred, doc = out.with_suffix(".csv"), out.with_suffix(".json")
-    assert main(["identify", *map(str, case.ident_csvs), "--robot", str(robot), "--validate", str(case.valid_csv),
-                 "--predictions", str(pred), "--json", str(doc)]) == 0
-    err, covered = blindgen.relative_error(case.valid_csv, pred)
-    assert covered == 1.0
-    return err, json.loads(doc.read_text())
 
 
 @pytest.mark.parametrize("seed", [3, 4])
@@ -41,12 +31,9 @@ def test_a_declared_drive_gain_is_fitted_to_the_noise_floor(tmp_path: Path, seed
     case = blindgen.make_case(out_dir=tmp_path / "case", **SPECS[seed])
     truth = json.loads((tmp_path / "case" / "truth.json").read_text())["effect"]["params"]["gain"][0]
     joint = case.effect_joint
-    doc = yaml.safe_load(case.robot_yaml.read_text())
-    doc["effects"] = [*(doc.get("effects") or []), {"effect": "torque_gain", "joint": joint}]
-    declared = tmp_path / "robot_gain.yaml"
-    declared.write_text(yaml.safe_dump(doc))
-    before, _ = _identify(case, case.robot_yaml, tmp_path / "without")
-    after, report = _identify(case, declared, tmp_path / "with")
+    declared = declare(case.robot_yaml, tmp_path / "robot_gain.yaml", [{"effect": "torque_gain", "joint": joint}])
+    before, _ = identify_blind(case, case.robot_yaml, tmp_path / "without")
+    after, report = identify_blind(case, declared, tmp_path / "with")
     gain = report["torque_scale"][joint - 1]
     print(f"\nseed {seed}: joint {joint} gain {gain:.5g} (truth {truth:.5g}); held-out {before:.4f} -> {after:.4f}, noise floor {case.noise_floor:.4f}")
     assert abs(gain / truth - 1.0) < 0.01
@@ -56,9 +43,6 @@ def test_a_declared_drive_gain_is_fitted_to_the_noise_floor(tmp_path: Path, seed
 
 def test_a_drive_gain_on_every_joint_is_refused_with_the_reason(tmp_path: Path) -> None:
     case = blindgen.make_case(out_dir=tmp_path / "case", **SPECS[3])
-    doc = yaml.safe_load(case.robot_yaml.read_text())
-    doc["effects"] = [*(doc.get("effects") or []), {"effect": "torque_gain", "joint": None}]
-    path = tmp_path / "all.yaml"
-    path.write_text(yaml.safe_dump(doc))
+    path = declare(case.robot_yaml, tmp_path / "all.yaml", [{"effect": "torque_gain", "joint": None}])
     with pytest.raises(RobotFileError, match="one overall scale of the torque is not identifiable"):
         load_robot(path)

@@ -20,7 +20,7 @@ from pathlib import Path
 import blindgen
 import numpy as np
 import pytest
-import yaml
+from conftest import ROBOTS, declare, identify_blind
 
 from armid.cli import main
 from armid.identify.effects import load_friction
@@ -32,33 +32,14 @@ from armid.schema.errors import RobotFileError
 SPECS = {s["seed"]: s for s in blindgen.blind_specs("effects", 5, seed0=100, effects=["load_coulomb"])}
 
 
-def _identify(case: blindgen.Case, robot: Path, out: Path) -> tuple[float, dict]:
-    pred, doc = out.with_suffix(".csv"), out.with_suffix(".json")
-    assert main(["identify", *map(str, case.ident_csvs), "--robot", str(robot), "--validate", str(case.valid_csv),
-                 "--predictions", str(pred), "--json", str(doc)]) == 0
-    err, covered = blindgen.relative_error(case.valid_csv, pred)
-    assert covered == 1.0
-    return err, json.loads(doc.read_text())
-
-
-def _declare(case: blindgen.Case, path: Path, effects: list[dict], inertials: bool = True) -> Path:
-    doc = yaml.safe_load(case.robot_yaml.read_text())
-    doc["effects"] = [*(doc.get("effects") or []), *effects]
-    if not inertials:
-        for j in doc["joints"]:
-            j.pop("inertial", None)
-    path.write_text(yaml.safe_dump(doc))
-    return path
-
-
 @pytest.mark.parametrize("seed", sorted(SPECS))
 def test_a_declared_load_dependent_friction_is_fitted_to_the_noise_floor(tmp_path: Path, seed: int) -> None:
     case = blindgen.make_case(out_dir=tmp_path / "case", **SPECS[seed])
     truth = json.loads((tmp_path / "case" / "truth.json").read_text())["effect"]["params"]
     joint = case.effect_joint
     coulomb = {"effect": "coulomb_friction", "joint": joint}
-    before, _ = _identify(case, _declare(case, tmp_path / "coulomb.yaml", [coulomb]), tmp_path / "without")
-    after, report = _identify(case, _declare(case, tmp_path / "load.yaml", [coulomb, {"effect": "load_dependent_coulomb", "joint": joint}]),
+    before, _ = identify_blind(case, declare(case.robot_yaml, tmp_path / "coulomb.yaml", [coulomb]), tmp_path / "without")
+    after, report = identify_blind(case, declare(case.robot_yaml, tmp_path / "load.yaml", [coulomb, {"effect": "load_dependent_coulomb", "joint": joint}]),
                               tmp_path / "with")
     got = {e["effect"]: e for e in report["effects"] if e["joint"] == joint}
     fc, fl = got["coulomb_friction"]["parameters"]["fc"], got["load_dependent_coulomb"]["parameters"]["fl"]
@@ -74,9 +55,9 @@ def test_the_payload_arm_model_carries_the_fitted_load(tmp_path: Path, inertials
     """The payload estimator's arm model (plain numpy, its load its own rigid-body torque)
     against the identification's regressor with the estimate's load, at random motion."""
     case = blindgen.make_case(out_dir=tmp_path / "case", **SPECS[104])
-    path = _declare(case, tmp_path / "load.yaml", [{"effect": "coulomb_friction", "joint": 2},
+    path = declare(case.robot_yaml, tmp_path / "load.yaml", [{"effect": "coulomb_friction", "joint": 2},
                                                    {"effect": "load_dependent_coulomb", "joint": 2}], inertials)
-    _, doc = _identify(case, path, tmp_path / "fit")
+    _, doc = identify_blind(case, path, tmp_path / "fit")
     robot = load_robot(path)
     arm = arm_model_from_identification(robot, doc)
     coef = np.zeros(robot.n_parameters + sum(len(e.parameter_names) for e in arm.effects))
@@ -92,16 +73,16 @@ def test_the_payload_arm_model_carries_the_fitted_load(tmp_path: Path, inertials
 
 def test_a_declared_smoothing_is_kept(tmp_path: Path) -> None:
     case = blindgen.make_case(out_dir=tmp_path / "case", **SPECS[101])
-    path = _declare(case, tmp_path / "load.yaml", [{"effect": "coulomb_friction", "joint": 2},
+    path = declare(case.robot_yaml, tmp_path / "load.yaml", [{"effect": "coulomb_friction", "joint": 2},
                                                    {"effect": "load_dependent_coulomb", "joint": 2, "velocity": 0.05}])
-    _, doc = _identify(case, path, tmp_path / "fit")
+    _, doc = identify_blind(case, path, tmp_path / "fit")
     (load,) = [e for e in doc["effects"] if e["effect"] == "load_dependent_coulomb"]
     assert load["setting"] == {"smoothing": 0.05}
 
 
 def test_a_bad_smoothing_is_refused_with_its_field(tmp_path: Path) -> None:
     case = blindgen.make_case(out_dir=tmp_path / "case", **SPECS[101])
-    path = _declare(case, tmp_path / "bad.yaml", [{"effect": "load_dependent_coulomb", "joint": 2, "velocity": -1}])
+    path = declare(case.robot_yaml, tmp_path / "bad.yaml", [{"effect": "load_dependent_coulomb", "joint": 2, "velocity": -1}])
     with pytest.raises(RobotFileError, match=r"effects\[\d\]\.velocity: must be a velocity >= 0"):
         load_robot(path)
 
@@ -109,7 +90,7 @@ def test_a_bad_smoothing_is_refused_with_its_field(tmp_path: Path) -> None:
 def test_the_diagnosis_names_it_without_modeled_inertials(tmp_path: Path) -> None:
     """Its load then comes from the fit (the robot file has no rigid body to offer)."""
     case = blindgen.make_case(out_dir=tmp_path / "case", **SPECS[104])
-    path = _declare(case, tmp_path / "bare.yaml", [], inertials=False)
+    path = declare(case.robot_yaml, tmp_path / "bare.yaml", [], inertials=False)
     out = tmp_path / "d.json"
     assert main(["diagnose", *map(str, case.ident_csvs), "--robot", str(path), "--validate", str(case.valid_csv), "--json", str(out)]) == 0
     doc = json.loads(out.read_text())
@@ -122,7 +103,7 @@ def test_the_load_is_the_rigid_body_torque_of_the_given_parameters() -> None:
 
     from armid.identify.pinocchio_bridge import to_pinocchio
 
-    robot = load_robot(Path(__file__).resolve().parents[1] / "config" / "robots" / "ur5.yaml")
+    robot = load_robot(ROBOTS / "ur5.yaml")
     model = to_pinocchio(robot)
     data = model.createData()
     rng = np.random.default_rng(0)
