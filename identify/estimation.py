@@ -83,6 +83,33 @@ def _r_factor(a: Array) -> Array:
     return r if m >= p else np.vstack([r, np.zeros((p - m, p))])
 
 
+class ColumnTrials:
+    """One joint's ``[W | y]`` (equations x columns) tried with a few of its columns replaced,
+    many times over (a nonlinear setting's search): the other columns are factored once,
+    ``F = Q R``, and each try only projects its own columns on ``Q``. The rows returned have
+    the same Gram matrix as the replaced system (``F^T F = R^T R``, ``F^T Z = R^T Q^T Z``,
+    ``Z^T Z = (Q^T Z)^T Q^T Z + E^T E`` with ``E = Z - Q Q^T Z``), so every least-squares figure
+    of a stack with them is exact; a try costs a projection instead of a QR of the whole."""
+
+    def __init__(self, rows: Array, changed: list[int]) -> None:
+        self.n_columns = rows.shape[1]
+        self.changed = list(changed) + [self.n_columns - 1]  # the measured torque goes with them
+        self.fixed = [c for c in range(self.n_columns) if c not in self.changed]
+        self.q, self.r = np.linalg.qr(rows[:, self.fixed])
+        self.y = rows[:, -1]
+
+    def rows(self, columns: Array) -> Array:
+        """Rows equivalent to the system with ``changed`` set to ``columns`` (equations x k)."""
+        z = np.column_stack([columns, self.y])
+        along = self.q.T @ z
+        f, k = self.r.shape[0], z.shape[1]
+        out = np.zeros((f + k, self.n_columns))
+        out[np.ix_(range(f), self.fixed)] = self.r
+        out[np.ix_(range(f), self.changed)] = along
+        out[np.ix_(range(f, f + k), self.changed)] = _r_factor(z - self.q @ along)[:k]
+        return out
+
+
 def joint_factors(w: Array, y: Array, joint_of_row: Array, n_joints: int) -> JointFactors:
     """Factor each joint's rows of ``[w | y]`` (see :class:`JointFactors`)."""
     columns = []

@@ -9,6 +9,7 @@ metrics).
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -18,7 +19,16 @@ from scipy import optimize
 from .dynamics import regressor
 from .effects import LOAD_DEPENDENT, PROFILED, SETTINGS, LinearEffect, LoadFriction, effect_columns, linear_effect, load_friction
 from .errors import IdentificationError, PoorExcitationWarning
-from .estimation import JointFactors, LeastSquares, batch_means_covariance, correlation_length, factor_columns, solve_factors, with_prior
+from .estimation import (
+    ColumnTrials,
+    JointFactors,
+    LeastSquares,
+    batch_means_covariance,
+    correlation_length,
+    factor_columns,
+    solve_factors,
+    with_prior,
+)
 from .identifiability import UNIQUE, BaseParameters, Excitation, base_parameters, excitation, preferred_order
 from .metrics import summary
 from .preprocess import Prepared, Segment
@@ -58,7 +68,7 @@ class IdentifyOptions:
 
 PRIORS = ("modeled", "none")
 
-SEARCH_EQUATIONS = 20_000
+SEARCH_EQUATIONS = 10_000
 """Equations per joint the grid search of a declared effect's setting scores its tries on."""
 
 
@@ -405,13 +415,13 @@ def _equation_column(segments: list[Segment], effect: LinearEffect, motion_delay
     for k, seg in enumerate(segments):
         filt = seg.parallel
         q, qd, qdd = (_advanced(x, seg.t, motion_delay) for x in (seg.q, seg.qd, seg.qdd))
-        idx = filt.kept(seg.n_samples) if filt.cutoff_hz is None else slice(None)
+        # a column is one joint's function of the samples: taken at every sample, then the
+        # kept ones (not a copy of the whole motion per try of a setting's search)
         if isinstance(effect, LoadFriction):
-            load = effect.load(q, qd, qdd) if loads is None else loads[k]
-            col = effect.columns(q[idx], qd[idx], qdd[idx], load=load[idx])[:, 0]
+            col = effect.columns(q, qd, qdd, load=effect.load(q, qd, qdd) if loads is None else loads[k])[:, 0]
         else:
-            col = effect.columns(q[idx], qd[idx], qdd[idx])[:, 0]
-        out.append(col if filt.cutoff_hz is None else filt.apply(col))
+            col = effect.columns(q, qd, qdd)[:, 0]
+        out.append(col[filt.kept(seg.n_samples)] if filt.cutoff_hz is None else filt.apply(col))
     return np.concatenate(out)
 
 
@@ -422,28 +432,33 @@ def _segment_loads(segments: list[Segment], effect: LoadFriction, motion_delay: 
 
 def _search_settings(system: Array, names: list[str], effects: list[LinearEffect], searched: set[tuple[str, int]],
                      segments: list[Segment], columns: Array, motion_delay: Array | None = None) -> tuple[list[LinearEffect], list[str]]:
-    """Each searched effect's fixed parameter from its grid (``SETTINGS``), joint by joint:
-    the value whose columns leave the least residual of the whole least-squares fit (one
-    sweep of coordinate descent; only the joint's own triangle is refactored per try). The
-    scores use every ``stride``-th equation, at most :data:`SEARCH_EQUATIONS` of them: a
-    grid choice needs no more, and refactoring a long log's triangles per try took most of
-    the identification's time."""
+    """Each searched effect's fixed parameter, joint by joint: the value whose columns leave
+    the least residual of the whole least-squares fit (:data:`SWEEPS` of coordinate descent), first
+    on its grid (``SETTINGS``), then refined between the best value's neighbours
+    (:func:`_refine`): real friction's smoothing is whatever it is, and a grid step of 3x left
+    a clean log's held-out error at 1.5x its noise floor. The scores use every ``stride``-th
+    equation, at most :data:`SEARCH_EQUATIONS` of them, and a try projects only the columns it
+    changes (:class:`ColumnTrials`): refactoring a long log's triangles per try took most of the
+    identification's time."""
     nj = system.shape[0]
     keep = np.append(columns, system.shape[1] - 1)
+    where = {c: i for i, c in enumerate(columns.tolist())}
     stride = max(1, -(-system.shape[2] // SEARCH_EQUATIONS))
-    r = [_triangle(system[j][keep][:, ::stride]) for j in range(nj)]
-    notes = []
+    r = [_triangle(system[j][:, ::stride][keep]) for j in range(nj)]
 
     def rss(rs: list[Array]) -> float:
         return float(JointFactors(rs, np.ones(nj)).combined()[-1, -1] ** 2)
 
     effects = list(effects)
     loads: list[Array] | None = None
-    for k, e in enumerate(effects):
+    notes: dict[int, str] = {}
+    factored: dict[tuple[int, tuple[int, ...]], ColumnTrials] = {}
+    for k in [k for _ in range(SWEEPS) for k in range(len(effects))]:
+        e = effects[k]
         if (e.effect, e.joint) not in searched or len(e.parameter_names) != 1:
             continue
         col = names.index(e.labels()[0])
-        if col not in set(columns.tolist()):
+        if col not in where:
             continue
         j = e.joint
         key, grid = SETTINGS[e.effect]
@@ -451,29 +466,83 @@ def _search_settings(system: Array, names: list[str], effects: list[LinearEffect
         follow = [(m, names.index(f.labels()[0])) for m, f in enumerate(effects)
                   if e.effect == "coulomb_friction" and f.joint == j
                   and (f.effect == "stribeck_friction" or (isinstance(f, LoadFriction) and f.follows_coulomb))]
+        tried_along = [(m, c) for m, c in follow if c in where]  # the others are not in the fit
         for m, _ in follow:
             following = effects[m]
             if isinstance(following, LoadFriction) and loads is None:
                 loads = _segment_loads(segments, following, motion_delay)  # every load effect shares one load
-        best, best_rss, best_r = e, np.inf, r[j]
-        for value in grid:
-            trial = e.with_setting(**{key: value})
-            system[j][col] = _equation_column(segments, trial, motion_delay)
-            for m, c in follow:
-                system[j][c] = _equation_column(segments, effects[m].with_setting(smoothing=value), motion_delay, loads)
-            rj = _triangle(system[j][keep][:, ::stride])
-            score = rss(r[:j] + [rj] + r[j + 1 :])
-            if score < best_rss * (1 - 1e-9):
-                best, best_rss, best_r = trial, score, rj
+        changed = (where[col], *(where[c] for _, c in tried_along))
+        if (j, changed) not in factored:  # the joint's other columns, factored once for every sweep
+            factored[j, changed] = ColumnTrials(system[j][:, ::stride][keep].T, list(changed))
+        trials = factored[j, changed]
+        tried: dict[float, tuple[float, Array]] = {}
+
+        def score(value: float, e: LinearEffect = e, along: list[tuple[int, int]] = tried_along, trials: ColumnTrials = trials,
+                  tried: dict[float, tuple[float, Array]] = tried, j: int = j, key: str = key,
+                  loads: list[Array] | None = loads) -> float:
+            if value not in tried:
+                cols = [_equation_column(segments, e.with_setting(**{key: value}), motion_delay)]
+                cols += [_equation_column(segments, effects[m].with_setting(smoothing=value), motion_delay, loads) for m, _ in along]
+                rows = trials.rows(np.column_stack([c[::stride] for c in cols]))
+                tried[value] = (rss(r[:j] + [rows] + r[j + 1 :]), rows)
+            return tried[value][0]
+
+        chosen = _refine(grid, score)
+        best = e.with_setting(**{key: chosen})
         system[j][col] = _equation_column(segments, best, motion_delay)
-        chosen = dict(best.setting)[key]
         for m, c in follow:
             effects[m] = effects[m].with_setting(smoothing=chosen)
             system[j][c] = _equation_column(segments, effects[m], motion_delay, loads)
-        r[j] = best_r
+        r[j] = tried[chosen][1]
         effects[k] = best
-        notes.append(f"{e.effect} on joint {j + 1}: {key} {dict(best.setting)[key]:g} (grid {', '.join(f'{v:g}' for v in grid)})")
-    return effects, notes
+        for other in [f for f in factored if f[0] == j and f[1] != changed]:
+            del factored[other]  # its fixed columns include the ones just rewritten
+        notes[k] = f"{e.effect} on joint {j + 1}: {key} {chosen:.3g} (grid {', '.join(f'{v:g}' for v in grid)}, refined)"
+    return effects, list(notes.values())
+
+
+SWEEPS = 2
+"""Sweeps of the settings' coordinate descent: the first chooses each joint's setting while
+the joints after it still have their starting values; a second took a clean 1 kHz log of the
+second independent generator from 1.09x its noise floor to 1.00x (joint 2's smoothing 0.031
+rad/s -> 0.020, the truth)."""
+
+REFINE_HALVINGS = 4
+"""Halvings of the log step when a setting is refined beyond its grid: 2 tries each, the
+result within about 4 % of the best value (a 3x grid step / 2^5)."""
+
+
+def _refine(grid: tuple[float, ...], score: Callable[[float], float]) -> float:
+    """The grid value of least ``score``, then a pattern search in log(value) around it: tries
+    at ``best * exp(+-step)``, the step starting at half the log distance to the nearer
+    neighbour and halving :data:`REFINE_HALVINGS` times. A best of 0 (a sharp sign) stays 0;
+    below the smallest positive value the missing neighbour mirrors the present one (towards
+    a sharp sign), and nothing is tried above the largest: on the KUKA LWR4+ the data chose
+    0.32 rad/s for two joints' "Coulomb" smoothing, a curved viscous law fitted to one
+    trajectory's speeds that predicted another's worse (10.6 % against 9.9 %)."""
+    best, best_score = grid[0], score(grid[0])
+    for value in grid[1:]:
+        s = score(value)
+        if s < best_score * (1 - 1e-9):
+            best, best_score = value, s
+    positive = sorted(v for v in grid if v > 0)
+    if best <= 0 or len(positive) < 2:
+        return best
+    i = positive.index(best)
+    below = positive[i - 1] if i > 0 else best**2 / positive[i + 1]
+    above = positive[i + 1] if i + 1 < len(positive) else best
+    step = min(np.log(best / below), np.log(above / best) if above > best else np.inf) / 2
+    for _ in range(REFINE_HALVINGS + 1):
+        centre = best
+        for value in (centre * np.exp(-step), centre * np.exp(step)):
+            value = float(value)
+            if value > positive[-1]:
+                continue
+            s = score(value)
+            if s < best_score * (1 - 1e-9):
+                best, best_score = value, s
+        step /= 2
+    return best
 
 
 def _triangle(columns: Array) -> Array:

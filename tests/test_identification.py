@@ -140,3 +140,44 @@ def test_kuka_lwr4_real_data_identifies_and_validates(tmp_path):  # type: ignore
     # the identified model must beat the CAD model with friction reported for this data
     published_rms = [0.36, 1.55, 0.49, 0.98, 0.63, 0.49, 0.27]
     assert np.all(np.array(doc["validation"]["rms"]) < published_rms)
+
+
+def test_column_trials_give_the_least_squares_of_the_replaced_system() -> None:
+    """A setting's try replaces a few columns of a joint's [W | y]; the rows ColumnTrials
+    returns must give the same least-squares fit and residual as the replaced system itself,
+    alone and stacked with another joint's rows sharing its parameters."""
+    from armid.identify.estimation import ColumnTrials, JointFactors, solve_factors
+
+    rng = np.random.default_rng(3)
+    rows = rng.normal(size=(400, 9))
+    other = rng.normal(size=(300, 9))
+    trials = ColumnTrials(rows, [2, 5])
+    for _ in range(3):
+        new = rng.normal(size=(400, 2))
+        replaced = rows.copy()
+        replaced[:, [2, 5]] = new
+        direct = solve_factors(JointFactors([np.linalg.qr(replaced, mode="r"), np.linalg.qr(other, mode="r")], np.array([400.0, 300.0])), "ols")
+        tried = solve_factors(JointFactors([trials.rows(new), np.linalg.qr(other, mode="r")], np.array([400.0, 300.0])), "ols")
+        np.testing.assert_allclose(tried.beta, direct.beta, rtol=1e-9, atol=1e-12)
+        w, y = np.vstack([replaced, other])[:, :-1], np.vstack([replaced, other])[:, -1]
+        np.testing.assert_allclose(tried.beta, np.linalg.lstsq(w, y, rcond=None)[0], rtol=1e-9, atol=1e-12)
+
+
+def test_refined_setting_lands_between_grid_values_and_stays_inside_the_grid() -> None:
+    """The search refines the best grid value towards the score's minimum (within about 4 %),
+    keeps a sharp sign (0) when that is best, and never goes above the grid's largest value."""
+    from armid.identify.identification import _refine
+
+    grid = (0.0, 0.003, 0.01, 0.03, 0.1)
+    for true in (0.0021, 0.02, 0.045, 0.07):
+        tried: list[float] = []
+
+        def score(v: float, true: float = true, tried: list[float] = tried) -> float:
+            tried.append(v)
+            return 1.0 + (np.log(max(v, 1e-6) / true)) ** 2
+
+        chosen = _refine(grid, score)
+        assert abs(np.log(chosen / true)) < np.log(1.05), (true, chosen)
+        assert max(tried) <= 0.1
+    assert _refine(grid, lambda v: v) == 0.0
+    assert _refine(grid, lambda v: -v) == 0.1

@@ -7,7 +7,10 @@ currents with a few % torque-constant error, encoders, jittery stamps; the robot
 Coulomb, viscous and offset only.
 
 python gen.py --arm ur5|kuka --sensor torque|current --qd yes|no --valid fourier|ptp
-              --nident 1|2 --seed N --out DIR
+              --nident 1|2 --seed N [--effects all|declared] --out DIR
+--effects declared keeps only what the robot file declares (no load-dependent Coulomb, rotor
+inertia, Stribeck or torque-constant error; the same random draws otherwise): the clean case,
+where the held-out error can reach the noise floor.
 Writes in DIR: robot.yaml (+ URDF copy, nominal values), identN.csv / identN_clean.csv,
 valid.csv / valid_clean.csv, truth.json.
 """
@@ -168,6 +171,7 @@ def main():
     ap.add_argument("--valid", required=True, choices=["fourier", "ptp"])
     ap.add_argument("--nident", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--effects", choices=["all", "declared"], default="all")
     ap.add_argument("--out", required=True)
     A = ap.parse_args()
     rng = np.random.default_rng(A.seed)
@@ -204,6 +208,11 @@ def main():
     kt_file = kt_true.copy()
     wrong = rng.choice(n, size=rng.integers(1, 3), replace=False)
     kt_file[wrong] *= 1 + rng.choice([-1, 1], len(wrong)) * rng.uniform(0.03, 0.06, len(wrong))
+    if A.effects == "declared":
+        kt_true = np.round(kt_true, 3)
+        kt_file, wrong, strib = kt_true.copy(), np.array([], dtype=int), strib[:0]
+        for k in ("fl", "Ia", "fs"):
+            fr[k][:] = 0.0
     kt_file = np.round(kt_file, 3)
     jitter = rng.uniform(0.05, 0.10)
     enc = 2 * np.pi / 2**17
