@@ -433,8 +433,8 @@ def _segment_loads(segments: list[Segment], effect: LoadFriction, motion_delay: 
 def _search_settings(system: Array, names: list[str], effects: list[LinearEffect], searched: set[tuple[str, int]],
                      segments: list[Segment], columns: Array, motion_delay: Array | None = None) -> tuple[list[LinearEffect], list[str]]:
     """Each searched effect's fixed parameter, joint by joint: the value whose columns leave
-    the least residual of the whole least-squares fit (:data:`SWEEPS` of coordinate descent), first
-    on its grid (``SETTINGS``), then refined between the best value's neighbours
+    the least residual of the whole least-squares fit (:data:`SWEEPS` of coordinate descent),
+    first on its grid (``SETTINGS``), then refined between the best value's neighbours
     (:func:`_refine`): real friction's smoothing is whatever it is, and a grid step of 3x left
     a clean log's held-out error at 1.5x its noise floor. The scores use every ``stride``-th
     equation, at most :data:`SEARCH_EQUATIONS` of them, and a try projects only the columns it
@@ -453,7 +453,7 @@ def _search_settings(system: Array, names: list[str], effects: list[LinearEffect
     loads: list[Array] | None = None
     notes: dict[int, str] = {}
     factored: dict[tuple[int, tuple[int, ...]], ColumnTrials] = {}
-    for k in [k for _ in range(SWEEPS) for k in range(len(effects))]:
+    for sweep, k in [(sweep, k) for sweep in range(SWEEPS) for k in range(len(effects))]:
         e = effects[k]
         if (e.effect, e.joint) not in searched or len(e.parameter_names) != 1:
             continue
@@ -487,7 +487,8 @@ def _search_settings(system: Array, names: list[str], effects: list[LinearEffect
                 tried[value] = (rss(r[:j] + [rows] + r[j + 1 :]), rows)
             return tried[value][0]
 
-        chosen = _refine(grid, score)
+        # the grid first for every joint, then each refined with the others at their choices
+        chosen = _grid_best(grid, score) if sweep < SWEEPS - 1 else _refine(grid, score, around=dict(e.setting)[key])
         best = e.with_setting(**{key: chosen})
         system[j][col] = _equation_column(segments, best, motion_delay)
         for m, c in follow:
@@ -502,36 +503,44 @@ def _search_settings(system: Array, names: list[str], effects: list[LinearEffect
 
 
 SWEEPS = 2
-"""Sweeps of the settings' coordinate descent: the first chooses each joint's setting while
-the joints after it still have their starting values; a second took a clean 1 kHz log of the
-second independent generator from 1.09x its noise floor to 1.00x (joint 2's smoothing 0.031
-rad/s -> 0.020, the truth)."""
+"""Sweeps of the settings' coordinate descent: the first takes each joint's best grid value,
+the last refines each (:func:`_refine`) with every other joint at its choice. Refined in one
+sweep, a joint's setting was chosen while the joints after it still had their starting
+values: a clean 1 kHz log of the second independent generator stayed at 1.09x its noise
+floor (joint 2's smoothing 0.031 rad/s for the true 0.020)."""
 
 REFINE_HALVINGS = 4
 """Halvings of the log step when a setting is refined beyond its grid: 2 tries each, the
 result within about 4 % of the best value (a 3x grid step / 2^5)."""
 
 
-def _refine(grid: tuple[float, ...], score: Callable[[float], float]) -> float:
-    """The grid value of least ``score``, then a pattern search in log(value) around it: tries
-    at ``best * exp(+-step)``, the step starting at half the log distance to the nearer
-    neighbour and halving :data:`REFINE_HALVINGS` times. A best of 0 (a sharp sign) stays 0;
-    below the smallest positive value the missing neighbour mirrors the present one (towards
-    a sharp sign), and nothing is tried above the largest: on the KUKA LWR4+ the data chose
-    0.32 rad/s for two joints' "Coulomb" smoothing, a curved viscous law fitted to one
-    trajectory's speeds that predicted another's worse (10.6 % against 9.9 %)."""
+def _grid_best(grid: tuple[float, ...], score: Callable[[float], float]) -> float:
+    """The grid value of least ``score`` (the first of equals)."""
     best, best_score = grid[0], score(grid[0])
     for value in grid[1:]:
         s = score(value)
         if s < best_score * (1 - 1e-9):
             best, best_score = value, s
+    return best
+
+
+def _refine(grid: tuple[float, ...], score: Callable[[float], float], around: float | None = None) -> float:
+    """A pattern search in log(value) around ``around`` (the grid's best if not given): tries
+    at ``best * exp(+-step)``, the step starting at half the log distance to the nearer grid
+    neighbour and halving :data:`REFINE_HALVINGS` times. A best of 0 (a sharp sign) stays 0;
+    below the smallest positive value the missing neighbour mirrors the present one (towards
+    a sharp sign), and nothing is tried above the largest: on the KUKA LWR4+ the data chose
+    0.32 rad/s for two joints' "Coulomb" smoothing, a curved viscous law fitted to one
+    trajectory's speeds that predicted another's worse (10.6 % against 9.9 %)."""
+    best = _grid_best(grid, score) if around is None else around
+    best_score = score(best)
     positive = sorted(v for v in grid if v > 0)
     if best <= 0 or len(positive) < 2:
         return best
-    i = positive.index(best)
-    below = positive[i - 1] if i > 0 else best**2 / positive[i + 1]
-    above = positive[i + 1] if i + 1 < len(positive) else best
-    step = min(np.log(best / below), np.log(above / best) if above > best else np.inf) / 2
+    above = min((v for v in positive if v > best), default=None)
+    below = max((v for v in positive if v < best), default=None)
+    below = best**2 / (above if above is not None else positive[-1]) if below is None else below
+    step = min(np.log(best / below), np.log(above / best) if above is not None else np.inf) / 2
     for _ in range(REFINE_HALVINGS + 1):
         centre = best
         for value in (centre * np.exp(-step), centre * np.exp(step)):
