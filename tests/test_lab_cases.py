@@ -7,7 +7,8 @@ held-out error of ``armid identify --predictions`` must come within 10 % of the 
 (issue 15). Scored by the generator's own runner (``examples/lab_cases/run.py``), no armid code.
 
 These cases found the Coulomb smoothing grid too coarse (0.01 or 0.03 for the true 0.02):
-1.22x, 1.53x and 1.13x the floor before the search refined it between grid values; and the
+d2, d6 and d3 were at 1.22x, 1.53x and 1.31x the floor before the search refined it between
+grid values; and the
 diagnosis naming broad "Stribeck" terms on joints that never outran them.
 """
 
@@ -26,11 +27,10 @@ import yaml
 from armid.cli import main
 
 LAB = Path(__file__).resolve().parents[1] / "examples" / "lab_cases"
-CASES = {  # run.py's d2, d3, d6 and d8: currents at 100 Hz without velocity; torque at 1 kHz
+CASES = {  # run.py's d2, d3 and d6: currents at 100 Hz without velocity; torque at 1 kHz
     "d2": "--arm ur5 --sensor current --qd no --valid ptp --nident 2 --seed 12",
     "d3": "--arm kuka --sensor torque --qd no --valid ptp --nident 1 --seed 13",
     "d6": "--arm kuka --sensor current --qd no --valid fourier --nident 1 --seed 16",
-    "d8": "--arm kuka --sensor torque --qd yes --valid ptp --nident 2 --seed 18",
 }
 
 
@@ -63,7 +63,7 @@ def _held_out(command: str, name: str, tmp_path: Path, *extra: str) -> tuple[flo
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["d2", "d6", "d8"])
+@pytest.mark.parametrize("name", ["d2", "d6"])  # 1 kHz: d3 below, through the diagnosis
 def test_declared_lab_case_is_predicted_at_the_noise_floor(name: str, tmp_path: Path) -> None:
     error, floor = _held_out("identify", name, tmp_path)
     assert error <= 1.10 * floor, f"{name}: held-out {100 * error:.3f} % against a floor of {100 * floor:.3f} %"
