@@ -453,7 +453,7 @@ def _search_settings(system: Array, names: list[str], effects: list[LinearEffect
     loads: list[Array] | None = None
     notes: dict[int, str] = {}
     factored: dict[tuple[int, tuple[int, ...]], ColumnTrials] = {}
-    columns_of: dict[tuple[int, float], Array] = {}
+    columns_of: dict[tuple[Any, ...], Array] = {}
     for sweep, k in [(sweep, k) for sweep in range(SWEEPS) for k in range(len(effects))]:
         e = effects[k]
         if (e.effect, e.joint) not in searched or len(e.parameter_names) != 1:
@@ -482,11 +482,14 @@ def _search_settings(system: Array, names: list[str], effects: list[LinearEffect
                   tried: dict[float, tuple[float, Array]] = tried, j: int = j, k: int = k, key: str = key,
                   loads: list[Array] | None = loads) -> float:
             if value not in tried:
-                if (k, value) not in columns_of:  # a value's columns are the same in every sweep
+                # a value's columns are the same in every sweep, unless a term following this
+                # Coulomb's smoothing (a Stribeck term with its own searched velocity) changed
+                cached = (k, value, tuple(effects[m].setting for m, _ in along))
+                if cached not in columns_of:
                     cols = [_equation_column(segments, e.with_setting(**{key: value}), motion_delay)]
                     cols += [_equation_column(segments, effects[m].with_setting(smoothing=value), motion_delay, loads) for m, _ in along]
-                    columns_of[k, value] = np.column_stack([c[::stride] for c in cols])
-                rows = trials.rows(columns_of[k, value])
+                    columns_of[cached] = np.column_stack([c[::stride] for c in cols])
+                rows = trials.rows(columns_of[cached])
                 tried[value] = (rss(r[:j] + [rows] + r[j + 1 :]), rows)
             return tried[value][0]
 

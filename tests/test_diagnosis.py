@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 import zlib
 from pathlib import Path
 
@@ -99,7 +100,12 @@ def test_rotor_inertia_of_the_vertical_first_joint_is_absorbed_not_found() -> No
     assert absorbed and "Iyy1" in absorbed[0]["into"]
 
 
-@pytest.mark.parametrize("seed", range(10))
+# all ten seeds with ARMID_BLIND_FULL=1 (as the blind sweep); CI runs four, to keep its run
+# under 15 minutes on two cores (each diagnosis also searches the Coulomb smoothing twice)
+CLEAN_SEEDS = range(10) if os.environ.get("ARMID_BLIND_FULL") == "1" else range(4)
+
+
+@pytest.mark.parametrize("seed", CLEAN_SEEDS)
 def test_nothing_is_found_without_an_undeclared_effect(seed: int) -> None:
     d = _run(seed=seed)
     assert d.found == [], [f.sentence() for f in d.found]
