@@ -2,15 +2,18 @@
 
 :class:`BusLog` writes every frame on the bus, the master's own SYNC, commands and
 heartbeats included, in python-can's log format (``can.log``: candump's text, readable by
-``can.LogReader``, ``python -m can.player`` and the can-utils). It listens on a bus
-instance of its own: the driver's instance does not receive what the driver sends.
+``can.LogReader``, ``python -m can.player`` and the can-utils).
 
 :func:`replay_log` plays such a log into a virtual bus, in order and with its time stamps,
 to a :class:`~drivers.canopen_driver.CanopenDriver` that only listens, and returns the
-samples it decodes: the same records as the run's, cycle by cycle. A log starts when the
-driver is up, so the run's first records (queued while it started) can precede it, and its
-first few cycles can be partial: frames that answer a SYNC from before the log are taken
-for the next one until the deadline logic catches up.
+samples it decodes: the same records as the run's, cycle by cycle. That holds because the
+frames the records come from (SYNCs and TPDOs) are written by the driver itself, under its
+decoding lock, in the order it used them and with each SYNC stamped at its cycle's time: a
+frame that arrives while the next SYNC goes out is in the log on the side of that SYNC the
+driver saw it on. A log starts when the driver is up, so the run's first records (queued
+while it started) can precede it, and its first few cycles can be partial: frames that
+answer a SYNC from before the log are taken for the next one until the deadline logic
+catches up.
 """
 
 from __future__ import annotations
@@ -27,30 +30,35 @@ from armid.drivers.interface import Sample
 
 
 class BusLog:
-    """Log every frame on a driver's bus to ``path`` until :meth:`stop`: what its bus
-    receives (through its notifier) and what it sends (a tap on its ``send``, which its
-    SYNC thread, commands and periodic heartbeat all go through). A second bus instance
-    would see both too, but receives and unpacks every frame again: on this machine that
-    cost more CPU than the rest of the logging."""
+    """Log every frame on a driver's bus to ``path`` until :meth:`stop`. SYNCs and TPDOs
+    come from the driver (``decoded_frames``), in its decoding order; everything else
+    from what its bus receives (through its notifier) and what it sends (a tap on its
+    ``send``, which its commands and periodic heartbeat go through). A second bus instance
+    would see every frame too, but receives and unpacks each again (on this machine that
+    cost more CPU than the rest of the logging), and could not know which side of a SYNC
+    the driver saw a frame on."""
 
     def __init__(self, driver: Any, path: str | Path) -> None:
         self.logger = can.Logger(str(path))
         self.driver = driver
         self.bus = driver.bus
         self._send = self.bus.send
-        self._lock = threading.Lock()  # the SYNC thread (sends) and the notifier (receptions) both write
+        self._lock = threading.Lock()  # the SYNC thread, senders and the notifier all write
         self._closed = False
+        self._decoded = driver.decoded_cob_ids
         send = self._send
 
         def tapped(msg: can.Message, timeout: float | None = None) -> None:
-            # logged before it goes out: the answers it provokes must follow it in the log
-            self._write(can.Message(timestamp=time.time(), arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
-                                    is_remote_frame=msg.is_remote_frame, dlc=msg.dlc, data=msg.data, is_rx=False, channel=msg.channel))
+            if msg.arbitration_id not in self._decoded:
+                # logged before it goes out: the answers it provokes must follow it in the log
+                self._write(can.Message(timestamp=time.time(), arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
+                                        is_remote_frame=msg.is_remote_frame, dlc=msg.dlc, data=msg.data, is_rx=False, channel=msg.channel))
             send(msg, timeout)
 
         self.bus.send = tapped  # instance attribute: every sender of this bus goes through it
-        self._listener = _Received(self._write)
+        self._listener = _Received(self._write, self._decoded)
         driver.network.notifier.add_listener(self._listener)
+        driver.decoded_frames = self._write
 
     def _write(self, msg: can.Message) -> None:
         with self._lock:
@@ -58,6 +66,7 @@ class BusLog:
                 self.logger.on_message_received(msg)
 
     def stop(self) -> None:
+        self.driver.decoded_frames = None
         self.bus.send = self._send
         self.driver.network.notifier.remove_listener(self._listener)
         with self._lock:
@@ -66,16 +75,18 @@ class BusLog:
 
 
 class _Received(can.Listener):
-    def __init__(self, write: Any) -> None:
+    def __init__(self, write: Any, skip: set[int]) -> None:
         self.write = write
+        self.skip = skip  # the driver writes these itself
 
     def on_message_received(self, msg: can.Message) -> None:
-        self.write(msg)
+        if msg.is_error_frame or msg.arbitration_id not in self.skip:
+            self.write(msg)
 
 
 def replay_log(path: str | Path, rig: Any, timeout_s: float = 30.0) -> list[Sample]:
     """Decode ``path`` as the rig's driver would have: one sample per SYNC in the log."""
-    from armid.drivers.canopen_driver import CanopenDriver
+    from armid.drivers.canopen_driver import SYNC_COB_ID, CanopenDriver
 
     channel = f"armid-replay-{uuid.uuid4().hex[:8]}"
     listen_bus = can.Bus(interface="virtual", channel=channel)
@@ -92,7 +103,7 @@ def replay_log(path: str | Path, rig: Any, timeout_s: float = 30.0) -> list[Samp
             if msg.is_error_frame:
                 continue
             player.send(msg)
-            syncs += msg.arbitration_id == 0x80
+            syncs += msg.arbitration_id == SYNC_COB_ID
         driver.flush(timeout_s)
         deadline = time.monotonic() + timeout_s
         while len(samples) < syncs and time.monotonic() < deadline:

@@ -19,6 +19,7 @@ from __future__ import annotations
 import struct
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import can
@@ -36,6 +37,7 @@ from .rig import Rig, current_of, open_bus, permille_of
 EDS = str(config_file("drives/armid_cia402.eds"))  # package data (armid.config)
 
 SYNC_COUNTER_OVERFLOW = 240
+SYNC_COB_ID = 0x80
 CONTROLWORD_REFRESH = 25
 PACE_WAIT_S = 0.05
 STALL_S = 0.05  # a watchdog call this late means this process (not the bus) was stalled
@@ -150,6 +152,15 @@ class CanopenDriver(Driver):
         self._clock = CycleClock(rig.period_s)
         self.drive_configuration: list[dict[str, int]] = []
         self._node_ids = {d.node_id: d.joint for d in rig.drives}
+        # called under the decoding lock with each SYNC as its cycle opens (stamped with the
+        # cycle's time) and each TPDO before it is decoded: frames written from it, in this
+        # order, replay into the same records (daq.canlog)
+        self.decoded_frames: Callable[[can.Message], None] | None = None
+
+    @property
+    def decoded_cob_ids(self) -> set[int]:
+        """The frames the records come from: SYNC and the mapped TPDOs (``decoded_frames``)."""
+        return {SYNC_COB_ID, *self._tpdo}
 
     @property
     def bus(self) -> can.BusABC:
@@ -210,8 +221,8 @@ class CanopenDriver(Driver):
         if r.bus.interface == "socketcan":
             # the kernel's broadcast manager cycles 240 SYNC frames with counters 1..240; the
             # bus echoes each one back (receive_own_messages), and the echo opens its cycle
-            frames = [can.Message(arbitration_id=0x80, data=[c], is_extended_id=False) for c in range(1, SYNC_COUNTER_OVERFLOW + 1)]
-            self.network.subscribe(0x80, self._on_sync_echo)
+            frames = [can.Message(arbitration_id=SYNC_COB_ID, data=[c], is_extended_id=False) for c in range(1, SYNC_COUNTER_OVERFLOW + 1)]
+            self.network.subscribe(SYNC_COB_ID, self._on_sync_echo)
             self._bcm_task = self._bus.send_periodic(frames, r.period_s)
         else:
             self._thread = threading.Thread(target=self._sync_loop, name="armid-sync", daemon=True)
@@ -238,7 +249,7 @@ class CanopenDriver(Driver):
         u = self.units[joint]
         self._sdo(joint, node, 0x1017, 0, r.heartbeat_ms)
         self._sdo(joint, node, 0x1016, 1, (r.master_node_id << 16) | (3 * r.master_heartbeat_ms))
-        self._sdo(joint, node, 0x1005, 0, 0x80)
+        self._sdo(joint, node, 0x1005, 0, SYNC_COB_ID)
         self._sdo(joint, node, 0x1006, 0, int(round(r.period_s * 1e6)))
         self._sdo(joint, node, 0x1019, 0, SYNC_COUNTER_OVERFLOW)
         self._sdo(joint, node, 0x6060, 0, 10)
@@ -325,7 +336,7 @@ class CanopenDriver(Driver):
                 cob = 0x180 + 0x100 * (spec.number - 1) + d.node_id
                 self._tpdo[cob] = _Tpdo(d.joint, spec.number, spec.every, struct.Struct(fmt), [(i, sub) for i, sub, _ in spec.entries])
                 self.network.subscribe(cob, self._on_tpdo)
-        self.network.subscribe(0x80, self._on_sync_echo)
+        self.network.subscribe(SYNC_COB_ID, self._on_sync_echo)
 
     def flush(self, timeout: float = 5.0) -> None:
         """Listening: close the cycles still open once the frames have stopped coming."""
@@ -356,7 +367,7 @@ class CanopenDriver(Driver):
             with self._lock:
                 self._open_cycle(self._cycle, counter, now)
             try:
-                self._bus.send(can.Message(arbitration_id=0x80, data=[counter], is_extended_id=False))
+                self._bus.send(can.Message(arbitration_id=SYNC_COB_ID, data=[counter], is_extended_id=False))
                 self._send_commands()
             except can.CanError as err:
                 self._event("bus", f"cannot send SYNC {counter}: {err}")
@@ -398,6 +409,8 @@ class CanopenDriver(Driver):
         c = _Cycle(cycle, counter, now, s, expected)
         self._open.append(c)
         self._last = s
+        if self.decoded_frames is not None:
+            self.decoded_frames(can.Message(timestamp=now, arbitration_id=SYNC_COB_ID, data=[counter], is_extended_id=False, is_rx=False))
 
     def _emit(self, c: _Cycle) -> None:
         s = c.sample
@@ -420,39 +433,44 @@ class CanopenDriver(Driver):
             self._emit(self._open.pop(0))
 
     def _on_tpdo(self, can_id: int, data: bytes, timestamp: float) -> None:
+        with self._lock:
+            if self.decoded_frames is not None:
+                self.decoded_frames(can.Message(timestamp=timestamp, arbitration_id=can_id, data=data, is_extended_id=False))
+            self._decode_tpdo(can_id, data, timestamp)
+
+    def _decode_tpdo(self, can_id: int, data: bytes, timestamp: float) -> None:
         t = self._tpdo[can_id]
         if len(data) != t.unpack.size:
             self._event("frame_length", f"joint {t.joint + 1}: TPDO{t.number} (COB-ID 0x{can_id:03X}) has {len(data)} bytes, the mapping has {t.unpack.size}", t.joint)
             return
         values = t.unpack.unpack(data)
         key = (t.joint, t.number)
-        with self._lock:
-            # the oldest open cycle that still waits for this frame and whose SYNC went out
-            # before it: frames keep their order, and a frame cannot answer a later SYNC
-            target = next((c for c in self._open if key in c.expected and c.time_s <= timestamp + 1e-4), None)
-            if target is None:
-                self.late_frames[t.joint] += 1
-                return
-            target.expected.discard(key)
-            u = self.units[t.joint]
-            s = target.sample
-            for (index, _), v in zip(t.fields, values):
-                target.written.add((t.joint, index))
-                if index == 0x6064:
-                    s.position[t.joint] = v / u.counts_per_rad
-                elif index == 0x606C:
-                    s.velocity[t.joint] = v / u.counts_per_rad
-                    s.velocity_fresh[t.joint] = True
-                elif index == 0x6078:
-                    s.measured_current[t.joint] = current_of(v, u.rated_current_a)
-                elif index == 0x6041:
-                    s.status[t.joint] = v
-            if not any(j == t.joint for j, _ in target.expected):
-                s.valid[t.joint] = True
-            deadline = self.deadline_periods * self.period_s
-            while self._open and self._open[0] is not target and timestamp - self._open[0].time_s > deadline:
-                self._emit(self._open.pop(0))
-            self._flush_complete()
+        # the oldest open cycle that still waits for this frame and whose SYNC went out
+        # before it: frames keep their order, and a frame cannot answer a later SYNC
+        target = next((c for c in self._open if key in c.expected and c.time_s <= timestamp + 1e-4), None)
+        if target is None:
+            self.late_frames[t.joint] += 1
+            return
+        target.expected.discard(key)
+        u = self.units[t.joint]
+        s = target.sample
+        for (index, _), v in zip(t.fields, values):
+            target.written.add((t.joint, index))
+            if index == 0x6064:
+                s.position[t.joint] = v / u.counts_per_rad
+            elif index == 0x606C:
+                s.velocity[t.joint] = v / u.counts_per_rad
+                s.velocity_fresh[t.joint] = True
+            elif index == 0x6078:
+                s.measured_current[t.joint] = current_of(v, u.rated_current_a)
+            elif index == 0x6041:
+                s.status[t.joint] = v
+        if not any(j == t.joint for j, _ in target.expected):
+            s.valid[t.joint] = True
+        deadline = self.deadline_periods * self.period_s
+        while self._open and self._open[0] is not target and timestamp - self._open[0].time_s > deadline:
+            self._emit(self._open.pop(0))
+        self._flush_complete()
 
     def _send_commands(self) -> None:
         assert self.network is not None
@@ -601,7 +619,7 @@ class _Watcher(can.Listener):
             return
         cob = msg.arbitration_id
         func, node = cob & 0x780, cob & 0x7F
-        if func in (0x080, 0x180, 0x280, 0x380, 0x480, 0x580, 0x700) and node and cob != 0x80:
+        if func in (0x080, 0x180, 0x280, 0x380, 0x480, 0x580, 0x700) and node and cob != SYNC_COB_ID:
             if node not in d._node_ids and node != d.rig.master_node_id and node not in self._unknown:
                 self._unknown.add(node)
                 d._event("unknown_node", f"frame COB-ID 0x{cob:03X} from node {node}, which the rig {d.rig.source} does not have")
