@@ -27,8 +27,8 @@ sys.path.insert(0, str(ROOT))
 
 from armid.daq.excite import LOOP_BANDWIDTH_HZ  # noqa: E402
 from armid.drivers.canopen_driver import CanopenDriver  # noqa: E402
-from armid.drivers.rig import load_rig  # noqa: E402
 from armid.identify.control import ComputedTorque  # noqa: E402
+from armid.io.rig_file import load_rig  # noqa: E402
 from armid.sim_bus.arm import SimulatedArm  # noqa: E402
 
 RIG = ROOT / "config" / "rigs" / "sim.yaml"

@@ -34,7 +34,7 @@ from armid.daq.canlog import BusLog  # noqa: E402
 from armid.daq.recorder import McapRecorder  # noqa: E402
 from armid.daq.stream import Stream, session_config  # noqa: E402
 from armid.drivers.canopen_driver import CanopenDriver  # noqa: E402
-from armid.drivers.rig import load_rig  # noqa: E402
+from armid.io.rig_file import load_rig  # noqa: E402
 
 RIG = ROOT / "config" / "rigs" / "sim.yaml"
 

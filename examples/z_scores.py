@@ -18,12 +18,12 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from armid.demo import true_parameters  # noqa: E402
-from armid.drivers.rig import load_rig  # noqa: E402
 from armid.identify import excitation as ex  # noqa: E402
 from armid.identify.identification import IdentifyOptions, identify  # noqa: E402
 from armid.identify.preprocess import PrepareOptions, prepare  # noqa: E402
 from armid.identify.single_link import single_link_sequence  # noqa: E402
 from armid.io.recordings import Recording  # noqa: E402
+from armid.io.rig_file import load_rig  # noqa: E402
 from armid.sim_bus.offline import simulate  # noqa: E402
 from armid.sim_bus.physics import simulation_config  # noqa: E402
 
