@@ -50,3 +50,28 @@ def test_without_the_chosen_filter_a_1khz_log_is_far_from_its_floor(tmp_path: Pa
                  "--predictions", str(pred), "--lowpass", "off"]) == 0
     error, _ = blindgen.relative_error(case.valid_csv, pred)
     assert error > 2.0 * case.noise_floor
+
+
+@pytest.mark.slow
+def test_a_log_stamped_in_epoch_seconds_is_predicted_at_its_own_stamps(tmp_path: Path) -> None:
+    """Loggers stamp in seconds since 1970 (1.7e9 s): a prediction written with ten
+    significant digits would land on whole seconds, at no input stamp."""
+    import numpy as np
+
+    case = blindgen.make_case(out_dir=tmp_path / "case", **CLEAN[0])
+    epoch = 1_764_000_000.0
+    shifted = {}
+    for name, path in (("ident", case.ident_csv), ("valid", case.valid_csv)):
+        lines = Path(path).read_text().splitlines()
+        t = np.array([float(line.split(",", 1)[0]) for line in lines[1:]])
+        shifted[name] = tmp_path / f"{name}_epoch.csv"
+        shifted[name].write_text("\n".join([lines[0], *(f"{epoch + x:.6f},{line.split(',', 1)[1]}" for x, line in zip(t, lines[1:]))]) + "\n")
+    (tmp_path / "robot.yaml").write_text(Path(case.robot_yaml).read_text())
+    for extra in Path(case.robot_yaml).parent.glob("*.urdf"):
+        (tmp_path / extra.name).write_text(extra.read_text())
+    pred = tmp_path / "pred.csv"
+    assert main(["identify", str(shifted["ident"]), "--robot", str(tmp_path / "robot.yaml"), "--validate", str(shifted["valid"]),
+                 "--predictions", str(pred)]) == 0
+    error, covered = blindgen.relative_error(shifted["valid"], pred, tmp_path / "robot.yaml")
+    assert covered >= 0.99, f"only {covered:.3f} of the validation stamps predicted"
+    assert error <= 1.10 * case.noise_floor

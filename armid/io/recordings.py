@@ -14,6 +14,7 @@ and the notes say what was lost (:func:`read_mcap_arrays`).
 from __future__ import annotations
 
 import csv
+import io
 import json
 import re
 import struct
@@ -237,14 +238,26 @@ def _lines(lines: list[int], most: int = 5) -> str:
 
 
 def write_csv(path: str | Path, t: Array, columns: dict[str, Array]) -> None:
-    """Write ``t`` and (n, N) arrays as ``name1..nameN`` columns (the recording layout)."""
+    """Write ``t`` and (n, N) arrays as ``name1..nameN`` columns (the recording layout).
+
+    Each stamp is written as the shortest text that reads back as the same float: a log
+    stamped in epoch seconds (1.46e9 s) needs 16 significant digits to keep its
+    milliseconds, and a prediction must be found at its input's own stamp."""
     header = ["t"]
-    blocks = [np.asarray(t, dtype=float)[:, None]]
+    blocks = []
     for prefix, values in columns.items():
         values = np.asarray(values, dtype=float)
         header += [f"{prefix}{j + 1}" for j in range(values.shape[1])]
         blocks.append(values)
-    np.savetxt(path, np.hstack(blocks), delimiter=",", header=",".join(header), comments="", fmt="%.10g")
+    stamps = [repr(x) for x in np.asarray(t, dtype=float).tolist()]
+    body = io.StringIO()
+    np.savetxt(body, np.hstack(blocks), delimiter=",", fmt="%.10g")
+    rows = body.getvalue().splitlines()
+    if len(rows) != len(stamps):
+        raise ValueError(f"{path}: {len(stamps)} stamps for {len(rows)} rows")
+    with open(path, "w") as f:
+        f.write(",".join(header) + "\n")
+        f.writelines(f"{ts},{row}\n" for ts, row in zip(stamps, rows))
 
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
