@@ -60,6 +60,15 @@ class ParallelFilter:
             return self.trim
         return max(self.trim, int(np.ceil(1.5 / (self.cutoff_hz * self.period_s))))
 
+    @property
+    def settling(self) -> int:
+        """Samples over which the zero-phase filter's response to a cut in its input dies
+        out to 1e-13: its slowest pole decays at ``2 pi fc sin(pi / 2 order)`` per second."""
+        if self.cutoff_hz is None:
+            return 0
+        rate = 2 * np.pi * self.cutoff_hz * np.sin(np.pi / (2 * self.order))
+        return int(np.ceil(np.log(1e13) / (rate * self.period_s)))
+
     def smooth(self, x: Array, axis: int = 0) -> Array:
         """The low-pass alone along ``axis`` (zero phase, padded by odd reflection)."""
         if self.cutoff_hz is None:

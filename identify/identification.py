@@ -71,6 +71,9 @@ PRIORS = ("modeled", "none")
 SEARCH_EQUATIONS = 10_000
 """Equations per joint the grid search of a declared effect's setting scores its tries on."""
 
+PREDICT_BLOCK = 8192
+"""Samples whose regressor a prediction holds at once (7 joints: about 40 MB)."""
+
 
 def declared_effects(robot: Robot, load_parameters: Array | None = None) -> list[LinearEffect]:
     """The robot file's effects as regressor columns (``joint: null`` means every joint).
@@ -213,11 +216,15 @@ class IdentificationResult:
         return self.predict_motion(segment.q, segment.qd, segment.qdd)
 
     def predict_motion(self, q: Array, qd: Array, qdd: Array) -> Array:
-        """Torques (n, N) the model predicts at each sample of a motion."""
-        w = stacked_regressor(self.robot, self.effects, q, qd, qdd)
-        coef = np.zeros(w.shape[1])  # the base columns' coefficients, zero elsewhere: no copy of the columns
+        """Torques (n, N) the model predicts at each sample of a motion, a block of samples
+        at a time: the regressor of a 20-minute log at 1 kHz would take 10 GB whole."""
+        coef = np.zeros(len(self.names))  # the base columns' coefficients, zero elsewhere: no copy of the columns
         coef[self.base.independent] = self.estimate.beta
-        tau = (w @ coef).reshape(q.shape[0], -1)
+        tau = np.empty_like(q)
+        for a in range(0, q.shape[0], PREDICT_BLOCK):
+            b = slice(a, a + PREDICT_BLOCK)
+            w = stacked_regressor(self.robot, self.effects, q[b], qd[b], qdd[b])
+            tau[b] = (w @ coef).reshape(-1, q.shape[1])
         return tau if self.torque_scale is None else tau * self.torque_scale
 
     def predict_stamps(self, segments: list[Segment]) -> tuple[Array, Array, Array]:
@@ -389,6 +396,39 @@ def _into_system(system: Array, start: int, m: Array, seg: Segment) -> int:
     return n
 
 
+EQUATION_BYTES = 256 * 2**20
+"""Full-rate equations (regressor and torque, all joints) a segment's parallel filter takes
+at once. A longer segment goes through in blocks, each with ``ParallelFilter.settling``
+samples more on either side, where the zero-phase filter's response to the block's cut
+dies out to rounding: the same equations as the whole segment's, without the whole
+segment's regressor (a 5-minute log at 1 kHz, 7 joints: 1.2 GB)."""
+
+
+def _segment_into_system(system: Array, start: int, robot: Robot, effects: list[LinearEffect], seg: Segment, scale: Array | None,
+                         delay: Array | None, motion_delay: Array | None) -> int:
+    """A segment's equations through its parallel filter into ``system[j, :, start:]``, in
+    blocks of samples when its full-rate equations exceed ``EQUATION_BYTES``. Returns the
+    equations written."""
+    filt = seg.parallel
+    n = seg.n_samples
+    n_cols = 10 * robot.n_joints + sum(len(e.parameter_names) for e in effects)
+    block = max(1, EQUATION_BYTES // (8 * robot.n_joints * (n_cols + 1)))
+    if filt.cutoff_hz is None or n <= block + 2 * filt.settling:
+        return _into_system(system, start, equations(robot, effects, seg, scale, delay, motion_delay), seg)
+    kept = filt.kept(n)
+    written = 0
+    for a in range(0, n, block):
+        b = min(a + block, n)
+        lo, hi = max(0, a - filt.settling), min(n, b + filt.settling)
+        part = replace(seg, t=seg.t[lo:hi], q=seg.q[lo:hi], qd=seg.qd[lo:hi], qdd=seg.qdd[lo:hi], tau=seg.tau[lo:hi], stamps=None)
+        m = equations(robot, effects, part, scale, delay, motion_delay)
+        mine = kept[(kept >= a) & (kept < b)] - lo
+        for j in range(robot.n_joints):
+            system[j, :, start + written : start + written + mine.size] = filt.smooth(m[:, j, :])[mine].T
+        written += mine.size
+    return written
+
+
 def _system(robot: Robot, effects: list[LinearEffect], segments: list[Segment], scale: Array | None = None, delay: Array | None = None,
             motion_delay: Array | None = None) -> Array:
     """The equations of all segments, joint by joint: (N, p+1, n); row ``k`` of ``[j]`` is
@@ -398,7 +438,7 @@ def _system(robot: Robot, effects: list[LinearEffect], segments: list[Segment], 
     system = np.empty((nj, n_cols + 1, sum(s.n_equations for s in segments)))
     start = 0
     for seg in segments:
-        start += _into_system(system, start, equations(robot, effects, seg, scale, delay, motion_delay), seg)
+        start += _segment_into_system(system, start, robot, effects, seg, scale, delay, motion_delay)
     return system
 
 

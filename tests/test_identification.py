@@ -181,3 +181,37 @@ def test_refined_setting_lands_between_grid_values_and_stays_inside_the_grid() -
         assert max(tried) <= 0.1
     assert _refine(grid, lambda v: v) == 0.0
     assert _refine(grid, lambda v: -v) == 0.1
+
+
+def test_a_long_segment_goes_through_its_parallel_filter_in_blocks_with_the_same_equations() -> None:
+    """A long 1 kHz log's full-rate regressor would not fit in memory whole: it is filtered in
+    blocks with ``settling`` samples on either side, and must give the whole segment's
+    equations (to rounding: the filter's response to a block's cut has died out)."""
+    from armid.identify import identification as ident
+    from armid.identify.filtering import ParallelFilter
+    from armid.identify.preprocess import Segment
+
+    robot = load_robot(ROBOTS / "puma560.yaml")
+    period = 0.001
+    t = np.arange(40_000) * period
+    rng = np.random.default_rng(3)
+    w = 2 * np.pi * np.array([0.11, 0.23, 0.37])
+    a = rng.normal(0.0, 0.4, (3, robot.n_joints))
+    q = np.sin(np.outer(t, w)) @ a
+    qd = (np.cos(np.outer(t, w)) * w) @ a
+    qdd = -(np.sin(np.outer(t, w)) * w**2) @ a
+    tau = rng.normal(0.0, 1.0, q.shape)
+    seg = Segment("<long>", t, q, qd, qdd, tau, filter=ParallelFilter(period, cutoff_hz=3.0, decimation=30))
+    effects = ident.declared_effects(robot)
+    whole = ident._system(robot, effects, [seg])
+    n_cols = whole.shape[1]
+    saved = ident.EQUATION_BYTES
+    try:
+        ident.EQUATION_BYTES = 8 * robot.n_joints * n_cols * 6_000  # blocks of 6,000 samples: seven of them
+        blocked = ident._system(robot, effects, [seg])
+    finally:
+        ident.EQUATION_BYTES = saved
+    assert seg.parallel.settling < 6_000 < seg.n_samples // 6
+    assert blocked.shape == whole.shape
+    scale = np.abs(whole).max(axis=2, keepdims=True)
+    assert np.all(np.abs(blocked - whole) <= 1e-10 * np.maximum(scale, 1e-300))
