@@ -363,15 +363,23 @@ def test_the_same_acquisition_code_runs_on_both_driver_families(family: str, tmp
     assert np.allclose(rec.q[-1], records[-1].sample.position)
 
 
-def test_armid_record_and_sim_on_the_serial_rig(tmp_path: Path) -> None:
+def test_armid_record_and_sim_on_the_serial_rig(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     import subprocess
     import sys
 
     from armid.cli import main
 
     assert main(["record", "--rig", str(DXL_RIG), "--out", str(tmp_path / "rec"), "--duration", "1", "--no-zenoh"]) == 0
+    said = re.search(r"armid record: (\d+) records, invalid per joint \[([\d, ]+)\]", capsys.readouterr().err)
+    assert said is not None
+    records, invalid = int(said.group(1)), sum(int(x) for x in said.group(2).split(","))
     rec = read_recording(tmp_path / "rec" / "run.mcap", load_rig(DXL_RIG).robot)
-    assert rec.n_samples > 400 and np.allclose(rec.q[0], [0.0, 1.2, -1.2, 0.0, 0.0, 0.0], atol=2e-3)
+    # every record the run acquired is in the file (those with an invalid joint may be left
+    # out), over the second it ran; how many cycles a loaded machine fits in that second is
+    # benchmarks/bench_dynamixel.py's business, not a test's
+    assert records > 0 and records - invalid <= rec.n_samples <= records
+    assert rec.t[-1] - rec.t[0] > 0.5
+    assert np.allclose(rec.q[0], [0.0, 1.2, -1.2, 0.0, 0.0, 0.0], atol=2e-3)
     ready = tmp_path / "port"
     proc = subprocess.run([sys.executable, "-m", "armid.cli", "sim", "--rig", str(DXL_RIG), "--duration", "0.5", "--ready", str(ready)],
                           capture_output=True, text=True, timeout=60, cwd=ROOT)
