@@ -489,7 +489,6 @@ def feasible_estimate(result: Any, validation: list[Any] | None = None, options:
 
 def predict(result: Any, beta: Array, segment: Any) -> Array:
     """Torques (n, N) of base parameters ``beta`` on a segment's motion (the result's model)."""
-    from .identification import stacked_regressor
+    from .identification import base_torque
 
-    w = stacked_regressor(result.robot, result.effects, segment.q, segment.qd, segment.qdd)
-    return (w[:, result.base.independent] @ beta).reshape(segment.n_samples, -1)
+    return base_torque(result.robot, result.effects, result.base.independent, beta, segment.q, segment.qd, segment.qdd)

@@ -170,6 +170,19 @@ def random_motion(robot: Robot, n_samples: int, seed: int = 0) -> tuple[Array, A
     return q, rng.normal(size=q.shape), rng.normal(size=q.shape)
 
 
+def base_torque(robot: Robot, effects: list[LinearEffect], independent: Array, beta: Array, q: Array, qd: Array, qdd: Array) -> Array:
+    """Torques (n, N) of base parameters ``beta`` (on the regressor's columns ``independent``)
+    at each sample of a motion, a block of samples at a time: the regressor of a 20-minute
+    log at 1 kHz would take 10 GB whole."""
+    coef = np.zeros(robot.n_parameters + sum(len(e.parameter_names) for e in effects))
+    coef[independent] = beta  # zero elsewhere: no copy of the columns
+    tau = np.empty((q.shape[0], robot.n_joints))
+    for a in range(0, q.shape[0], PREDICT_BLOCK):
+        b = slice(a, a + PREDICT_BLOCK)
+        tau[b] = (stacked_regressor(robot, effects, q[b], qd[b], qdd[b]) @ coef).reshape(-1, robot.n_joints)
+    return tau
+
+
 def stacked_regressor(robot: Robot, effects: list[LinearEffect], q: Array, qd: Array, qdd: Array) -> Array:
     """(n N, 10 N + k) rows of eq. (18) with effect columns, sample by sample."""
     n, nj = np.shape(q)
@@ -216,15 +229,8 @@ class IdentificationResult:
         return self.predict_motion(segment.q, segment.qd, segment.qdd)
 
     def predict_motion(self, q: Array, qd: Array, qdd: Array) -> Array:
-        """Torques (n, N) the model predicts at each sample of a motion, a block of samples
-        at a time: the regressor of a 20-minute log at 1 kHz would take 10 GB whole."""
-        coef = np.zeros(len(self.names))  # the base columns' coefficients, zero elsewhere: no copy of the columns
-        coef[self.base.independent] = self.estimate.beta
-        tau = np.empty_like(q)
-        for a in range(0, q.shape[0], PREDICT_BLOCK):
-            b = slice(a, a + PREDICT_BLOCK)
-            w = stacked_regressor(self.robot, self.effects, q[b], qd[b], qdd[b])
-            tau[b] = (w @ coef).reshape(-1, q.shape[1])
+        """Torques (n, N) the model predicts at each sample of a motion."""
+        tau = base_torque(self.robot, self.effects, self.base.independent, self.estimate.beta, q, qd, qdd)
         return tau if self.torque_scale is None else tau * self.torque_scale
 
     def predict_stamps(self, segments: list[Segment]) -> tuple[Array, Array, Array]:
