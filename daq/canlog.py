@@ -84,8 +84,16 @@ class _Received(can.Listener):
             self.write(msg)
 
 
+END_OF_LOG_COB_ID = 0x7FF  # no CANopen service uses it; with a payload of its own besides
+
+
 def replay_log(path: str | Path, rig: Any, timeout_s: float = 30.0) -> list[Sample]:
-    """Decode ``path`` as the rig's driver would have: one sample per SYNC in the log."""
+    """Decode ``path`` as the rig's driver would have: one sample per SYNC in the log.
+
+    The player sends faster than the driver's notifier decodes, so the end of the log is
+    marked by one more frame, and the cycles still open are closed only once the notifier
+    has reached it (closing them when the sending ended cut a cycle in the middle of the
+    stream in two whenever the notifier lagged, as it does under load)."""
     from armid.drivers.canopen_driver import SYNC_COB_ID, CanopenDriver
 
     channel = f"armid-replay-{uuid.uuid4().hex[:8]}"
@@ -93,18 +101,25 @@ def replay_log(path: str | Path, rig: Any, timeout_s: float = 30.0) -> list[Samp
     player = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
     driver = CanopenDriver(rig.with_bus(interface="virtual", channel=channel), bus=listen_bus)
     samples: list[Sample] = []
+    marker = uuid.uuid4().bytes[:8]
+    reached = threading.Event()
     try:
         driver.listen()
+        driver.network.subscribe(END_OF_LOG_COB_ID, lambda can_id, data, timestamp: reached.set() if bytes(data) == marker else None)
         stop = threading.Event()
         reader = threading.Thread(target=lambda: _drain(driver, samples, stop), daemon=True)
         reader.start()
-        syncs = 0
+        syncs, last = 0, 0.0
         for msg in can.LogReader(str(path)):
             if msg.is_error_frame:
                 continue
             player.send(msg)
             syncs += msg.arbitration_id == SYNC_COB_ID
-        driver.flush(timeout_s)
+            last = msg.timestamp
+        player.send(can.Message(timestamp=last, arbitration_id=END_OF_LOG_COB_ID, data=marker, is_extended_id=False))
+        if not reached.wait(timeout_s):
+            raise TimeoutError(f"{path}: the replay did not decode the whole log within {timeout_s:g} s")
+        driver.flush()
         deadline = time.monotonic() + timeout_s
         while len(samples) < syncs and time.monotonic() < deadline:
             time.sleep(0.01)

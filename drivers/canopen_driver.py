@@ -338,9 +338,10 @@ class CanopenDriver(Driver):
                 self.network.subscribe(cob, self._on_tpdo)
         self.network.subscribe(SYNC_COB_ID, self._on_sync_echo)
 
-    def flush(self, timeout: float = 5.0) -> None:
-        """Listening: close the cycles still open once the frames have stopped coming."""
-        time.sleep(min(timeout, 0.2))
+    def flush(self) -> None:
+        """Listening: close the cycles still open. Only once every frame has been decoded
+        (daq.canlog.replay_log waits for its end-of-log frame): a cycle closed while its
+        frames are still on the way comes out invalid."""
         with self._lock:
             while self._open:
                 self._emit(self._open.pop(0))
