@@ -68,6 +68,7 @@ from .errors import PoorExcitationWarning
 from .identification import (
     IdentificationResult,
     IdentifyOptions,
+    column_count,
     declared_effects,
     declared_gains,
     identify,
@@ -512,7 +513,7 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     load0 = rigid_parameters(result0)
     effects = declared_effects(robot, load0)
     base = structural_base(robot, effects)
-    n_cols = robot.n_parameters + sum(len(e.parameter_names) for e in effects)
+    n_cols = column_count(robot, effects)
     # drive gains: joint j measures gain_scale[j] times the model's torque (declared, then found)
     gain_scale = np.ones(nj) if result0.torque_scale is None else np.array(result0.torque_scale, float)
 

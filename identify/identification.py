@@ -170,11 +170,16 @@ def random_motion(robot: Robot, n_samples: int, seed: int = 0) -> tuple[Array, A
     return q, rng.normal(size=q.shape), rng.normal(size=q.shape)
 
 
+def column_count(robot: Robot, effects: list[LinearEffect]) -> int:
+    """Columns of eq. (18) with the effects': 10 per link, then each effect's parameters."""
+    return robot.n_parameters + sum(len(e.parameter_names) for e in effects)
+
+
 def base_torque(robot: Robot, effects: list[LinearEffect], independent: Array, beta: Array, q: Array, qd: Array, qdd: Array) -> Array:
     """Torques (n, N) of base parameters ``beta`` (on the regressor's columns ``independent``)
     at each sample of a motion, a block of samples at a time: the regressor of a 20-minute
     log at 1 kHz would take 10 GB whole."""
-    coef = np.zeros(robot.n_parameters + sum(len(e.parameter_names) for e in effects))
+    coef = np.zeros(column_count(robot, effects))
     coef[independent] = beta  # zero elsewhere: no copy of the columns
     tau = np.empty((q.shape[0], robot.n_joints))
     for a in range(0, q.shape[0], PREDICT_BLOCK):
@@ -186,7 +191,7 @@ def base_torque(robot: Robot, effects: list[LinearEffect], independent: Array, b
 def stacked_regressor(robot: Robot, effects: list[LinearEffect], q: Array, qd: Array, qdd: Array) -> Array:
     """(n N, 10 N + k) rows of eq. (18) with effect columns, sample by sample."""
     n, nj = np.shape(q)
-    m = np.empty((n, nj, 10 * nj + sum(len(e.parameter_names) for e in effects)))
+    m = np.empty((n, nj, column_count(robot, effects)))
     regressor(robot, q, qd, qdd, out=m[:, :, : 10 * nj])
     if effects:
         m[:, :, 10 * nj :] = effect_columns(effects, q, qd, qdd, rigid=m[:, :, : 10 * nj])
@@ -371,7 +376,7 @@ def equations(robot: Robot, effects: list[LinearEffect], seg: Segment, scale: Ar
     segment's parallel filter (low-pass, edges, decimation): eq. (18) as least squares sees it.
     ``scale``/``delay`` (per joint) undo a found drive gain and sensor delay on the torque."""
     nj = robot.n_joints
-    n_cols = 10 * nj + sum(len(e.parameter_names) for e in effects)
+    n_cols = column_count(robot, effects)
     filt = seg.parallel
     tau_all = seg.tau if scale is None and delay is None else _model_torque(seg.tau, seg.t, scale, delay)
     q, qd, qdd = (_advanced(x, seg.t, motion_delay) for x in (seg.q, seg.qd, seg.qdd))
@@ -417,7 +422,7 @@ def _segment_into_system(system: Array, start: int, robot: Robot, effects: list[
     equations written."""
     filt = seg.parallel
     n = seg.n_samples
-    n_cols = 10 * robot.n_joints + sum(len(e.parameter_names) for e in effects)
+    n_cols = column_count(robot, effects)
     block = max(1, EQUATION_BYTES // (8 * robot.n_joints * (n_cols + 1)))
     if filt.cutoff_hz is None or n <= block + 2 * filt.settling:
         return _into_system(system, start, equations(robot, effects, seg, scale, delay, motion_delay), seg)
@@ -440,7 +445,7 @@ def _system(robot: Robot, effects: list[LinearEffect], segments: list[Segment], 
     """The equations of all segments, joint by joint: (N, p+1, n); row ``k`` of ``[j]`` is
     column ``k`` of ``[W_j | tau_j]``, the layout LAPACK factors without a transpose."""
     nj = robot.n_joints
-    n_cols = 10 * nj + sum(len(e.parameter_names) for e in effects)
+    n_cols = column_count(robot, effects)
     system = np.empty((nj, n_cols + 1, sum(s.n_equations for s in segments)))
     start = 0
     for seg in segments:
