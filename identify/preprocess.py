@@ -141,6 +141,28 @@ class Prepared:
         return out
 
 
+def unwrap_continuous(rec: Recording, robot: Robot) -> Recording:
+    """Undo the 2 pi wraps a logger puts in a continuous joint's angle (a revolute joint with no
+    position limits, logged in (-pi, pi]): a step over pi between samples is a wrap, not motion,
+    and left in it would be dropped as a jump and split the record. The rigid body is periodic in
+    the angle, so unwrapping changes no torque; a recording without wraps is returned as is."""
+    free = [k for k, j in enumerate(robot.joints) if j.revolute and j.limits.position is None]
+    if not free or rec.n_samples < 2:
+        return rec
+    q = rec.q.copy()
+    wrapped = []
+    for k in free:
+        ok = np.flatnonzero(np.isfinite(q[:, k]))
+        if ok.size < 2 or not np.any(np.abs(np.diff(q[ok, k])) > np.pi):
+            continue
+        q[ok, k] = np.unwrap(q[ok, k])
+        wrapped.append(robot.joints[k].name)
+    if not wrapped:
+        return rec
+    note = f"unwrapped the 2 pi wraps of continuous joint(s) {', '.join(wrapped)}"
+    return replace(rec, q=q, notes=[*rec.notes, note])
+
+
 def garbage_rows(rec: Recording, robot: Robot) -> tuple[Array, list[str]]:
     """Boolean mask of rows to drop, and a sentence per reason."""
     n = rec.n_samples
@@ -186,6 +208,7 @@ def _flag(bad: Array, mask: Array, reason: str, lines: Array, notes: list[str]) 
 def prepare(rec: Recording, robot: Robot, options: PrepareOptions | None = None) -> Prepared:
     """Clean ``rec`` into uniform segments with ``qd`` and ``qdd`` (see module docstring)."""
     options = options or PrepareOptions()
+    rec = unwrap_continuous(rec, robot)
     notes = list(rec.notes)
     bad, garbage_notes = garbage_rows(rec, robot)
     notes += garbage_notes

@@ -142,6 +142,46 @@ def test_kuka_lwr4_real_data_identifies_and_validates(tmp_path):  # type: ignore
     assert np.all(np.array(doc["validation"]["rms"]) < published_rms)
 
 
+@pytest.mark.skipif(not (SHARED / "data" / "kuka_lwr4" / "measurements_1.npz").exists(), reason="shared KUKA data not beside the repository")
+def test_continuous_joints_and_their_wrapped_angles(tmp_path):  # type: ignore[no-untyped-def]
+    """A URDF's continuous joints (Pinocchio's cos/sin joints) are revolute joints without
+    position limits, and a logger's (-pi, pi] wraps of their angle are undone: the KUKA's base
+    joint turns about gravity, so its recording turned by 2.5 rad and wrapped must identify
+    exactly as the recording itself."""
+    data = SHARED / "data" / "kuka_lwr4"
+    urdf = (ROBOTS / "kuka_lwr4.urdf").read_text()
+    (tmp_path / "continuous.urdf").write_text(urdf.replace('type="revolute"', 'type="continuous"'))
+    yaml = (ROBOTS / "kuka_lwr4.yaml").read_text().replace("urdf: kuka_lwr4.urdf", "urdf: continuous.urdf")
+    assert "continuous.urdf" in yaml
+    (tmp_path / "continuous.yaml").write_text(yaml)
+    plain, continuous = load_robot(ROBOTS / "kuka_lwr4.yaml"), load_robot(tmp_path / "continuous.yaml")
+    for a, b in zip(plain.joints, continuous.joints):
+        assert a.revolute and b.revolute and b.limits.position is None and a.limits.position is not None
+        np.testing.assert_allclose(b.axis, a.axis, atol=1e-12)
+        np.testing.assert_allclose(b.pre, a.pre, atol=1e-12)
+        assert b.inertial == a.inertial
+
+    whole = dict(np.load(data / "measurements_1.npz"))
+    for part, rows in (("ident", slice(0, 2500)), ("valid", slice(2500, 4000))):
+        rec = {k: v[rows] for k, v in whole.items()}
+        np.savez(tmp_path / f"plain_{part}.npz", **rec)
+        turned = rec["positions"].copy()
+        turned[:, 0] = np.angle(np.exp(1j * (turned[:, 0] + 2.5)))
+        assert np.any(np.abs(np.diff(turned[:, 0])) > np.pi)  # the angle wraps
+        np.savez(tmp_path / f"wrapped_{part}.npz", **(rec | {"positions": turned}))
+
+    out = {}
+    for name, robot in (("plain", ROBOTS / "kuka_lwr4.yaml"), ("wrapped", tmp_path / "continuous.yaml")):
+        pred = tmp_path / f"{name}.csv"
+        assert main(["identify", str(tmp_path / f"{name}_ident.npz"), "--robot", str(robot), "--validate", str(tmp_path / f"{name}_valid.npz"), "--predictions", str(pred), "--json", str(tmp_path / f"{name}.json")]) == 0
+        out[name] = np.genfromtxt(pred, delimiter=",", names=True)
+    assert out["wrapped"].shape == out["plain"].shape
+    for field in out["plain"].dtype.names:
+        np.testing.assert_allclose(out["wrapped"][field], out["plain"][field], rtol=1e-6, atol=1e-6 * np.abs(whole["torques"]).max())
+    doc = json.loads((tmp_path / "wrapped.json").read_text())
+    assert any("unwrapped" in note and "lwr_0_joint" in note for note in doc["preprocessing"])
+
+
 def test_column_trials_give_the_least_squares_of_the_replaced_system() -> None:
     """A setting's try replaces a few columns of a joint's [W | y]; the rows ColumnTrials
     returns must give the same least-squares fit and residual as the replaced system itself,

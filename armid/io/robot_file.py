@@ -240,6 +240,18 @@ def _effects(doc: Any, n_joints: int, src: str) -> list[DeclaredEffect]:
     return out
 
 
+def _joint_axis(jm: Any, revolute: bool) -> np.ndarray:
+    """The joint's unit axis in its own frame, from its motion subspace (any aligned, unaligned or continuous joint)."""
+    jd = jm.createData()
+    q = np.zeros(jm.nq)
+    if jm.nq == 2:  # continuous joint: q = (cos, sin)
+        q[0] = 1.0
+    jm.calc(jd, q)
+    s = np.asarray(jd.S, dtype=float).reshape(6)
+    axis = s[3:] if revolute else s[:3]
+    return axis / np.linalg.norm(axis)
+
+
 def _urdf_joints(doc: dict[str, Any], joints_doc: list[Any], src: str, base_dir: Path) -> list[Joint]:
     """Joints matched by name in a URDF loaded through Pinocchio (link frame = child frame)."""
     import pinocchio as pin
@@ -269,18 +281,16 @@ def _urdf_joints(doc: dict[str, Any], joints_doc: list[Any], src: str, base_dir:
             raise RobotFileError(src, _field(where, "name"), f"{name!r} does not follow the previous joint in the chain of {urdf.name}")
         jm = model.joints[jid]
         short = jm.shortname()
-        if jm.nq != 1:
-            raise RobotFileError(src, _field(where, "name"), f"{name!r} is a {short}; only revolute and prismatic joints are supported")
-        revolute = short.startswith("JointModelR")
-        if short.endswith("Unaligned"):
-            axis = np.asarray(jm.extract().axis, dtype=float)
-        else:
-            axis = np.eye(3)["XYZ".index(short[-1])]
+        revolute, prismatic = short.startswith("JointModelR"), short.startswith("JointModelP")
+        if jm.nv != 1 or not (revolute or prismatic):
+            raise RobotFileError(src, _field(where, "name"), f"{name!r} is a {short}; only revolute (bounded or continuous) and prismatic joints are supported")
+        axis = _joint_axis(jm, revolute)
         placement = model.jointPlacements[jid].homogeneous
         inert = model.inertias[jid]
         inertial = Inertial(float(inert.mass), tuple(float(x) for x in inert.lever), tuple(float(x) for x in inertia_entries(inert.inertia)))  # type: ignore[arg-type]
         iq, iv = model.idx_qs[jid], model.idx_vs[jid]
-        lo, hi = float(model.lowerPositionLimit[iq]), float(model.upperPositionLimit[iq])
+        # a continuous joint (nq 2: cos, sin) has no position limits
+        lo, hi = (float(model.lowerPositionLimit[iq]), float(model.upperPositionLimit[iq])) if jm.nq == 1 else (np.nan, np.nan)
         vel, eff = float(model.velocityLimit[iv]), float(model.effortLimit[iv])
         limits = JointLimits(
             (lo, hi) if np.isfinite(lo) and np.isfinite(hi) and lo < hi else None,
