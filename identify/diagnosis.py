@@ -22,8 +22,8 @@ entry of the catalogue becomes candidate regressor columns on a joint (or the ar
 A round scores every candidate by the held-out error of the refitted model: rows are
 whitened by each joint's noise level, the candidate's columns are projected off the
 current model (Frisch-Waugh), the refit is solved on the even tenths of the identification
-data and its error measured on the odd tenths (held-out blocks; the validation data are
-kept for measuring before and after, never for choosing). The best-ranked candidate that
+data and its error measured on the odd tenths (held-out blocks; the validation data never
+rank, they only veto, gate (f), and measure before and after). The best-ranked candidate that
 clears its gates is added: (a) it cuts the held-out residual power by at least ``min_gain_joint``
 of its joint's (``min_gain`` of the arm's, for an arm-wide effect, and ``min_gain`` of the power
 of the joints other than the one it helps most: an effect of the arm must show on more than
@@ -37,7 +37,9 @@ moments) shows there as a model the data now contradict, and is set aside (repor
 taken), and (e) what it changes in the prediction is at least ``min_noise_fraction`` of the
 torque's own noise (its joint's, or the arm's): a long filtered record makes an effect far below
 the noise significant, and on clean low-noise data such an effect is the fit's own model
-error. Then refit and repeat, until nothing passes. The findings are fitted with the prior as
+error, and (f) a linear one lowers its joint's (the arm's) error on the validation data too:
+tenths of one trajectory share its excitation, and a fit's own model error can look like an
+effect there and on no other run. Then refit and repeat, until nothing passes. The findings are fitted with the prior as
 wide as the declared model's fit or the last accepted finding's found it, whichever is less. A candidate whose columns lie in the span of the model is
 absorbed (rotor inertia of a first joint with a vertical axis joins ``Izz1``), and is
 reported as such. When a look-alike (Coulomb/Stribeck, torque gain/rotor inertia,
@@ -323,7 +325,8 @@ class Diagnosis:
         return {"found": [f.to_json() for f in self.found], "absorbed": self.absorbed, "declared": self.base_effects,
                 "set_aside": self.conflicting, "extrapolated": self.extrapolated,
                 "before": self.before, "after": self.after, "noise_floor": self.noise_floor,
-                "chosen_on": "the identification data: fitted on its even tenths, scored on its odd tenths",
+                "chosen_on": "the identification data: fitted on its even tenths, scored on its odd tenths; a finding that does "
+                             "not also lower its joint's error on the validation data is set aside (a veto, never a ranking)",
                 "measured_on": "the validation data (before and after), at every sample's own stamp against the raw torque"}
 
 
@@ -495,9 +498,9 @@ def _parameters(c: Candidate, gamma: Array) -> dict[str, float]:
 def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepared], options: DiagnoseOptions | None = None) -> Diagnosis:
     """Find, add and report the undeclared effects (module docstring).
 
-    Findings are chosen on held-out blocks of the identification data (every other tenth of
-    it, fitted on the rest); ``validation`` only measures the errors before and after, so
-    the figures reported are not the ones the search optimised."""
+    Findings are ranked on held-out blocks of the identification data (every other tenth of
+    it, fitted on the rest); ``validation`` can only veto one (gate f) and measures the errors
+    before and after, so the figures reported are not the ones the search optimised."""
     opts = options or DiagnoseOptions()
     ident_all, valid = _stack(experiments), _stack(validation)
     ident, held = _blocks(ident_all)
@@ -552,6 +555,17 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     beta = beta0
     conflicting: list[dict[str, Any]] = []
     settled = _settled(robot0, result0)
+
+    fits: dict[str, IdentificationResult] = {}
+
+    def trial_fit(found: list[Finding]) -> IdentificationResult:
+        """``identify``'s fit of the declared model with ``found`` (as gates d and f see it)."""
+        key = repr([(f.effect, f.joint, sorted(f.parameters.items())) for f in found])
+        if key not in fits:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", PoorExcitationWarning)
+                fits[key] = _trial_fit(settled, experiments, validation, found, load0)
+        return fits[key]
     noise_sd = _noise_levels(experiments, nj)
     widening_now = _widening(result0)
     set_aside: set[tuple[str, int | None]] = set()
@@ -718,20 +732,33 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
             if (best.effect, best.joint) in set_aside:
                 continue  # another setting of an effect already set aside
             correction = best.effect in ("gravity_tilt", "time_delay") and any(f.effect == best.effect and f.joint == best.joint for f in found)
-            if widening_now is not None and not correction:
-                # judged on the identification data too: the prior's widening with the finding
+            if not correction:
+                # judged by exact fits too: the model with the finding added as `identify` fits it
                 trial = Finding(best.effect, best.joint, _parameters(best, gamma), 0.0, 0.0, 0.0)
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore", PoorExcitationWarning)
-                    widening = _prior_widening(settled, experiments, found + [trial], load0)
-                if widening is None or widening > opts.max_prior_widening * widening_now:
+                fit_with = trial_fit(found + [trial])
+                widening = _widening(fit_with)
+                if widening_now is not None and (widening is None or widening > opts.max_prior_widening * widening_now):
+                    # (d) on the identification data: the prior's widening with the finding
                     conflicting.append({"effect": best.effect, "joint": None if best.joint is None else best.joint + 1,
                                         "parameters": trial.parameters, "before": widening_now,
                                         "prior_widened_by": widening if widening is not None and np.isfinite(widening) else None, "reason": "prior"})
                     present.add((best.effect, best.joint))
                     set_aside.add((best.effect, best.joint))
                     continue
-                widening_now = widening
+                # (f) on the validation data: its joint's error (the arm's) must fall there too.
+                # Tenths of one trajectory share its excitation; a fit's own model error (the
+                # modeled values the prior holds where the data are silent) can look like a
+                # spring on them and on no other run (a clean 100 Hz blind case)
+                on_validation = (_validation_error(trial_fit(found), best.joint), _validation_error(fit_with, best.joint))
+                if not on_validation[1] < on_validation[0]:
+                    conflicting.append({"effect": best.effect, "joint": None if best.joint is None else best.joint + 1,
+                                        "parameters": trial.parameters, "reason": "validation",
+                                        "validation_error_before": on_validation[0], "validation_error_with": on_validation[1]})
+                    present.add((best.effect, best.joint))
+                    set_aside.add((best.effect, best.joint))
+                    continue
+                if widening_now is not None:
+                    widening_now = widening
             pick = (rss_v1, p_value, best, gamma, cv, pred_before, pred_after)
             break
         if pick is None:
@@ -943,9 +970,13 @@ def _sign_reversed(found: list[Finding]) -> list[Finding]:
 
 
 def set_aside_sentence(c: dict[str, Any]) -> str:
-    """What the text and the report say of a candidate set aside: by gate (d), or because the
-    final fit turned the sign of its friction or inertia."""
+    """What the text and the report say of a candidate set aside: by gate (d) or (f), or because
+    the final fit turned the sign of its friction or inertia."""
     where = "the arm" if c["joint"] is None else f"joint {c['joint']}"
+    if c.get("reason") == "validation":
+        return (f"{c['effect'].replace('_', ' ')} on {where}: it cleared the held-out tests on the identification data, but on the "
+                f"validation data it takes {where}'s error from {100 * c['validation_error_before']:.3g} % to "
+                f"{100 * c['validation_error_with']:.3g} %: it does not hold beyond the run it was found on")
     if c.get("reason") == "sign":
         name = DISSIPATIVE_PARAMETER[c["effect"]]
         return (f"{c['effect'].replace('_', ' ')} on {where}: it cleared the held-out tests, but refitted with the other findings "
@@ -957,14 +988,21 @@ def set_aside_sentence(c: dict[str, Any]) -> str:
             "the data cannot tell it from a worse model")
 
 
-def _prior_widening(robot: Robot, experiments: list[Prepared], found: list[Finding], load: Array) -> float | None:
-    """How far the prior on the modeled values (identify.prior) must widen to agree with
-    least squares on the model with ``found`` added (``inf``: beyond any width; None: the
-    robot file models no inertial values). A finding that lets least squares wander from the
-    modeled values along what the data barely excite (a tilt trading against the first
-    moments) widens it: the data alone cannot tell that finding from a worse model."""
+def _trial_fit(robot: Robot, experiments: list[Prepared], validation: list[Prepared], found: list[Finding], load: Array) -> IdentificationResult:
+    """The model with ``found`` added, fitted as `identify` fits it and scored on ``validation``.
+    Gate (d) reads how far its prior on the modeled values (identify.prior) had to widen to
+    agree with least squares (``inf``: beyond any width; None: the robot file models no
+    inertial values): a finding that lets least squares wander from the modeled values along
+    what the data barely excite (a tilt trading against the first moments) widens it, and the
+    data alone cannot tell that finding from a worse model. Gate (f) reads its validation error."""
     model, options = findings_model(robot, found)
-    return _widening(identify(model, experiments, None, replace(options, covariance="white", load_parameters=tuple(load))))
+    return identify(model, experiments, validation, replace(options, covariance="white", load_parameters=tuple(load)))
+
+
+def _validation_error(result: IdentificationResult, joint: int | None) -> float:
+    """``result``'s relative error on the validation data: joint ``joint``'s, or the arm's."""
+    assert result.validation is not None
+    return float(result.validation["relative_error"] if joint is None else result.validation["relative"][joint])
 
 
 def _widening(result: IdentificationResult) -> float | None:
