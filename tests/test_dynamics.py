@@ -148,6 +148,32 @@ def test_urdf_robots_match_pinocchio_on_the_urdf_itself(name):  # type: ignore[n
     assert np.abs(got - ref).max() <= 1e-9 * np.abs(ref).max()
 
 
+@pytest.mark.parametrize("listed", [[0, 1, 2, 3, 4, 5], [0, 1, 2, 4, 5, 6]])
+def test_urdf_joints_the_robot_file_does_not_list_are_held_at_zero(listed, tmp_path):  # type: ignore[no-untyped-def]
+    """As Pinocchio's model of the URDF with those joints locked at zero: a gripper's or a last
+    wrist joint's link merged into its parent's (silently), a joint left out mid-chain warned about."""
+    import warnings
+
+    names = [f"lwr_{i}_joint" for i in range(7)]
+    (tmp_path / "kuka_lwr4.urdf").write_text((ROBOTS / "kuka_lwr4.urdf").read_text())
+    joints = ", ".join(f"{{name: {names[i]}}}" for i in listed)
+    (tmp_path / "r.yaml").write_text(f"name: part\nurdf: kuka_lwr4.urdf\ngravity: [0, 0, -9.81]\njoints: [{joints}]\n")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        robot = load_robot(tmp_path / "r.yaml")
+    skipped = [n for i, n in enumerate(names) if i not in listed and i < max(listed)]
+    said = [str(w.message) for w in caught if "not listed" in str(w.message)]
+    assert (said and all(n in said[0] for n in skipped)) if skipped else not said, said
+    full = pin.buildModelFromUrdf(str(ROBOTS / "kuka_lwr4.urdf"))
+    model = pin.buildReducedModel(full, [full.getJointId(n) for i, n in enumerate(names) if i not in listed], pin.neutral(full))
+    model.gravity.linear = robot.gravity
+    data = model.createData()
+    q, qd, qdd = random_motion(15, robot.n_joints, seed=8)
+    ref = np.array([pin.rnea(model, data, q[k], qd[k], qdd[k]) for k in range(15)])
+    got = dyn.regressor(robot, q, qd, qdd) @ robot.modeled_parameters()
+    assert np.abs(got - ref).max() <= 1e-9 * np.abs(ref).max()
+
+
 def test_shape_errors_name_the_array():  # type: ignore[no-untyped-def]
     robot = random_robot(3, "dh", None, seed=1)
     with pytest.raises(ValueError, match="qd must be"):

@@ -252,6 +252,35 @@ def _joint_axis(jm: Any, revolute: bool) -> np.ndarray:
     return axis / np.linalg.norm(axis)
 
 
+def _lock_unlisted(model: Any, joints_doc: list[Any], src: str, urdf: Path) -> Any:
+    """The URDF's model with the joints the robot file does not list locked at zero, their
+    links merged into their parents' (a gripper's fingers into the hand, an unrecorded torso
+    into the base), as a recording of the listed joints sees them. A locked joint between the
+    base and the last listed one is warned about: if it moves, the model is wrong."""
+    import pinocchio as pin
+
+    for k, j in enumerate(joints_doc):
+        if not isinstance(j, dict) or "name" not in j:
+            raise RobotFileError(src, f"joints[{k}]", "must be a mapping with the URDF joint's name")
+        if not model.existJointName(str(j["name"])):
+            movable = [model.names[i] for i in range(1, model.njoints)]
+            raise RobotFileError(src, f"joints[{k}].name", f"no joint {j['name']!r} in {urdf.name} (movable joints: {', '.join(movable)})")
+    listed = [model.getJointId(str(j["name"])) for j in joints_doc]
+    unlisted = [i for i in range(1, model.njoints) if i not in listed]
+    if not unlisted:
+        return model
+    upstream = set()
+    for jid in listed:  # every joint on the way from the base to a listed one
+        while jid > 0:
+            upstream.add(jid)
+            jid = model.parents[jid]
+    skipped = [model.names[i] for i in unlisted if i in upstream]
+    if skipped:
+        warnings.warn(f"{src}: joints: not listed, yet between the base and the listed joints of {urdf.name}: {', '.join(skipped)}; "
+                      "held at zero (list each that moves)", ImplausibleDataWarning, stacklevel=3)
+    return pin.buildReducedModel(model, unlisted, pin.neutral(model))
+
+
 def _urdf_joints(doc: dict[str, Any], joints_doc: list[Any], src: str, base_dir: Path) -> list[Joint]:
     """Joints matched by name in a URDF loaded through Pinocchio (link frame = child frame)."""
     import pinocchio as pin
@@ -263,19 +292,15 @@ def _urdf_joints(doc: dict[str, Any], joints_doc: list[Any], src: str, base_dir:
         model = pin.buildModelFromUrdf(str(urdf))
     except Exception as err:  # Pinocchio raises ValueError/RuntimeError on a bad URDF
         raise RobotFileError(src, "urdf", f"{urdf}: not a loadable URDF ({err})") from err
+    model = _lock_unlisted(model, joints_doc, src, urdf)
     joints = []
     previous = 0
     for k, j in enumerate(joints_doc):
         where = f"joints[{k}]"
-        if not isinstance(j, dict) or "name" not in j:
-            raise RobotFileError(src, where, "must be a mapping with the URDF joint's name")
         extra = set(j) - {"name", "type", "torque_constant", "limits", "inertial"}
         if extra:
             raise RobotFileError(src, _field(where, sorted(extra)[0]), "not allowed with urdf (kinematics come from the URDF)")
         name = str(j["name"])
-        if not model.existJointName(name):
-            movable = [model.names[i] for i in range(1, model.njoints)]
-            raise RobotFileError(src, _field(where, "name"), f"no joint {name!r} in {urdf.name} (movable joints: {', '.join(movable)})")
         jid = model.getJointId(name)
         if model.parents[jid] != previous:
             raise RobotFileError(src, _field(where, "name"), f"{name!r} does not follow the previous joint in the chain of {urdf.name}")
