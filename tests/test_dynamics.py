@@ -138,11 +138,14 @@ def test_planar_two_link_closed_form():  # type: ignore[no-untyped-def]
 
 @pytest.mark.parametrize("name", ["ur5", "kuka_lwr4"])
 def test_urdf_robots_match_pinocchio_on_the_urdf_itself(name):  # type: ignore[no-untyped-def]
-    robot = load_robot(ROBOTS / f"{name}.yaml")
-    model = pin.buildModelFromUrdf(str(ROBOTS / f"{name}.urdf"))
+    _matches_pinocchio(load_robot(ROBOTS / f"{name}.yaml"), pin.buildModelFromUrdf(str(ROBOTS / f"{name}.urdf")), seed=7)
+
+
+def _matches_pinocchio(robot, model, seed):  # type: ignore[no-untyped-def]
+    """The robot's modeled torque (eq. 18) against ``pin.rnea`` on ``model`` at random states."""
     model.gravity.linear = robot.gravity
     data = model.createData()
-    q, qd, qdd = random_motion(15, robot.n_joints, seed=7)
+    q, qd, qdd = random_motion(15, robot.n_joints, seed=seed)
     ref = np.array([pin.rnea(model, data, q[k], qd[k], qdd[k]) for k in range(15)])
     got = dyn.regressor(robot, q, qd, qdd) @ robot.modeled_parameters()
     assert np.abs(got - ref).max() <= 1e-9 * np.abs(ref).max()
@@ -166,12 +169,7 @@ def test_urdf_joints_the_robot_file_does_not_list_are_held_at_zero(listed, tmp_p
     assert (said and all(n in said[0] for n in skipped)) if skipped else not said, said
     full = pin.buildModelFromUrdf(str(ROBOTS / "kuka_lwr4.urdf"))
     model = pin.buildReducedModel(full, [full.getJointId(n) for i, n in enumerate(names) if i not in listed], pin.neutral(full))
-    model.gravity.linear = robot.gravity
-    data = model.createData()
-    q, qd, qdd = random_motion(15, robot.n_joints, seed=8)
-    ref = np.array([pin.rnea(model, data, q[k], qd[k], qdd[k]) for k in range(15)])
-    got = dyn.regressor(robot, q, qd, qdd) @ robot.modeled_parameters()
-    assert np.abs(got - ref).max() <= 1e-9 * np.abs(ref).max()
+    _matches_pinocchio(robot, model, seed=8)
 
 
 def test_shape_errors_name_the_array():  # type: ignore[no-untyped-def]
