@@ -153,6 +153,18 @@ def _read_checked(path: str, robot: Any) -> Any:
     return rec
 
 
+def _check_model(robot: Any, paths: list[str], prepared: list[Any]) -> None:
+    """Each recording's torque against the robot file's modeled torque (sign, scale); warnings held."""
+    from armid.identify.identification import modeled_torque
+    from armid.identify.plausibility import check_against_model
+
+    for path, prep in zip(paths, prepared):
+        pair = modeled_torque(robot, prep)
+        if pair is not None:
+            for warning in check_against_model(*pair, path):
+                _WARNINGS.show(warning, None, "", 0)
+
+
 def _identify(args: argparse.Namespace) -> int:
     from armid.identify.identification import IdentifyOptions, identify
     from armid.identify.preprocess import PrepareOptions, prepare
@@ -166,6 +178,7 @@ def _identify(args: argparse.Namespace) -> int:
     _check_lowpass(args.lowpass, raw + raw_validation)
     experiments = [prepare(r, robot, options) for r in raw]
     validation = [prepare(r, robot, options) for r in raw_validation]
+    _check_model(robot, list(args.data) + list(args.validate or []), experiments + validation)
     _inputs_read()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", PoorExcitationWarning)
@@ -240,6 +253,7 @@ def _diagnose(args: argparse.Namespace) -> int:
     _check_lowpass(args.lowpass, raw + raw_validation)
     experiments = [prepare(r, robot, options) for r in raw]
     validation = [prepare(r, robot, options) for r in raw_validation]
+    _check_model(robot, list(args.data) + list(args.validate or []), experiments + validation)
     _inputs_read()
     for path, prep in zip(list(args.data) + list(args.validate), experiments + validation):
         for note in prep.notes:

@@ -170,6 +170,18 @@ def random_motion(robot: Robot, n_samples: int, seed: int = 0) -> tuple[Array, A
     return q, rng.normal(size=q.shape), rng.normal(size=q.shape)
 
 
+def modeled_torque(robot: Robot, prepared: Prepared, most: int = 5000) -> tuple[Array, Array] | None:
+    """The measured torque and the robot file's modeled rigid-body torque at up to ``most``
+    evenly spaced samples of a prepared recording (None when it models no inertials): what
+    :func:`identify.plausibility.check_against_model` compares."""
+    phi = robot.modeled_parameters()
+    if np.isnan(phi).any() or not prepared.segments:
+        return None
+    q, qd, qdd, tau = (np.concatenate([getattr(s, k) for s in prepared.segments]) for k in ("q", "qd", "qdd", "tau"))
+    take = np.unique(np.linspace(0, q.shape[0] - 1, min(most, q.shape[0])).astype(int))
+    return tau[take], regressor(robot, q[take], qd[take], qdd[take]) @ phi
+
+
 def column_count(robot: Robot, effects: list[LinearEffect]) -> int:
     """Columns of eq. (18) with the effects': 10 per link, then each effect's parameters."""
     return robot.n_parameters + sum(len(e.parameter_names) for e in effects)

@@ -152,6 +152,43 @@ def check_time_units(t: Array, q: Array, qd: Array, source: str) -> list[str]:
             "rad/s (m/s)?"]
 
 
+SIGN_CORRELATION = -0.9
+"""A joint whose torque correlates below this with the modeled rigid body's runs opposite to it
+(the KUKA LWR4+'s light wrist joints 5 and 7 correlate -0.7 with their CAD model: a poor model
+of a torque that friction and cables dominate, not a flipped sign)."""
+
+SCALE_BAND = (0.2, 5.0)
+"""Measured over modeled torque outside this band (with correlation above SCALE_CORRELATION)
+is a unit, a gear ratio or a torque constant, not a CAD value off by tens of percent."""
+
+SCALE_CORRELATION = 0.9
+
+
+def check_against_model(tau: Array, modeled: Array, source: str) -> list[str]:
+    """Warnings for joints whose measured torque runs opposite to the robot file's modeled
+    rigid-body torque at the same samples, or is many times it: a sensor's sign convention,
+    mN*m, a missing torque constant or gear ratio. Friction and offsets are not modeled, so
+    only the varying part is compared, and only where the modeled torque varies at all."""
+    ok = np.isfinite(tau).all(axis=1) & np.isfinite(modeled).all(axis=1)
+    tau, modeled = tau[ok] - tau[ok].mean(axis=0), modeled[ok] - modeled[ok].mean(axis=0)
+    if tau.shape[0] < 10:
+        return []
+    spread_m, spread_t = np.sqrt(np.mean(modeled**2, axis=0)), np.sqrt(np.mean(tau**2, axis=0))
+    out = []
+    for j in range(tau.shape[1]):
+        if spread_m[j] <= 1e-6 * spread_m.max() or spread_t[j] == 0:
+            continue
+        r = float(np.mean(tau[:, j] * modeled[:, j]) / (spread_m[j] * spread_t[j]))
+        scale = float(np.mean(tau[:, j] * modeled[:, j]) / spread_m[j] ** 2)
+        if r < SIGN_CORRELATION:
+            out.append(f"{source}: column tau{j + 1}: joint {j + 1}'s torque runs opposite to the robot file's modeled torque "
+                       f"(correlation {r:.2f}): is the sensor's or the torque constant's sign the model's?")
+        elif r > SCALE_CORRELATION and not SCALE_BAND[0] <= scale <= SCALE_BAND[1]:
+            out.append(f"{source}: column tau{j + 1}: joint {j + 1} measures {scale:.3g} times the robot file's modeled torque "
+                       f"(correlation {r:.2f}): is it in N*m (not mN*m), and its torque_constant (gear ratio included) right?")
+    return out
+
+
 def _span(x: Array) -> Array:
     """Per column max - min over the finite entries (0 for a column without two of them)."""
     x = np.asarray(x, float)

@@ -191,8 +191,14 @@ def garbage_rows(rec: Recording, robot: Robot) -> tuple[Array, list[str]]:
         impossible[keep[2:-2]] = np.any(jump, axis=1)
         _flag(bad, impossible, "position jump beyond the joint's velocity limit", lines, notes)
     tmax = np.array([j.limits.torque if j.limits.torque else np.inf for j in robot.joints])
-    over = np.any(np.abs(rec.tau) > 5.0 * tmax, axis=1) & ~bad
-    _flag(bad, over, "torque beyond 5x the joint's torque limit", lines, notes)
+    beyond = np.abs(rec.tau) > 5.0 * tmax
+    over = np.any(beyond, axis=1) & ~bad
+    reason = "torque beyond 5x the joint's torque limit"
+    if over.sum() > 0.5 * max(int((~bad).sum()), 1):  # not spikes: the torque's unit or scale
+        worst = int(np.argmax(beyond[~bad].mean(axis=0)))
+        reason += (f" (joint {worst + 1}'s median |torque| {float(np.median(np.abs(rec.tau[~bad, worst]))):.4g} against its limit "
+                   f"{tmax[worst]:g}: is the torque in N*m, or the current scaled by the right torque_constant?)")
+    _flag(bad, over, reason, lines, notes)
     return bad, notes
 
 
@@ -214,7 +220,8 @@ def prepare(rec: Recording, robot: Robot, options: PrepareOptions | None = None)
     notes += garbage_notes
     keep = ~bad
     if keep.sum() < options.min_segment_samples:
-        raise RecordingError(rec.source, f"only {int(keep.sum())} usable rows of {rec.n_samples}")
+        why = "; ".join(garbage_notes) if garbage_notes else "too few rows"
+        raise RecordingError(rec.source, f"only {int(keep.sum())} usable rows of {rec.n_samples}: {why}")
     t = rec.t[keep]
     q = rec.q[keep]
     tau = rec.tau[keep]

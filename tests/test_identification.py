@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -140,6 +141,24 @@ def test_kuka_lwr4_real_data_identifies_and_validates(tmp_path):  # type: ignore
     # the identified model must beat the CAD model with friction reported for this data
     published_rms = [0.36, 1.55, 0.49, 0.98, 0.63, 0.49, 0.27]
     assert np.all(np.array(doc["validation"]["rms"]) < published_rms)
+
+
+@pytest.mark.skipif(not (SHARED / "data" / "kuka_lwr4" / "measurements_1.npz").exists(), reason="shared KUKA data not beside the repository")
+def test_a_torque_unlike_the_model_is_warned_about(tmp_path, capsys):  # type: ignore[no-untyped-def]
+    """Parses, is plausible row by row, and identifies: a sensor's flipped sign or a missing
+    torque constant shows only against the robot file's modeled torque. The KUKA's own
+    recordings, whose light wrist joints 5 and 7 correlate -0.7 with their CAD model, are not
+    warned about."""
+    whole = {k: v[:2500] for k, v in np.load(SHARED / "data" / "kuka_lwr4" / "measurements_1.npz").items()}
+    cases = {"plain.npz": (whole["torques"], None),
+             "flipped.npz": (whole["torques"] * np.array([1, -1, 1, 1, 1, 1, 1]),
+                             r"flipped\.npz: column tau2: joint 2's torque runs opposite to the robot file's modeled torque"),
+             "amps.npz": (whole["torques"] * 0.05, r"amps\.npz: column tau2: joint 2 measures 0\.0[45]\d* times the robot file's modeled torque.*torque_constant")}
+    for name, (tau, said) in cases.items():
+        np.savez(tmp_path / name, **(whole | {"torques": tau}))
+        assert main(["identify", str(tmp_path / name), "--robot", str(ROBOTS / "kuka_lwr4.yaml")]) == 0
+        err = capsys.readouterr().err
+        assert re.search(said, err) if said else "modeled torque" not in err, err
 
 
 @pytest.mark.skipif(not (SHARED / "data" / "kuka_lwr4" / "measurements_1.npz").exists(), reason="shared KUKA data not beside the repository")
