@@ -143,10 +143,12 @@ class Prepared:
 
 def unwrap_continuous(rec: Recording, robot: Robot) -> Recording:
     """Undo the 2 pi wraps a logger puts in a continuous joint's angle (a revolute joint with no
-    position limits, logged in (-pi, pi]): a step over pi between samples is a wrap, not motion,
-    and left in it would be dropped as a jump and split the record. The rigid body is periodic in
-    the angle, so unwrapping changes no torque; a recording without wraps is returned as is."""
-    free = [k for k, j in enumerate(robot.joints) if j.revolute and j.limits.position is None]
+    position limits, or limits more than a turn apart, logged in (-pi, pi]): a step over pi
+    between samples is a wrap, not motion, and left in it would be dropped as a jump and split
+    the record. The rigid body is periodic in the angle, so unwrapping changes no torque; a
+    recording without wraps is returned as is."""
+    free = [k for k, j in enumerate(robot.joints)
+            if j.revolute and (j.limits.position is None or j.limits.position[1] - j.limits.position[0] > 2 * np.pi)]
     if not free or rec.n_samples < 2:
         return rec
     q = rec.q.copy()

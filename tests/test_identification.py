@@ -162,20 +162,27 @@ def test_a_torque_unlike_the_model_is_warned_about(tmp_path, capsys):  # type: i
 
 
 @pytest.mark.skipif(not (SHARED / "data" / "kuka_lwr4" / "measurements_1.npz").exists(), reason="shared KUKA data not beside the repository")
-def test_continuous_joints_and_their_wrapped_angles(tmp_path):  # type: ignore[no-untyped-def]
+@pytest.mark.parametrize("kind", ["continuous", "limits 200 rad apart"])
+def test_continuous_joints_and_their_wrapped_angles(kind, tmp_path):  # type: ignore[no-untyped-def]
     """A URDF's continuous joints (Pinocchio's cos/sin joints) are revolute joints without
-    position limits, and a logger's (-pi, pi] wraps of their angle are undone: the KUKA's base
-    joint turns about gravity, so its recording turned by 2.5 rad and wrapped must identify
-    exactly as the recording itself."""
+    position limits, and a logger's (-pi, pi] wraps of their angle are undone, as for a joint
+    whose limits are more than a turn apart (Kinova's +-100 rad): the KUKA's base joint turns
+    about gravity, so its recording turned by 2.5 rad and wrapped must identify exactly as the
+    recording itself."""
     data = SHARED / "data" / "kuka_lwr4"
     urdf = (ROBOTS / "kuka_lwr4.urdf").read_text()
-    (tmp_path / "continuous.urdf").write_text(urdf.replace('type="revolute"', 'type="continuous"'))
+    if kind == "continuous":
+        urdf = urdf.replace('type="revolute"', 'type="continuous"')
+    else:
+        urdf = urdf.replace('lower="-2.96705972839" upper="2.96705972839"', 'lower="-100" upper="100"', 1)
+    (tmp_path / "continuous.urdf").write_text(urdf)
     yaml = (ROBOTS / "kuka_lwr4.yaml").read_text().replace("urdf: kuka_lwr4.urdf", "urdf: continuous.urdf")
     assert "continuous.urdf" in yaml
     (tmp_path / "continuous.yaml").write_text(yaml)
     plain, continuous = load_robot(ROBOTS / "kuka_lwr4.yaml"), load_robot(tmp_path / "continuous.yaml")
+    assert continuous.joints[0].limits.position == (None if kind == "continuous" else (-100.0, 100.0))
     for a, b in zip(plain.joints, continuous.joints):
-        assert a.revolute and b.revolute and b.limits.position is None and a.limits.position is not None
+        assert a.revolute and b.revolute and a.limits.position is not None
         np.testing.assert_allclose(b.axis, a.axis, atol=1e-12)
         np.testing.assert_allclose(b.pre, a.pre, atol=1e-12)
         assert b.inertial == a.inertial
