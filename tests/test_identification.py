@@ -144,6 +144,29 @@ def test_kuka_lwr4_real_data_identifies_and_validates(tmp_path):  # type: ignore
 
 
 @pytest.mark.skipif(not (SHARED / "data" / "kuka_lwr4" / "measurements_1.npz").exists(), reason="shared KUKA data not beside the repository")
+def test_a_urdf_inertia_with_a_negative_moment_is_a_warning(tmp_path, capsys):  # type: ignore[no-untyped-def]
+    """CAD exports round products of inertia: a URDF's non-positive-semi-definite tensor warns
+    (it is only the prior) instead of refusing the robot, and the physically consistent fit
+    still runs. Written in the robot file itself, it is refused (test_fuzz)."""
+    urdf = (ROBOTS / "kuka_lwr4.urdf").read_text()
+    bad = '<inertia ixx="0.01845" ixy="0.02" ixz="0" iyy="0.00405" iyz="0" izz="0.01602"/>'
+    urdf = urdf.replace('<inertia ixx="0.01845" ixy="0" ixz="0" iyy="0.00405" iyz="0" izz="0.01602"/>', bad, 1)
+    assert bad in urdf
+    (tmp_path / "kuka_lwr4.urdf").write_text(urdf)
+    (tmp_path / "r.yaml").write_text((ROBOTS / "kuka_lwr4.yaml").read_text())
+    whole = dict(np.load(SHARED / "data" / "kuka_lwr4" / "measurements_1.npz"))
+    np.savez(tmp_path / "a.npz", **{k: v[:2500] for k, v in whole.items()})
+    np.savez(tmp_path / "b.npz", **{k: v[2500:4000] for k, v in whole.items()})
+    out = tmp_path / "f.json"
+    assert main(["identify", str(tmp_path / "a.npz"), "--robot", str(tmp_path / "r.yaml"), "--validate", str(tmp_path / "b.npz"),
+                 "--feasible", "--json", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert re.search(r"joints\[0\] \(kuka_lwr4\.urdf\)\.inertia: not positive semi-definite.*used as the prior", err), err
+    feasible = json.loads(out.read_text())["feasible"]
+    assert feasible["status"] == "optimal" and feasible["feasible"]["consistent"] and feasible["feasible"]["validation"]["relative_error"] < 0.05
+
+
+@pytest.mark.skipif(not (SHARED / "data" / "kuka_lwr4" / "measurements_1.npz").exists(), reason="shared KUKA data not beside the repository")
 def test_a_torque_unlike_the_model_is_warned_about(tmp_path, capsys):  # type: ignore[no-untyped-def]
     """Parses, is plausible row by row, and identifies: a sensor's flipped sign or a missing
     torque constant shows only against the robot file's modeled torque. The KUKA's own

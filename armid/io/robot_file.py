@@ -189,17 +189,23 @@ def _inertial(doc: Any, src: str, where: str) -> Inertial:
     return inertial
 
 
-def check_physical(inertial: Inertial, src: str, where: str) -> None:
+def check_physical(inertial: Inertial, src: str, where: str, refuse: bool = True) -> None:
     """Refuse a negative mass or principal moment; warn when the principal moments break the
-    triangle inequality (no rigid body has them, but published tables do)."""
+    triangle inequality (no rigid body has them, but published tables do). With ``refuse``
+    False (a URDF's own values, which CAD exports round), a negative moment warns too: the
+    values only serve as the prior, and the physically consistent fit replaces them there."""
     if inertial.mass_kg < 0:
         raise RobotFileError(src, _field(where, "mass"), f"must not be negative, got {inertial.mass_kg}")
     moments = np.linalg.eigvalsh(inertia_matrix(np.asarray(inertial.inertia_kgm2, float)))
     tol = 1e-9 * max(float(np.abs(moments).max()), 1e-12)
     shown = ", ".join(f"{m:.6g}" for m in moments)
     if moments[0] < -tol:
-        raise RobotFileError(src, _field(where, "inertia"), f"not positive semi-definite (principal moments {shown}): "
-                                                            "no body has a negative moment of inertia")
+        problem = f"not positive semi-definite (principal moments {shown}): no body has a negative moment of inertia"
+        if refuse:
+            raise RobotFileError(src, _field(where, "inertia"), problem)
+        warnings.warn(f"{src}: {_field(where, 'inertia')}: {problem}; used as the prior all the same (--feasible replaces it there)",
+                      ImplausibleDataWarning, stacklevel=2)
+        return
     if moments[0] + moments[1] < moments[2] - tol:
         warnings.warn(f"{src}: {_field(where, 'inertia')}: principal moments {shown} break the triangle inequality "
                       f"({moments[0]:.6g} + {moments[1]:.6g} < {moments[2]:.6g}): not a physical rigid body",
@@ -329,7 +335,7 @@ def _urdf_joints(doc: dict[str, Any], joints_doc: list[Any], src: str, base_dir:
             if said is not kind:
                 raise RobotFileError(src, _field(where, "type"), f"{said.value} here, but {urdf.name} makes {name!r} {kind.value}")
         if "inertial" not in j:  # the file's own inertial replaces the URDF's, and is checked as read
-            check_physical(inertial, src, f"{where} ({urdf.name})")
+            check_physical(inertial, src, f"{where} ({urdf.name})", refuse=False)
         joints.append(Joint(name, kind, placement, axis, np.eye(4), *_joint_extras(j, src, where, limits, inertial)))
         previous = jid
     return joints
