@@ -344,6 +344,21 @@ def test_bad_robot(case: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
     assert_clean_error(*run(["identify", str(EXAMPLE), "--robot", str(bad)], capsys), expect)
 
 
+@pytest.mark.parametrize("name, text, said", [
+    ("arm.urdf.xacro", '<robot xmlns:xacro="http://www.ros.org/wiki/xacro" name="a"><xacro:arm prefix=""/></robot>\n',
+     r"arm\.urdf\.xacro: not a loadable URDF \(a xacro file: expand it first.*\(Error: No link elements found"),
+    ("cut.urdf", '<robot name="a"><link name="b"><inertial><mass value="1"/>\n', r"cut\.urdf: not a loadable URDF"),
+])
+def test_an_unreadable_urdf_is_one_line_whatever_its_parser_prints(name: str, text: str, said: str, tmp_path: Path) -> None:
+    """urdfdom (C++) writes its complaint to file descriptor 2 itself; armid holds it and quotes it."""
+    (tmp_path / name).write_text(text)
+    (tmp_path / "r.yaml").write_text(f"name: a\nurdf: {name}\njoints: [{{name: j1}}]\n")
+    proc = subprocess.run([sys.executable, "-m", "armid.cli", "identify", str(EXAMPLE), "--robot", str(tmp_path / "r.yaml")],
+                          capture_output=True, text=True)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and re.search(said, lines[0]), proc.stderr
+
+
 def test_urdf_robot_repeating_its_urdf_is_accepted(tmp_path: Path) -> None:
     from armid.io.robot_file import load_robot
 

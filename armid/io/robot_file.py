@@ -14,7 +14,12 @@ inertia is refused. Principal moments that break the triangle inequality
 
 from __future__ import annotations
 
+import contextlib
+import os
+import sys
+import tempfile
 import warnings
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -287,6 +292,24 @@ def _lock_unlisted(model: Any, joints_doc: list[Any], src: str, urdf: Path) -> A
     return pin.buildReducedModel(model, unlisted, pin.neutral(model))
 
 
+@contextlib.contextmanager
+def _stderr_of_c_code() -> Iterator[Callable[[], list[str]]]:
+    """Hold what C++ code (urdfdom) writes to file descriptor 2 while parsing: a bad URDF then
+    ends in armid's one error line, which quotes the parser's first line of complaint."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile(mode="w+b") as held:
+        os.dup2(held.fileno(), 2)
+        lines: list[str] = []
+        try:
+            yield lambda: lines
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            held.seek(0)
+            lines += [" ".join(x.split()) for x in held.read().decode(errors="replace").splitlines() if x.strip()]
+
+
 def _urdf_joints(doc: dict[str, Any], joints_doc: list[Any], src: str, base_dir: Path) -> list[Joint]:
     """Joints matched by name in a URDF loaded through Pinocchio (link frame = child frame)."""
     import pinocchio as pin
@@ -294,10 +317,16 @@ def _urdf_joints(doc: dict[str, Any], joints_doc: list[Any], src: str, base_dir:
     urdf = base_dir / str(doc["urdf"])
     if not urdf.exists():
         raise RobotFileError(src, "urdf", f"no such file {urdf}")
-    try:
-        model = pin.buildModelFromUrdf(str(urdf))
-    except Exception as err:  # Pinocchio raises ValueError/RuntimeError on a bad URDF
-        raise RobotFileError(src, "urdf", f"{urdf}: not a loadable URDF ({err})") from err
+    with _stderr_of_c_code() as parser_said:
+        try:
+            model = pin.buildModelFromUrdf(str(urdf))
+            err = None
+        except Exception as caught:  # Pinocchio raises ValueError/RuntimeError on a bad URDF
+            err = caught
+    if err is not None:
+        hint = " (a xacro file: expand it first, `xacro robot.urdf.xacro > robot.urdf`)" if urdf.name.endswith(".xacro") else ""
+        said = " ".join(parser_said()[:1])
+        raise RobotFileError(src, "urdf", f"{urdf}: not a loadable URDF{hint} ({said or err})") from err
     model = _lock_unlisted(model, joints_doc, src, urdf)
     joints = []
     previous = 0
