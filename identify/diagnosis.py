@@ -329,7 +329,7 @@ class Diagnosis:
         return {"found": [f.to_json() for f in self.found], "absorbed": self.absorbed, "declared": self.base_effects,
                 "set_aside": self.conflicting, "extrapolated": self.extrapolated,
                 "before": self.before, "after": self.after, "noise_floor": self.noise_floor,
-                "chosen_on": "the identification data: fitted on its even tenths, scored on its odd tenths; a finding that does "
+                "chosen_on": "the identification data: fitted on its even tenths, scored on its odd tenths; a finding that "
                              "raises its joint's error on the validation data consistently (over its tenths) is set aside (a veto, never a ranking)",
                 "measured_on": "the validation data (before and after), at every sample's own stamp against the raw torque"}
 
@@ -559,9 +559,9 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     beta = beta0
     conflicting: list[dict[str, Any]] = []
     settled = _settled(robot0, result0)
-
+    # exact fits of the declared model with findings (gates d and f), and their residuals at
+    # the validation stamps, by the findings' effects, joints and parameters
     fits: dict[str, IdentificationResult] = {}
-
     residuals: dict[str, Array] = {}
     validation_segments = [sg for p in validation for sg in p.segments]
 
@@ -770,6 +770,7 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
                 on_validation = (_validation_error(trial_fit(found), best.joint), _validation_error(fit_with, best.joint))
                 t_stat = _worse_on_validation(validation_residual(found), validation_residual(found + [trial]), best.joint)
                 if t_stat > stats.t.isf(opts.veto_alpha, VETO_BLOCKS - 1):
+                    residuals.pop(key_of(found + [trial]), None)  # a validation-length array no later round needs
                     conflicting.append({"effect": best.effect, "joint": None if best.joint is None else best.joint + 1,
                                         "parameters": trial.parameters, "reason": "validation",
                                         "validation_error_before": on_validation[0], "validation_error_with": on_validation[1],

@@ -161,7 +161,7 @@ def unwrap_continuous(rec: Recording, robot: Robot) -> Recording:
         wrapped.append(robot.joints[k].name)
     if not wrapped:
         return rec
-    note = f"unwrapped the 2 pi wraps of continuous joint(s) {', '.join(wrapped)}"
+    note = f"unwrapped the 2 pi wraps of joint(s) {', '.join(wrapped)}"
     return replace(rec, q=q, notes=[*rec.notes, note])
 
 

@@ -3,11 +3,13 @@
 Precedence for a URDF-based file: values the YAML gives for a joint (``limits``,
 ``inertial``, ``torque_constant``) override the URDF's; everything else comes from the URDF.
 A joint's ``type`` beside ``urdf:`` may repeat what the URDF says; one that contradicts it is
-refused, naming both. Every problem raises :class:`RobotFileError` naming the file, the
-field and what is wrong.
+refused, naming both. Continuous joints are revolute joints without position limits; the
+URDF's joints the file does not list are locked at zero (Pinocchio's reduced model). Every
+problem raises :class:`RobotFileError` naming the file, the field and what is wrong.
 
 Modeled inertias must be physical: a negative mass or a negative principal moment of
-inertia is refused. Principal moments that break the triangle inequality
+inertia is refused (a URDF's own negative moment only warns: CAD exports round, and the
+values are only the prior). Principal moments that break the triangle inequality
 (``I1 + I2 >= I3``) give an :class:`ImplausibleDataWarning` only: published values often do
 (the PUMA 560's links 1 and 3, Armstrong et al. 1986) and the torques stay well defined.
 """
