@@ -144,11 +144,12 @@ def _write_json(path: Path, doc: Any) -> None:
 def _read_checked(path: str, robot: Any) -> Any:
     """``read_recording`` and the plausibility checks (time units, torque); their warnings are held
     until every input is read."""
-    from armid.identify.plausibility import check_recording
+    from armid.identify.plausibility import check_positions, check_recording
     from armid.io.recordings import read_recording
 
     rec = read_recording(path, robot)
-    for warning in check_recording(rec.t, rec.q, rec.qd, rec.tau, rec.source):
+    limits = [j.limits.position for j in robot.joints]
+    for warning in check_recording(rec.t, rec.q, rec.qd, rec.tau, rec.source) + check_positions(rec.q, limits, [j.revolute for j in robot.joints], rec.source):
         _WARNINGS.show(warning, None, "", 0)
     return rec
 

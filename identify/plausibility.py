@@ -152,6 +152,45 @@ def check_time_units(t: Array, q: Array, qd: Array, source: str) -> list[str]:
             "rad/s (m/s)?"]
 
 
+BEYOND = 0.5
+"""A joint outside its position limits (widened by a tenth of their span) on more than this
+fraction of the samples is not where the robot file says it can be."""
+
+
+def check_positions(q: Array, limits: list[tuple[float, float] | None], revolute: list[bool], source: str) -> list[str]:
+    """Positions against the robot file's position limits. Positions that leave them on most
+    samples, reach five times them, and would fit them all in radians are in degrees: an error
+    (without velocity columns the dq/dt test cannot see it, and a fit on degrees is silently
+    wrong). Positions beyond them otherwise (a controller's other zero, the wrong robot file)
+    are a warning."""
+    q = np.asarray(q, float)
+    ok = np.isfinite(q).all(axis=1)
+    q = q[ok]
+    if q.shape[0] == 0:
+        return []
+
+    def outside(x: Array, j: int) -> float:
+        lo, hi = limits[j]  # type: ignore[misc]
+        margin = 0.1 * (hi - lo)
+        return float(np.mean((x < lo - margin) | (x > hi + margin)))
+
+    bounded = [j for j in range(q.shape[1]) if limits[j] is not None]
+    beyond = {j: outside(q[:, j], j) for j in bounded}
+    far = [j for j in bounded if beyond[j] > BEYOND]
+    if not far:
+        return []
+    # degrees: far beyond (5x the larger limit, more than another zero could put them) and
+    # every joint within its limits as radians
+    if (all(revolute[j] and np.abs(q[:, j]).max() > 5 * max(abs(limits[j][0]), abs(limits[j][1])) for j in far)  # type: ignore[index]
+            and all(outside(np.radians(q[:, j]), j) == 0.0 for j in bounded if revolute[j])):
+        j = far[0]
+        raise RecordingError(source, f"column q{j + 1}: the positions look like degrees: joint {j + 1} reaches "
+                                     f"{np.abs(q[:, j]).max():.4g} against its limits {limits[j][0]:g}..{limits[j][1]:g} rad, "  # type: ignore[index]
+                                     "and every joint's positions fit their limits as radians (convert q to rad)")
+    return [f"{source}: column q{j + 1}: joint {j + 1} is beyond its limits {limits[j][0]:g}..{limits[j][1]:g} "  # type: ignore[index]
+            f"on {100 * beyond[j]:.0f} % of the samples: the controller's zero, the units or the robot file?" for j in far]
+
+
 SIGN_CORRELATION = -0.9
 """A joint whose torque correlates below this with the modeled rigid body's runs opposite to it
 (the KUKA LWR4+'s light wrist joints 5 and 7 correlate -0.7 with their CAD model: a poor model

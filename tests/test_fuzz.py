@@ -93,6 +93,8 @@ CSV_CASES: dict[str, tuple[Callable[[Path], Path], str]] = {
     "constant torque": (lambda p: _recording(p, tau=np.full_like(TAU, 3.0)), r"torque is constant on every joint"),
     "positions in degrees": (lambda p: _recording(p, q=np.degrees(Q)), r"columns q, qd: the positions q look like degrees"),
     "velocities in degrees/s": (lambda p: _recording(p, qd=np.degrees(QD)), r"columns q, qd: the velocities qd look like degrees/s"),
+    "positions in degrees, no velocity": (lambda p: _csv(p, HEADER[:7] + HEADER[13:], np.column_stack([T, np.degrees(Q), TAU]).tolist()),
+                                          r"column q\d: the positions look like degrees.*against its limits"),
     "one moving joint's torque dead": (lambda p: _recording(p, tau=np.column_stack([TAU[:, :5], np.zeros(ROWS)])),
                                        r"column tau6: the torque is constant \(0\) while joint 6 moves"),
     "time reversed": (lambda p: _recording(p, t=T[::-1]), r"column t: time runs backwards"),
@@ -130,6 +132,13 @@ def test_bad_recording(case: str, command: str, tmp_path: Path, capsys: pytest.C
     good = _recording(tmp_path / "good.csv")
     argv = [command, str(bad), "--robot", str(PUMA), "--validate", str(good)]
     assert_clean_error(*run(argv, capsys), expect)
+
+
+def test_positions_beyond_the_limits_are_warned_about(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Joint 2 counted from a zero a turn away: beyond its limits all the time, but not degrees."""
+    q = Q - np.array([0, 2 * np.pi, 0, 0, 0, 0])
+    code, err = run(["identify", str(_recording(tmp_path / "offset.csv", q=q)), "--robot", str(PUMA), "--lowpass", "off"], capsys)
+    assert code == 0 and re.search(r"offset\.csv: column q2: joint 2 is beyond its limits .* the controller's zero", err), err
 
 
 def test_bad_validation_recording(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
