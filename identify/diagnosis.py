@@ -564,6 +564,7 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     fits: dict[str, IdentificationResult] = {}
     residuals: dict[str, Array] = {}
     validation_segments = [sg for p in validation for sg in p.segments]
+    tau_validation = np.concatenate([sg.at_stamps.tau for sg in validation_segments])
 
     def key_of(found: list[Finding]) -> str:
         return repr([(f.effect, f.joint, sorted(f.parameters.items())) for f in found])
@@ -574,15 +575,14 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
         if key not in fits:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", PoorExcitationWarning)
-                fits[key] = _trial_fit(settled, experiments, validation, found, load0)
+                fits[key] = _trial_fit(settled, experiments, found, load0)
         return fits[key]
 
     def validation_residual(found: list[Finding]) -> Array:
         """That fit's residual at every validation stamp, against the raw torque (n, N)."""
         key = key_of(found)
         if key not in residuals:
-            _, tau_v, pred_v = trial_fit(found).predict_stamps(validation_segments)
-            residuals[key] = tau_v - pred_v
+            residuals[key] = tau_validation - trial_fit(found).predict_stamps(validation_segments)[2]
         return residuals[key]
     noise_sd = _noise_levels(experiments, nj)
     widening_now = _widening(result0)
@@ -767,8 +767,10 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
                 # consistently. Tenths of one trajectory share its excitation; a fit's own model
                 # error (the modeled values the prior holds where the data are silent) can look
                 # like a spring on them and on no other run (a clean 100 Hz blind case)
-                on_validation = (_validation_error(trial_fit(found), best.joint), _validation_error(fit_with, best.joint))
-                t_stat = _worse_on_validation(validation_residual(found), validation_residual(found + [trial]), best.joint)
+                res_before, res_with = validation_residual(found), validation_residual(found + [trial])
+                cols = slice(None) if best.joint is None else [best.joint]
+                on_validation = tuple(_rel(tau_validation[:, cols], tau_validation[:, cols] - r[:, cols]) for r in (res_before, res_with))
+                t_stat = _worse_on_validation(res_before, res_with, best.joint)
                 if t_stat > stats.t.isf(opts.veto_alpha, VETO_BLOCKS - 1):
                     residuals.pop(key_of(found + [trial]), None)  # a validation-length array no later round needs
                     conflicting.append({"effect": best.effect, "joint": None if best.joint is None else best.joint + 1,
@@ -1010,15 +1012,16 @@ def set_aside_sentence(c: dict[str, Any]) -> str:
             "the data cannot tell it from a worse model")
 
 
-def _trial_fit(robot: Robot, experiments: list[Prepared], validation: list[Prepared], found: list[Finding], load: Array) -> IdentificationResult:
-    """The model with ``found`` added, fitted as `identify` fits it and scored on ``validation``.
+def _trial_fit(robot: Robot, experiments: list[Prepared], found: list[Finding], load: Array) -> IdentificationResult:
+    """The model with ``found`` added, fitted as `identify` fits it.
     Gate (d) reads how far its prior on the modeled values (identify.prior) had to widen to
     agree with least squares (``inf``: beyond any width; None: the robot file models no
     inertial values): a finding that lets least squares wander from the modeled values along
     what the data barely excite (a tilt trading against the first moments) widens it, and the
-    data alone cannot tell that finding from a worse model. Gate (f) reads its validation error."""
+    data alone cannot tell that finding from a worse model. Gate (f) reads its residual at the
+    validation stamps."""
     model, options = findings_model(robot, found)
-    return identify(model, experiments, validation, replace(options, covariance="white", load_parameters=tuple(load)))
+    return identify(model, experiments, None, replace(options, covariance="white", load_parameters=tuple(load)))
 
 
 VETO_BLOCKS = 10
@@ -1036,12 +1039,6 @@ def _worse_on_validation(before: Array, after: Array, joint: int | None, blocks:
     sums = np.array([b.sum() for b in np.array_split(rise, blocks)])
     spread = float(np.std(sums, ddof=1)) * np.sqrt(blocks)
     return float(np.sum(sums) / spread) if spread > 0 else 0.0
-
-
-def _validation_error(result: IdentificationResult, joint: int | None) -> float:
-    """``result``'s relative error on the validation data: joint ``joint``'s, or the arm's."""
-    assert result.validation is not None
-    return float(result.validation["relative_error"] if joint is None else result.validation["relative"][joint])
 
 
 def _widening(result: IdentificationResult) -> float | None:
