@@ -522,13 +522,15 @@ def _excite_run(args: argparse.Namespace, rig: Any, robot: Any, n: int, simulate
                                           link_periods=args.periods, whole_frequency_hz=args.frequency or 0.2, seed=args.seed,
                                           log=lambda m: console.print(f"  {m}"))
     _write_json(out / "designs.json", {e.name: e.design.to_json() for e in experiments})
-    console.print(f"armid excite: {len(experiments)} trajectories checked against every limit; recording to {out}")
     if args.dry_run:
+        console.print(f"armid excite: {len(experiments)} trajectories checked against every limit (dry run: nothing recorded)")
         return 0
+    console.print(f"armid excite: {len(experiments)} trajectories checked against every limit; recording to {out}")
     # designing can keep this process busy for tens of seconds: only now the drives run with it
     driver, sim = _open_driver(rig, args)
     with ExcitationSession(rig, driver, simulator=sim, tracking_limit_rad=args.tracking_limit, stream=stream) as session:
         holder["session"] = session
+        console.print(f"armid excite: timing: {session.driver.timing_note}")
         moved = float(np.abs(start - session.position).max())
         if moved > 0.02:
             raise UsageError(f"the arm is {moved:.3f} rad from the pose the trajectories were designed from: it moved; run again")
@@ -760,7 +762,9 @@ def _estimate(args: argparse.Namespace) -> int:
             print(_estimate_summary(estimator.n_updates_ if hasattr(estimator, "n_updates_") else 0, docs, seconds, stream), file=sys.stderr)
             return 0
         from armid.daq.payload_service import PayloadService
+        from armid.drivers.realtime import ordinary_priority
 
+        ordinary_priority()  # the arithmetic never at a real-time policy inherited from what started it
         estimator.warm()  # nothing left to run for the first time once records arrive
         session = open_zenoh(args)
         service = PayloadService(session, robot.name, stream, on_estimate=lambda d: out.write(json.dumps(d, allow_nan=False) + "\n"))
@@ -798,10 +802,14 @@ def _serve(args: argparse.Namespace) -> int:
             robot_path = shipped
     robot = load_robot(robot_path)
     _inputs_read()
-    try:  # never slow acquisition on the same machine: the arithmetic runs at a lower priority
-        os.nice(5)
-    except OSError:
-        pass
+    from armid.drivers.realtime import ordinary_priority, realtime_allowed
+
+    ordinary_priority()  # started from a real-time thread, it would have inherited that policy
+    if not realtime_allowed():  # acquisition here runs at real-time priority where allowed; else it needs our nice
+        try:  # never slow acquisition on the same machine: the arithmetic runs at a lower priority
+            os.nice(5)
+        except OSError:
+            pass
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -877,7 +885,8 @@ def _sim_arm(rig: Any, args: argparse.Namespace, stop: Any) -> int:
 
     arm = SimulatedArm(rig, seed=args.seed)
     print(f"armid sim: {rig.name}: {rig.n_joints} drives (nodes {', '.join(str(d.node_id) for d in rig.drives)}) "
-          f"on {rig.bus.interface}:{rig.bus.channel}, lock-step with SYNC at {rig.period_s * 1000:g} ms", file=sys.stderr, flush=True)
+          f"on {rig.bus.interface}:{rig.bus.channel}, lock-step with SYNC at {rig.period_s * 1000:g} ms (co-simulated: a late "
+          f"SYNC pauses the arm); {arm.timing.sentence('simulator threads')}", file=sys.stderr, flush=True)
     if args.ready:
         Path(args.ready).write_text("ready\n")
     try:

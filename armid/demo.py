@@ -20,16 +20,20 @@ import numpy as np
 from armid.drivers.rig import Rig
 from armid.identify import excitation as ex
 from armid.identify.identification import IdentificationResult
-from armid.identify.single_link import SequenceResult
+from armid.identify.single_link import SequenceResult, single_link_sequence
 from armid.io.rig_file import load_rig
 from armid.resources import config_file
+from armid.schema.errors import DriverError, SimulationError
 
 from .experiments import (
     design_experiments,
+    identify_whole_arm,
     prepared_runs,
     run_experiments,
+    service_agreement,
     write_json,
 )
+from .peer import Peer, PeerLink
 from .simulated import excitation_session
 
 DEFAULT_RIG = config_file("rigs/sim.yaml")  # package data: found in a wheel install too
@@ -142,53 +146,31 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0) -> int:
         motion_s = sum(e.plan.duration_s for e in experiments)
         phases.start("runs", f"running the {len(experiments)} experiments on the drives in real time ({motion_s:.0f} s of motion, "
                      "2 ms SYNC over the virtual CAN bus), each recorded as MCAP")
-        # the experiments stream to the estimator service (armid serve) as they run; the
-        # single-link and whole-arm tables are what it publishes
-        import zenoh
-
-        from armid.daq.stream import Stream, session_config
-
-        from .serve import EstimatorService, ServiceOptions
-
-        published: list[dict[str, Any]] = []
-        zsession = zenoh.open(session_config(listen=[], connect=[]))
-        stream = Stream(zsession, robot.name, "demo", lambda: {"component": "demo"})
-        service = EstimatorService(zsession, robot, out / "service", ServiceOptions(whole_arm="drives", payload=False),
-                                   on_publish=published.append)
-        try:
-            with excitation_session(rig, simulate=True, stream=stream) as session:
-                reports = run_experiments(session, experiments, out / "runs", console)
-            write_json(out / "runs.json", [r.to_json() for r in reports])
-            failed = [r for r in reports if not r.completed]
-            if failed:
-                console.print(f"[red]run {failed[0].name} stopped: {failed[0].stop_reason}[/]")
-                return 1
-            phases.start("identify", "identifying: the estimator service's single-link sequence (links 6 to 1) and whole arm "
-                         "(validated on whole_b), both against the simulator's known parameters, then diagnosing the residual")
-            deadline = time.monotonic() + 300
-            while len(published) < len(experiments) and time.monotonic() < deadline:
-                time.sleep(0.1)
-        finally:
-            service.close()
-            stream.close()
-            zsession.close()
-        if len(published) < len(experiments) or "whole_a" not in service.whole_fits or service.sequence is None:
-            raise RuntimeError(f"the estimator service published {len(published)} of {len(experiments)} estimates"
-                               + (f" ({service.errors[0]})" if service.errors else ""))
+        reports, published = _runs_beside_the_service(rig, experiments, out, console)
+        write_json(out / "runs.json", [r.to_json() for r in reports])
+        failed = [r for r in reports if not r.completed]
+        if failed:
+            console.print(f"[red]run {failed[0].name} stopped: {failed[0].stop_reason}[/]")
+            return 1
+        phases.start("identify", "identifying: the single-link sequence (links 6 to 1) and whole arm (validated on whole_b), "
+                     "as the estimator service did, both against the simulator's known parameters, then diagnosing the residual")
         write_json(out / "service.json", published)
         prepared = prepared_runs(reports, robot, rig.period_s)
-        seq = service.sequence
-        whole = service.whole_fits["whole_a"]
-        console.print(f"  the estimator service published {len(published)} estimates; records skipped {service.skipped}, "
-                      f"missing {sum(d['experiment']['missing'] for d in published)}")
+        # the same pipeline as the service's (armid.experiments), on the complete recordings
+        seq = single_link_sequence(robot, {e.link: [prepared[e.name]] for e in experiments if e.link is not None})
+        whole = identify_whole_arm(robot, prepared["whole_a"], [prepared["whole_b"]])
+        agreement = service_agreement(published[-1], whole)
+        console.print(f"  the estimator service published {len(published)} estimates; records it missed "
+                      f"{sum(d['experiment']['missing'] for d in published)}; its whole_a fit against the recording's: "
+                      f"{agreement['max_difference_sigma']:.2g} sigma at most")
         truth = check_against_truth(rig, seq, whole)
         comparison = seq.compare(whole)
         from armid.identify.diagnosis import diagnose
 
         diagnosis = diagnose(robot, [prepared["whole_a"]], [prepared["whole_b"]])
         phases.start("payload", "payload: the identified arm works through whole_a; a 2 kg payload is attached and removed, "
-                     "estimated on-line from the live Zenoh stream")
-        payload = run_payload(rig, whole, experiments[-2].design, out, console)
+                     "estimated on-line from the live Zenoh stream by `armid estimate live` in a process of its own")
+        payload = run_payload(rig, whole.to_json(), experiments[-2].design, out, console)
         phases.start("report", "writing the report and its plots")
         from armid.identify.feasible import feasible_estimate
 
@@ -199,6 +181,7 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0) -> int:
         whole_doc["feasible"] = feasible.to_json()
         write_urdf(out / "identified.urdf", robot, feasible.phi, effect_values(whole_doc["feasible"]))
         doc = {"rig": rig.name, "single_link": seq.to_json(), "whole_arm": whole_doc, "comparison": comparison, "truth_check": truth,
+               "service": agreement,
                "diagnosis": diagnosis.to_json(), "payload": payload, "runs": [r.to_json() for r in reports]}
         write_json(out / "demo.json", doc)
         _write_report(out, rig, experiments, reports, seq, whole, comparison, truth, diagnosis, prepared, payload, whole_doc)
@@ -217,48 +200,57 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0) -> int:
     return 0
 
 
+def _runs_beside_the_service(rig: Rig, experiments: list[Any], out: Path, console: Any) -> tuple[list[Any], list[dict[str, Any]]]:
+    """The experiments on the drives, streamed to ``armid serve`` in a process of its own (as in
+    a lab); its ``estimate/parameters`` documents, one per experiment it identified."""
+    robot = rig.robot
+    link = PeerLink(robot.name, ["serve", "--robot", robot.source, "--whole-arm", "drives", "--no-payload", "--out", str(out / "service"),
+                                 "--json", str(out / "service.jsonl")], out / "service.log", "estimate/parameters", "alive/estimator")
+    try:
+        with excitation_session(rig, simulate=True, stream=link.stream) as session:
+            console.print(f"  timing: {session.driver.timing_note}; the estimator service runs in process {link.peer.proc.pid}")
+            reports = run_experiments(session, experiments, out / "runs", console)
+        expected = len(reports) if all(r.completed for r in reports) else 0
+        link.wait(lambda: len(link.docs) >= expected, 300)
+    finally:
+        link.close()
+    if len(link.docs) < expected:
+        raise SimulationError(f"the estimator service published {len(link.docs)} of {expected} estimates: {link.peer.tail()}")
+    return reports, link.docs
+
+
 DEMO_PAYLOAD = (2.0, (0.02, -0.03, 0.08), (0.004, 0.0, 0.0, 0.004, 0.0, 0.002))
 """Mass (kg), centre of mass in the last link's frame (m), inertia about it (kg m^2)."""
 
 
-def run_payload(rig: Rig, whole: Any, design: Any, out: Path, console: Any, warm: bool = True) -> dict[str, Any]:
+def run_payload(rig: Rig, identification: dict[str, Any], design: Any, out: Path, console: Any) -> dict[str, Any]:
     """Khosla's on-line strategy: the identified arm works through a whole-arm trajectory; a
-    payload is attached 3 s in and removed 4 s later; the estimator listens to the live
-    Zenoh stream (a local session) and publishes its estimates; they are compared with the truth.
+    payload is attached 3 s in and removed 4 s later; ``armid estimate live``, in a process of
+    its own, listens to the live Zenoh stream and publishes its estimates; they are compared
+    with the truth. ``identification`` is the arm's ``armid identify --json`` document.
 
     Everything runs on the arm's clock: the attach and the removal are scheduled in the
     simulated arm at times of its own clock (not when a polling thread gets to them), and
     each "N s after" read-out is the first estimate whose record time is N s after the
-    record on which the event took effect. ``whole`` is the identification (or an
-    :class:`~identify.payload.ArmModel`); ``warm`` runs the estimator once before the arm moves.
+    record on which the event took effect.
     """
     import threading
 
-    import zenoh
-
-    from armid.daq.payload_service import EstimateStream, PayloadService
-    from armid.daq.stream import Stream, session_config
     from armid.identify import excitation as ex
-    from armid.identify.payload import ArmModel, PayloadRLS
     from armid.io.recordings import read_mcap_arrays
     from armid.sim_bus.physics import Payload
 
     robot = rig.robot
     truth = Payload(*DEMO_PAYLOAD)  # type: ignore[arg-type]
-    if isinstance(whole, ArmModel):
-        arm = whole
-    else:
-        arm = ArmModel(robot, tuple(whole.effects), whole.base.independent, whole.estimate.beta, whole.estimate.joint_sigma)
-    estimates: list[dict[str, Any]] = []
-    estimator = PayloadRLS(arm)
-    if warm:
-        estimator.warm()
-    session = zenoh.open(session_config(listen=[], connect=[]))
-    service = PayloadService(session, robot.name, EstimateStream(estimator), on_estimate=estimates.append)
-    stream = Stream(session, robot.name, "demo", lambda: {"component": "demo"})
     run_dir = out / "runs" / "payload"
+    params = out / "identified_arm.json"
+    write_json(params, identification)
+    link = PeerLink(robot.name, ["estimate", "live", "--robot", robot.source, "--params", str(params), "--out",
+                                 str(out / "payload_estimates.jsonl")], out / "payload_estimator.log", "estimate/payload",
+                    "alive/payload_estimator")
+    estimates = link.docs
     try:
-        with excitation_session(rig, simulate=True, stream=stream) as s:
+        with excitation_session(rig, simulate=True, stream=link.stream) as s:
             assert s.arm is not None
             physics = s.arm.physics
             plan = ex.plan(design, s.position, s.limits, periods=2)
@@ -275,17 +267,15 @@ def run_payload(rig: Rig, whole: Any, design: Any, out: Path, console: Any, warm
                 physics.attach_payload(truth, at_time_s=start_s + plan.lead_in_s + 3.0)
                 physics.attach_payload(None, at_time_s=start_s + plan.lead_in_s + 7.0)
             runner.join()
-        deadline = time.monotonic() + 10.0
-        while service.backlog and time.monotonic() < deadline:
-            time.sleep(0.05)
-        time.sleep(0.5)
+            last_time = s.control.last_record.sample.time_s if s.control.last_record is not None else float("inf")
+        _wait_for_estimates(estimates, last_time - 0.1, link.peer)
     finally:
-        service.close()
-        stream.close()
-        session.close()
+        link.close()
     report = box["report"]
+    if not report.completed:
+        raise DriverError(f"payload run stopped: {report.stop_reason}")
     if len(physics.payload_events) != 2 or not estimates:
-        raise RuntimeError(f"payload phase: {len(physics.payload_events)} payload events took effect, {len(estimates)} estimates "
+        raise SimulationError(f"payload phase: {len(physics.payload_events)} payload events took effect, {len(estimates)} estimates "
                            f"(run {'completed' if report.completed else 'stopped: ' + str(report.stop_reason)})")
     # the record on which each event took effect: the step that started at time (k - 1) T is SYNC k
     a, _, _ = read_mcap_arrays(run_dir / "run.mcap")
@@ -306,12 +296,27 @@ def run_payload(rig: Rig, whole: Any, design: Any, out: Path, console: Any, warm
 
     _plot_payload(out, t - t[0], estimates, truth, t_on - t[0], t_off - t[0])
     write_json(out / "payload_estimates.json", estimates)
-    st = service.stream
-    return {"true_mass": truth.mass, "true_com": list(truth.com), "estimates": len(estimates), "skipped": st.skipped, "lost": st.lost,
+    last = estimates[-1]
+    return {"true_mass": truth.mass, "true_com": list(truth.com), "estimates": len(estimates), "skipped": last.get("skipped"),
+            "lost": last.get("lost"), "estimator_process": link.peer.proc.pid,
             "attach_record_time": t_on, "removal_record_time": t_off, "on_for_s": t_off - t_on,
             "negative_mass_published": int(sum(1 for e in estimates if e["mass"] is not None and e["mass"] < 0)),
             "after_attach_1s": at(t_on, 1.0), "after_attach_2s": at(t_on, 2.0), "after_removal_2s": at(t_off, 2.0),
             "report": report.to_json()}
+
+
+def _wait_for_estimates(estimates: list[dict[str, Any]], until_time: float, estimator: Peer, timeout_s: float = 30.0) -> None:
+    """Until the estimator has published on the records up to ``until_time`` (it works through
+    the stream at its own pace, in its own process), or has gone quiet for 2 s."""
+    deadline, quiet_since, seen = time.monotonic() + timeout_s, time.monotonic(), 0
+    while time.monotonic() < deadline and estimator.proc.poll() is None:
+        if estimates and estimates[-1]["record_time"] >= until_time:
+            return
+        if len(estimates) != seen:
+            seen, quiet_since = len(estimates), time.monotonic()
+        elif time.monotonic() - quiet_since > 2.0:
+            return
+        time.sleep(0.05)
 
 
 def _num(x: float | None, scale: float, digits: int) -> str:

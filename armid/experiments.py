@@ -18,6 +18,7 @@ import numpy as np
 
 from armid.daq.excite import ExcitationSession, RunReport
 from armid.identify import excitation as ex
+from armid.identify.identification import IdentificationResult, IdentifyOptions, identify
 from armid.identify.preprocess import Prepared, PrepareOptions, prepare
 from armid.identify.robot import Robot
 from armid.io.recordings import Recording, read_recording
@@ -133,6 +134,37 @@ def excitation_recording(report: RunReport, robot: Robot, period_s: float) -> Re
 
 def prepared_runs(reports: list[RunReport], robot: Robot, period_s: float) -> dict[str, Prepared]:
     return {r.name: prepare(excitation_recording(r, robot, period_s), robot, PREPARE) for r in reports}
+
+
+DRIVE_RUN_OPTIONS = IdentifyOptions(exclude_reversals=True)
+"""How a whole-arm drive run is identified (``armid demo``, ``armid serve --whole-arm drives``):
+on :data:`PREPARE`'s equations, the samples next to a velocity reversal left out."""
+
+
+def identify_whole_arm(robot: Robot, run: Prepared, others: list[Prepared]) -> IdentificationResult:
+    """A whole-arm drive run's fit, validated on the ``others``: the one recipe of the demo and
+    the service (a poorly excited parameter is the design's business, said at design time)."""
+    import warnings
+
+    from armid.identify.errors import PoorExcitationWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PoorExcitationWarning)
+        return identify(robot, [run], others or None, DRIVE_RUN_OPTIONS)
+
+
+def service_agreement(doc: dict[str, Any], whole: IdentificationResult, run: str = "whole_a") -> dict[str, Any]:
+    """The estimator service's published fit of ``run`` against the one made from the complete
+    recording: equal when the service received every record (largest difference in sigmas)."""
+    fit = (doc.get("whole_arm") or {}).get(run) or {}
+    values = np.array([b["value"] for b in fit.get("base_parameters", [])], float)
+    beta, std = whole.estimate.beta, whole.estimate.std
+    if values.shape != beta.shape:
+        return {"run": run, "published": int(values.size), "max_difference_sigma": float("inf")}
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = np.where(std > 0, np.abs(values - beta) / std, 0.0)
+    return {"run": run, "published": int(values.size), "max_difference_sigma": float(np.max(z)),
+            "missing_records": int(doc["experiment"].get("missing", 0)) if doc.get("experiment") else None}
 
 
 def write_json(path: Path, doc: Any) -> None:

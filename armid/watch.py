@@ -88,8 +88,9 @@ def render(state: WatchState, robot: str) -> Any:
     return Group(*parts)
 
 
-def watch(session: Any, robot: str, duration_s: float | None = None, refresh_hz: float = 4.0, console: Any = None) -> WatchState:
-    """Subscribe and render until ``duration_s`` passes (or Ctrl-C)."""
+def watch(session: Any, robot: str, duration_s: float | None = None, refresh_hz: float = 4.0, console: Any = None,
+          stop: Any = None) -> WatchState:
+    """Subscribe and render until ``duration_s`` passes, ``stop`` (a ``threading.Event``) is set, or Ctrl-C."""
     from rich.live import Live
 
     state = WatchState()
@@ -103,7 +104,7 @@ def watch(session: Any, robot: str, duration_s: float | None = None, refresh_hz:
     deadline = None if duration_s is None else time.monotonic() + duration_s
     try:
         with Live(render(state, robot), console=console, refresh_per_second=refresh_hz, transient=False) as live:
-            while deadline is None or time.monotonic() < deadline:
+            while (deadline is None or time.monotonic() < deadline) and not (stop is not None and stop.is_set()):
                 time.sleep(1.0 / refresh_hz)
                 live.update(render(state, robot))
     except KeyboardInterrupt:

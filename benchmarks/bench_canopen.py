@@ -1,12 +1,16 @@
-"""CANopen acquisition at 2 ms with 6 axes: lost cycles, SYNC period p50/p99/max, CPU per cycle.
+"""CANopen acquisition at 2 ms with 6 axes: lost cycles, cycle period p50/p99/max, CPU per cycle.
 
-    python benchmarks/bench_canopen.py [seconds] [virtual|udp_multicast ...]
+    python benchmarks/bench_canopen.py [seconds] [virtual|udp_multicast ...] [--busy N]
 
-``virtual``: simulated arm and driver in this process. ``udp_multicast``: the arm runs as
-``armid sim`` in another process. The SYNC period is measured from the samples (each
-carries the time its SYNC went out; a listening bus instance of its own would receive and
-unpack every frame again and load the process it measures); CPU per cycle is this
-process's CPU time over the cycles (for ``virtual`` it includes the simulated arm).
+``virtual``: simulated arm and driver in this process, SYNC paced by the consumer as
+``armid.simulated`` runs it (co-simulation: the arm's time is SYNC count x period, and the
+real-time factor says how fast the wall clock let it run). ``udp_multicast``: the arm runs as
+``armid sim`` in another process, on the master's SYNC. The period is measured from the
+samples' SYNC times over UDP, and from when each sample was read when paced (a listening bus
+instance would unpack every frame again and load the process it measures); CPU per cycle is
+this process's CPU time over the cycles (for ``virtual`` it includes the simulated arm).
+``--busy N``: N processes each keeping a core busy beside the run (a lab PC's load), killed
+by id after it.
 """
 
 from __future__ import annotations
@@ -48,6 +52,7 @@ def run(interface: str, seconds: float) -> str:
         while not ready.exists():
             time.sleep(0.05)
     driver = CanopenDriver(rig)
+    driver.paced_by_consumer = interface == "virtual"
     sync_times: list[float] = []
     try:
         driver.start()
@@ -56,17 +61,22 @@ def run(interface: str, seconds: float) -> str:
         control = ComputedTorque(rig.robot, q_nominal=q_ref, armature=[d.units.reflected_inertia for d in rig.drives],
                                  bandwidth_hz=LOOP_BANDWIDTH_HZ, decoupled=True)
         z = np.zeros(rig.n_joints)
-        for _ in range(20):
-            driver.read(1.0)
-        driver.enable()
+        import threading
+
+        enabling = threading.Thread(target=driver.enable)
+        enabling.start()
+        while enabling.is_alive():  # a paced SYNC waits for this consumer
+            driver.acknowledge(driver.read(1.0).cycle)
+        enabling.join()
         n = int(seconds / rig.period_s)
         cpu0, wall0 = time.process_time(), time.perf_counter()
         invalid = 0
         for _ in range(n):
             s = driver.read(1.0)
-            sync_times.append(s.time_s)  # when its SYNC went out
+            sync_times.append(time.perf_counter() if driver.paced_by_consumer else s.time_s)  # when its SYNC went out
             invalid += int(not s.valid.all())
             driver.command_torque(control(s.position, s.velocity, q_ref, z, z))
+            driver.acknowledge(s.cycle)
         cpu = time.process_time() - cpu0
         wall = time.perf_counter() - wall0
     finally:
@@ -80,7 +90,7 @@ def run(interface: str, seconds: float) -> str:
     periods = np.diff(np.array(sync_times)) * 1e3
     p50, p99 = np.percentile(periods, [50, 99])
     return (
-        f"{interface}: {n} cycles in {wall:.1f} s, 6 axes at {rig.period_s * 1e3:g} ms: lost cycles {int(driver.lost_cycles.max())} "
+        f"{interface}: {driver.timing_note}; {n} cycles in {wall:.1f} s (real-time factor {n * rig.period_s / wall:.2f}), 6 axes at {rig.period_s * 1e3:g} ms: lost cycles {int(driver.lost_cycles.max())} "
         f"(samples with a missing joint: {invalid}), late frames {int(driver.late_frames.sum())}; SYNC period p50 {p50:.3f} ms, "
         f"p99 {p99:.3f} ms, max {periods.max():.3f} ms; CPU per cycle {cpu / n * 1e3:.3f} ms"
         + (" (driver and simulated arm)" if interface == "virtual" else " (driver only)")
@@ -88,6 +98,16 @@ def run(interface: str, seconds: float) -> str:
 
 
 if __name__ == "__main__":
-    seconds = float(sys.argv[1]) if len(sys.argv) > 1 else 60.0
-    for iface in sys.argv[2:] or ["virtual", "udp_multicast"]:
-        print(run(iface, seconds), flush=True)
+    args = sys.argv[1:]
+    busy = int(args[args.index("--busy") + 1]) if "--busy" in args else 0
+    if "--busy" in args:
+        del args[args.index("--busy"): args.index("--busy") + 2]
+    seconds = float(args[0]) if args else 60.0
+    loads = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(busy)]
+    try:
+        for iface in args[1:] or ["virtual", "udp_multicast"]:
+            print(run(iface, seconds) + (f"; beside {busy} busy processes" if busy else ""), flush=True)
+    finally:
+        for p in loads:
+            p.kill()
+            p.wait()

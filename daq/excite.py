@@ -121,7 +121,8 @@ class ExcitationControl:
         return (last.sample.cycle - active.first_cycle) * self.period_s
 
     def fault(self, fault: DriveFault) -> None:
-        self._stop(f"drive fault: {fault}", None)
+        last = self.last_record
+        self._stop(f"drive fault: {fault}", last.sample.cycle if last is not None else None)  # the cycle it was seen at
 
     def _stop(self, reason: str, cycle: int | None) -> None:
         if self.stop_reason is None:
@@ -215,10 +216,12 @@ class ExcitationSession:
     """Bus, drives and acquisition for a sequence of plans; ``with`` closes everything."""
 
     def __init__(self, rig: Any, driver: Driver | None = None, *, simulator: Any = None, tracking_limit_rad: float = 0.2,
-                 stream: Any = None, bus: Any = None, bandwidth_hz: float = LOOP_BANDWIDTH_HZ) -> None:
+                 stream: Any = None, bus: Any = None, bandwidth_hz: float | None = None) -> None:
         """``driver``: any :class:`Driver` (default: the one the rig names, from the registry,
         on ``bus`` for CANopen). ``simulator``: the simulated hardware the caller started
-        (``armid.simulated``), closed with the session; its ``peer`` is :attr:`arm`."""
+        (``armid.simulated``), closed with the session; its ``peer`` is :attr:`arm`.
+        ``bandwidth_hz``: the loop's PD bandwidth (default: the rig's ``control_bandwidth_hz``,
+        else :data:`LOOP_BANDWIDTH_HZ`)."""
         from armid.drivers import open_driver
 
         self.rig = rig
@@ -230,6 +233,7 @@ class ExcitationSession:
         self.limits = Limits.of(self.robot)
         armature = [u.reflected_inertia for u in (d.units for d in rig.drives)]
         q_nominal = rig.simulation.get("initial_position") if rig.simulation else None
+        bandwidth_hz = bandwidth_hz or getattr(rig, "control_bandwidth_hz", None) or LOOP_BANDWIDTH_HZ
         self.controller = ComputedTorque(self.robot, q_nominal=q_nominal, armature=armature, bandwidth_hz=bandwidth_hz,
                                          decoupled=True)
         self.control = ExcitationControl(self.driver, self.robot, self.controller, self.limits,

@@ -32,6 +32,7 @@ from armid.schema import Array
 from ..resources import config_file
 from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverError, HeartbeatLost, ProcessSettings, Sample
 from .pdo_plan import PLANS, PdoSpec, check_bus_budget
+from .realtime import stall_sentence
 from .rig import Rig, current_of, open_bus, permille_of
 
 EDS = str(config_file("drives/armid_cia402.eds"))  # package data (armid.config)
@@ -143,6 +144,9 @@ class CanopenDriver(Driver):
         self._in_force = np.zeros(self.n_joints)
         self._heartbeat = np.zeros(self.n_joints)
         self._last_watch = time.monotonic()
+        self.last_stall: tuple[float, float] = (0.0, 0.0)  # (monotonic time, s) of the newest cycle this process ran late
+        self.last_sync_sent = time.monotonic()  # when the SYNC thread last sent one
+        self.longest_sync_gap = 0.0  # s between two SYNCs the thread sent, the longest since start
         self._silent = np.zeros(self.n_joints, bool)
         self._hb_task: can.broadcastmanager.CyclicSendTaskABC | None = None
         self._bcm_task: can.broadcastmanager.CyclicSendTaskABC | None = None
@@ -186,6 +190,7 @@ class CanopenDriver(Driver):
         # a thread waiting for the GIL waits up to the switch interval (5 ms by default):
         # more than two cycles. A 2 ms loop needs the interpreter to switch ten times faster.
         self._settings.fast_switching(self.period_s)  # put back by close()
+        timing = self._settings.realtime()  # before the notifier's and SYNC's threads start: they inherit it
         check_bus_budget(r.pdo_plan, r.n_joints, r.period_s, r.bus.bitrate, r.heartbeat_ms)
         if self._bus is None:
             kwargs = r.bus.kwargs()
@@ -224,7 +229,9 @@ class CanopenDriver(Driver):
             frames = [can.Message(arbitration_id=SYNC_COB_ID, data=[c], is_extended_id=False) for c in range(1, SYNC_COUNTER_OVERFLOW + 1)]
             self.network.subscribe(SYNC_COB_ID, self._on_sync_echo)
             self._bcm_task = self._bus.send_periodic(frames, r.period_s)
+            self.timing_note = "SYNC from the kernel (SocketCAN BCM); " + timing.sentence("bus threads")
         else:
+            self.timing_note = timing.sentence("SYNC thread")
             self._thread = threading.Thread(target=self._sync_loop, name="armid-sync", daemon=True)
             self._thread.start()
 
@@ -355,9 +362,9 @@ class CanopenDriver(Driver):
             clock.wait()
             if self.paced_by_consumer and self._cycle:
                 # the arm is simulated in this process: its next step waits for the control
-                # law to have acted on the last one (never longer than PACE_WAIT_S, well
-                # inside the drives' SYNC timeout), so a busy process slows the simulation
-                # down instead of stretching the control loop's delay
+                # law to have acted on the last one (never longer than PACE_WAIT_S, inside the
+                # drives' SYNC timeout: the master's heartbeat goes on meanwhile), so a busy process slows the
+                # simulation down instead of stretching the control loop's delay
                 with self._ack:
                     if not self._ack.wait_for(lambda: self._acknowledged >= self._cycle or self._stop.is_set(), PACE_WAIT_S):
                         self.consumer_late += 1
@@ -369,6 +376,9 @@ class CanopenDriver(Driver):
                 self._open_cycle(self._cycle, counter, now)
             try:
                 self._bus.send(can.Message(arbitration_id=SYNC_COB_ID, data=[counter], is_extended_id=False))
+                sent = time.monotonic()
+                self.longest_sync_gap = max(self.longest_sync_gap, sent - self.last_sync_sent)
+                self.last_sync_sent = sent
                 self._send_commands()
             except can.CanError as err:
                 self._event("bus", f"cannot send SYNC {counter}: {err}")
@@ -492,6 +502,8 @@ class CanopenDriver(Driver):
         limit = 3 * self.rig.heartbeat_ms / 1000.0
         stall = now - self._last_watch - 2 * self.period_s
         self._last_watch = now
+        if stall > 2 * self.period_s:
+            self.last_stall = (now, stall + 2 * self.period_s)
         if stall > STALL_S:
             # this process did not run: heartbeats sent meanwhile wait unread in the socket
             self._heartbeat += stall
@@ -516,9 +528,26 @@ class CanopenDriver(Driver):
         if err.code == 0:
             self._event("emcy_reset", f"joint {joint + 1} (node {node_id}): error reset", joint)
             return
-        fault = DriveFault(joint, node_id, err.code, emcy_meaning(err.code, bytes(err.data)))
+        meaning = emcy_meaning(err.code, bytes(err.data)) + self._own_stall(err.code)
+        fault = DriveFault(joint, node_id, err.code, meaning)
         self._faults.put(fault)
         self._event("emcy", str(fault), joint)
+
+    def _own_stall(self, code: int) -> str:
+        """Why a drive timed out on this master, where this process is the cause: its SYNC thread
+        silent (or run late) for longer than the drive waits."""
+        if code not in (0x8100, 0x8130) or self._thread is None:
+            return ""
+        now = time.monotonic()
+        silent = now - self.last_sync_sent
+        when, stall = self.last_stall
+        late = stall if now - when < 1.0 else 0.0
+        waited = "SYNC" if code == 0x8100 else "the master's heartbeat"
+        if late > 0.05:
+            return f"; {stall_sentence(late)}: the drives timed out waiting for {waited}"
+        if silent > 0.05:
+            return f"; this process's SYNC thread has sent nothing for {silent:.3f} s ({stall_sentence(silent).split('(', 1)[1][:-1]})"
+        return ""
 
     # --- the interface ---
     def acknowledge(self, cycle: int) -> None:

@@ -40,7 +40,7 @@ from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverE
 from .rig import Rig
 
 REBOOT_WAIT_S = 1.0  # a rebooting servo answers a ping again within this
-ONE_OFF_TIMEOUT_S = 0.02  # a one-off transaction's reply timeout, at least
+ONE_OFF_TIMEOUT_S = 0.05  # a one-off transaction's reply timeout, at least (a loaded machine deschedules the chain for tens of ms)
 ONE_OFF_ATTEMPTS = 3
 
 
@@ -93,6 +93,7 @@ class DynamixelDriver(Driver):
         self.errors_by_kind: dict[str, int] = {}
         self._clock = CycleClock(rig.period_s)
         self.noise_bytes = 0
+        self.stale_replies = 0  # packets on the line that answered no request of ours (late replies), skipped
         self.reply_times: deque[float] = deque(maxlen=200_000)  # completion stamps (time.perf_counter)
         self.round_trips: deque[float] = deque(maxlen=200_000)  # read request sent -> reply complete (s)
         self.drive_configuration: list[dict[str, int]] = []
@@ -122,9 +123,11 @@ class DynamixelDriver(Driver):
                 continue
             view = view[n:]
 
-    def _receive(self, deadline: float, size: int | None = None) -> bytes:
+    def _receive(self, deadline: float, size: int | None = None, packet_id: int | None = None) -> bytes:
         """The next packet from its header: whole (``size`` bytes, or as its length field
-        says), or what arrived of it by ``deadline`` (empty when nothing did)."""
+        says), or what arrived of it by ``deadline`` (empty when nothing did). With
+        ``packet_id``, whole packets of another id before it are stale (a late reply to an
+        earlier request): they are skipped and counted in ``stale_replies``."""
         buf = self._rx
         while True:
             start = buf.find(dxl.HEADER)
@@ -133,23 +136,38 @@ class DynamixelDriver(Driver):
                 self.noise_bytes += skip
                 del buf[:skip]
                 start = buf.find(dxl.HEADER)
-            if start == 0:
+            if start == 0 and packet_id is not None and len(buf) > 4 and buf[4] != packet_id:
+                n = dxl.packet_length(buf)
+                if n is not None and not 10 <= n <= 4096:
+                    self.noise_bytes += 4  # a header in noise, with no packet's length behind it
+                    del buf[:4]
+                    continue
+                if n is not None and len(buf) >= n:
+                    self.stale_replies += 1
+                    del buf[:n]
+                    continue
+            elif start == 0:
                 total = size if size is not None else dxl.packet_length(buf)
                 if total is not None and len(buf) >= total:
                     out = bytes(buf[:total])
                     del buf[:total]
                     return out
+            # bytes already on the line are read even past the deadline: a process descheduled
+            # while the reply arrived must not call a reply that came in time a timeout
             remaining = deadline - time.perf_counter()
-            if remaining <= 0:
-                out = bytes(buf) if start == 0 else b""
-                buf.clear()
-                return out
-            ready, _, _ = select.select([self._fd], [], [], remaining)
+            ready, _, _ = select.select([self._fd], [], [], max(0.0, remaining))
             if ready:
                 try:
-                    buf += os.read(self._fd, 4096)
+                    chunk = os.read(self._fd, 4096)
                 except BlockingIOError:
-                    pass
+                    chunk = b""
+                if chunk:
+                    buf += chunk
+                    continue
+            if remaining <= 0:
+                out = bytes(buf) if start == 0 and (packet_id is None or len(buf) <= 4 or buf[4] == packet_id) else b""
+                buf.clear()
+                return out
 
     def _flush_input(self) -> None:
         """Stale bytes (a reply that came after its timeout) must not answer the next request."""
@@ -161,40 +179,59 @@ class DynamixelDriver(Driver):
             except BlockingIOError:
                 break
 
-    def _transact(self, servo_id: int, packet: bytes, timeout: float | None = None, attempts: int = ONE_OFF_ATTEMPTS) -> dxl.Packet:
+    def _transact(self, servo_id: int, packet: bytes, timeout: float | None = None, attempts: int = ONE_OFF_ATTEMPTS,
+                  data_length: int | None = None) -> dxl.Packet:
         """Send an instruction to one servo and return its status packet (or raise why not).
 
         One-off transactions (configuration, torque, reboot) are not on the cycle's clock:
         they wait at least ONE_OFF_TIMEOUT_S and are tried ``attempts`` times, since a reply
-        lost on a half-duplex line is nothing to give up on (all of them are idempotent)."""
+        lost on a half-duplex line is nothing to give up on (all of them are idempotent).
+        Each attempt starts on an empty input, and only a status packet of ``servo_id``
+        (with ``data_length`` bytes of data, when given, or an error) answers it: a stale
+        reply still on the line (a Fast Sync Read that came after its timeout, another
+        servo's late status) is skipped, counted in ``stale_replies``, and the wait goes on
+        to the deadline."""
         wait = timeout if timeout is not None else max(self.reply_timeout_s, ONE_OFF_TIMEOUT_S)
-        for attempt in range(attempts):
+        problem: ProtocolError | None = None
+        for _attempt in range(attempts):
             self._flush_input()
             self._send(packet)
-            raw = self._receive(time.perf_counter() + wait)
-            try:
+            deadline = time.perf_counter() + wait
+            while True:
+                raw = self._receive(deadline)
                 if not raw:
-                    raise ReplyTimeout(f"servo {servo_id}: no reply within {1e3 * wait:.1f} ms ({attempts} attempts)", servo_id)
-                reply = dxl.decode(raw, servo_id)
-                if reply.id != servo_id or reply.instruction != dxl.Instruction.STATUS:
-                    raise dxl.MalformedPacket(f"servo {servo_id}: reply from id {reply.id} with instruction 0x{reply.instruction:02X}", servo_id)
-            except ProtocolError:
-                if attempt + 1 == attempts:
-                    raise
-                continue
-            if reply.error & 0x7F:
-                raise StatusError(servo_id, reply.error)
-            return reply
-        raise AssertionError("unreachable")
+                    if problem is None:
+                        problem = ReplyTimeout(f"servo {servo_id}: no reply within {1e3 * wait:.1f} ms ({attempts} attempts)", servo_id)
+                    break
+                try:
+                    reply = dxl.decode(raw, servo_id)
+                except dxl.PartialPacket as err:
+                    problem = err  # cut at the deadline: nothing follows it in this attempt
+                    break
+                except ProtocolError as err:
+                    problem = err  # corrupted: another packet may still come before the deadline
+                    continue
+                if reply.id != servo_id or reply.instruction != dxl.Instruction.STATUS or (
+                        data_length is not None and len(reply.data) != data_length and not reply.error & 0x7F):
+                    self.stale_replies += 1
+                    problem = dxl.MalformedPacket(f"servo {servo_id}: only a reply from id {reply.id} with instruction "
+                                                  f"0x{reply.instruction:02X} and {len(reply.params)} parameter bytes "
+                                                  f"(not the answer) within {1e3 * wait:.1f} ms ({attempts} attempts)", servo_id)
+                    continue
+                if reply.error & 0x7F:
+                    raise StatusError(servo_id, reply.error)
+                return reply
+        assert problem is not None
+        raise problem
 
     def _read_table(self, servo_id: int, address: int, length: int) -> bytes:
-        data = self._transact(servo_id, dxl.read(servo_id, address, length)).data
+        data = self._transact(servo_id, dxl.read(servo_id, address, length), data_length=length).data
         if len(data) != length:
             raise dxl.MalformedPacket(f"servo {servo_id}: read of {length} bytes at {address} returned {len(data)}", servo_id)
         return data
 
     def _write_table(self, servo_id: int, address: int, data: bytes) -> None:
-        self._transact(servo_id, dxl.write(servo_id, address, data))
+        self._transact(servo_id, dxl.write(servo_id, address, data), data_length=0)
 
     def _sync_write(self, address: int, values: list[bytes], joints: list[int] | None = None) -> None:
         joints = list(range(self.n_joints)) if joints is None else joints
@@ -219,6 +256,8 @@ class DynamixelDriver(Driver):
         except BaseException:
             self._serial.close()
             raise
+        timing = self._settings.realtime()  # the port's thread, started next, inherits it
+        self.timing_note = timing.sentence("the port's cycle thread")
         self._thread = threading.Thread(target=self._run, name="armid-dynamixel", daemon=True)
         self._thread.start()
 
@@ -228,7 +267,14 @@ class DynamixelDriver(Driver):
     def _configure(self, j: int) -> dict[str, int]:
         servo_id, model = self.ids[j], self.models[j]
         try:
-            number = struct.unpack("<H", self._transact(servo_id, dxl.ping(servo_id)).data[:2])[0]
+            try:
+                number = struct.unpack("<H", self._transact(servo_id, dxl.ping(servo_id), data_length=3).data[:2])[0]
+            except ReplyTimeout as err:
+                if isinstance(err, dxl.PartialPacket):
+                    raise
+                # not a byte from this id, each attempt: no such servo on the line (id, baud rate)
+                raise DriveConfigError(f"{self._where(j)}: {err}: is servo {servo_id} on the line at "
+                                       f"{self.cfg.baudrate:,} baud?") from err
             if number != model.number:
                 found = next((m.name for m in dxl.SERVO_MODELS.values() if m.number == number), "unknown")
                 raise DriveConfigError(f"{self._where(j)}: model number {number} ({found}), the rig {self.rig.source} says {model.name} ({model.number})")
@@ -240,8 +286,10 @@ class DynamixelDriver(Driver):
             self._write_table(servo_id, Address.OPERATING_MODE, bytes([dxl.CURRENT_MODE]))
             back = self._read_table(servo_id, Address.RETURN_DELAY_TIME, 3)
             limit = struct.unpack("<H", self._read_table(servo_id, Address.CURRENT_LIMIT, 2))[0]
-        except ProtocolError as err:
+        except StatusError as err:  # the servo refused a value: the configuration's problem
             raise DriveConfigError(f"{self._where(j)}: {err}") from err
+        except ProtocolError as err:  # the line failed under a servo that answered: a runtime fault, not bad input
+            raise DriverError(f"{self._where(j)}: communication failed during start-up: {err}") from err
         if back[0] != self.cfg.return_delay_us // 2 or back[2] != dxl.CURRENT_MODE:
             raise DriveConfigError(f"{self._where(j)}: Return Delay Time / Operating Mode read back as {back[0]} / {back[2]}, "
                                    f"written {self.cfg.return_delay_us // 2} / {dxl.CURRENT_MODE}")
@@ -305,7 +353,7 @@ class DynamixelDriver(Driver):
         sent = time.perf_counter()
         deadline = sent + self.reply_timeout_s
         if self.fast:
-            raw = self._receive(deadline, dxl.fast_sync_read_size(self.n_joints, length))
+            raw = self._receive(deadline, dxl.fast_sync_read_size(self.n_joints, length), packet_id=dxl.BROADCAST_ID)
             blocks = dxl.decode_fast_sync_read(raw, self.ids, length)
         else:
             blocks = [self._sync_read_block(servo_id, length, deadline) for servo_id in self.ids]
@@ -422,11 +470,11 @@ class DynamixelDriver(Driver):
             if self.hardware_error[j]:
                 servo_id = self.ids[j]
                 try:
-                    self._transact(servo_id, dxl.reboot(servo_id))
+                    self._transact(servo_id, dxl.reboot(servo_id), data_length=0)
                     deadline = time.perf_counter() + REBOOT_WAIT_S
                     while True:
                         try:
-                            self._transact(servo_id, dxl.ping(servo_id), attempts=1)
+                            self._transact(servo_id, dxl.ping(servo_id), attempts=1, data_length=3)
                             break
                         except ProtocolError:
                             if time.perf_counter() > deadline:

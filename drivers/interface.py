@@ -24,6 +24,8 @@ import numpy as np
 from armid.schema import Array, Sample
 from armid.schema.errors import DriveConfigError, DriveFault, DriverError, HeartbeatLost
 
+from .realtime import RealtimeScheduling, Timing
+
 if TYPE_CHECKING:
     from .rig import DriveUnits
 
@@ -48,7 +50,9 @@ class ProcessSettings:
       wait more than two cycles) is lowered to a tenth of the period;
     - what exists after start-up is frozen out of the garbage collector's full collections
       (they walk every object and stall all threads for many milliseconds); unfrozen at the
-      end, unless the process had frozen objects of its own before (those stay its business).
+      end, unless the process had frozen objects of its own before (those stay its business);
+    - the process's Python threads run at real-time priority where the system allows it
+      (:mod:`drivers.realtime`): :meth:`realtime` says what they got.
     """
 
     _lock = threading.Lock()
@@ -56,9 +60,24 @@ class ProcessSettings:
     _interval_before = 0.005
     _freeze_holders = 0
     _froze = False
+    _rt_holders = 0
+    _rt: RealtimeScheduling | None = None
 
     def __init__(self) -> None:
-        self._interval = self._freeze = False
+        self._interval = self._freeze = self._realtime = False
+
+    def realtime(self) -> Timing:
+        """SCHED_FIFO for this process's Python threads while any holder runs (the first takes it)."""
+        cls = type(self)
+        with cls._lock:
+            if not self._realtime:
+                if cls._rt_holders == 0:
+                    cls._rt = RealtimeScheduling()
+                    cls._rt.acquire()
+                cls._rt_holders += 1
+                self._realtime = True
+            assert cls._rt is not None and cls._rt.timing is not None
+            return cls._rt.timing
 
     def fast_switching(self, period_s: float) -> None:
         cls = type(self)
@@ -96,6 +115,12 @@ class ProcessSettings:
                 if cls._freeze_holders == 0 and cls._froze:
                     gc.unfreeze()
                     cls._froze = False
+            if self._realtime:
+                self._realtime = False
+                cls._rt_holders -= 1
+                if cls._rt_holders == 0 and cls._rt is not None:
+                    cls._rt.release()
+                    cls._rt = None
 
 
 class CycleClock:
@@ -130,6 +155,8 @@ class Driver(abc.ABC):
     paced_by_consumer: bool = False
     """True when the driver's cycle waits for :meth:`acknowledge` (an arm simulated in this
     process never runs ahead of its control loop); a driver that cannot pace ignores it."""
+    timing_note: str = ""
+    """What keeps the cycle and at what priority, said once at start-up (``drivers.realtime``)."""
     lost_cycles: Array
     """Cycles lost per joint since :meth:`start` (the driver sets it up in ``__init__``)."""
     drive_configuration: list[dict[str, int]]

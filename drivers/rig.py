@@ -126,6 +126,7 @@ class Rig:
     source: str = "<rig>"
     serial: SerialConfig | None = None  # set for a Dynamixel chain (bus.interface: dynamixel)
     driver: str = "canopen"  # the registry's name (armid.drivers.BACKENDS) of the driver this rig needs
+    control_bandwidth_hz: float | None = None  # the excitation loop's PD bandwidth (None: daq.excite.LOOP_BANDWIDTH_HZ)
 
     @property
     def is_serial(self) -> bool:

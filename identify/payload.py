@@ -1053,6 +1053,21 @@ def _json_safe(x: Any) -> Any:
     return x
 
 
+def identification_document(arm: ArmModel, seed: int = 0) -> dict[str, Any]:
+    """The fields of an ``armid identify --json`` document that
+    :func:`arm_model_from_identification` reads, for an arm model on the robot's declared
+    effects (an arm known otherwise, e.g. a simulator's, handed to ``armid estimate``)."""
+    from .identification import structural_base
+
+    base = structural_base(arm.robot, list(arm.effects), seed)
+    if not np.array_equal(np.asarray(base.independent), np.asarray(arm.columns)):
+        raise ValueError("the arm model's columns are not the robot's structural base parameters")
+    return {"robot": arm.robot.name,
+            "base_parameters": [{"expression": x, "value": float(v)} for x, v in zip(base.expressions(), arm.beta)],
+            "joint_noise_sigma": [float(x) for x in arm.joint_sigma],
+            "effects": [{"effect": e.effect, "joint": e.joint + 1, **({"setting": dict(e.setting)} if e.setting else {})} for e in arm.effects]}
+
+
 def arm_model_from_identification(robot: Robot, doc: dict[str, Any], seed: int = 0) -> ArmModel:
     """The arm model of an ``armid identify --json`` document, checked against the robot:
     the base parameters are rebuilt from the kinematics and must read as the document's."""

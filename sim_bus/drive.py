@@ -118,10 +118,12 @@ class SimulatedDrive:
         self.sync_count = 0
         self.last_sync = 0.0
         self.master_heartbeat: float | None = None
+        # co-simulation: each watch needs the other stream as its witness that the master runs
+        self.heartbeat_since_sync: float | None = None  # when the first master heartbeat after the last SYNC came
+        self.syncs_since_heartbeat = 0
         self.not_following = False
         self.silent = False
-        # SYNC is lost after 3 communication cycles (0x1006) or this, whichever is longer:
-        # a simulated drive shares a Python process, and a stall there is not a lost SYNC
+        # SYNC is lost after 3 communication cycles (0x1006) or this, whichever is longer
         self.sync_timeout_s = sync_timeout_s
         self.fault_code = 0
         self.internal_limit = False
@@ -258,31 +260,40 @@ class SimulatedDrive:
         consumer = self.raw(0x1016, 1)
         if consumer >> 16 & 0x7F == node_id:
             self.master_heartbeat = time.monotonic()
+            if self.heartbeat_since_sync is None:
+                self.heartbeat_since_sync = self.master_heartbeat
+            self.syncs_since_heartbeat = 0
 
     def _apply_controlword(self, controlword: int) -> None:
         self._previous_controlword, self.controlword = self.controlword, controlword
         self.state = next_state(self.state, controlword, self._previous_controlword)
 
-    def excuse_stall(self, stall_s: float) -> None:
-        """The simulating process did not run for ``stall_s``: frames sent meanwhile wait
-        unread in its socket, so the silence is ours, not the master's. Firmware does not
-        stall; shift the supervision clocks so that only a real silence faults the drive."""
-        if self.master_heartbeat is not None:
-            self.master_heartbeat += stall_s
-        self.last_sync += stall_s
-
     def watchdog(self, now: float) -> None:
-        """Heartbeat consumer and SYNC supervision; called every few ms by the arm."""
+        """Heartbeat consumer and SYNC supervision, co-simulated; called every few ms by the arm.
+
+        The simulated drive stands in for firmware in a process (and on a host) that may not be
+        scheduled: a master that is not running pauses the arm, as a co-simulation's step waits
+        for its input, instead of faulting it. So each watch has a witness that the master is
+        running: SYNC is lost when it stays away for its timeout while the master's heartbeat
+        goes on (one came after the last SYNC, at least a heartbeat period ago: a master that
+        resumes from a stall sends the heartbeats it owes at once, python-can's periodic task
+        catching up, before its next SYNC); the heartbeat is lost when it stays away for its
+        consumer time on both clocks, the wall's and the arm's (SYNCs times the period), while
+        SYNC goes on. A master that stops either (a dead SYNC thread, a hung heartbeat task)
+        faults the drive as firmware does."""
         if self.silent or not self.operational:
             return
         consumer = self.raw(0x1016, 1)
-        limit_ms = consumer & 0xFFFF
-        if limit_ms and self.master_heartbeat is not None and now - self.master_heartbeat > limit_ms / 1000.0:
+        limit_s = (consumer & 0xFFFF) / 1000.0
+        period_s = self.raw(0x1006) / 1e6
+        if (limit_s and self.master_heartbeat is not None and now - self.master_heartbeat > limit_s
+                and self.syncs_since_heartbeat * period_s > limit_s):
             self.master_heartbeat = None
             self.fault(EMCY_HEARTBEAT, b"HB")
-        period_us = self.raw(0x1006)
-        timeout = max(3 * period_us / 1e6, self.sync_timeout_s)
-        if period_us and self.sync_count and self.state in POWERED and now - self.last_sync > timeout:
+        timeout = max(3 * period_s, self.sync_timeout_s)
+        witness = self.heartbeat_since_sync
+        if (period_s and self.sync_count and self.state in POWERED and now - self.last_sync > timeout
+                and witness is not None and now - witness >= limit_s / 3):
             self.fault(EMCY_SYNC_LOST, b"SYNC")
 
     def fault(self, code: int, data: bytes = b"") -> None:
@@ -342,14 +353,16 @@ class SimulatedDrive:
             return
         self.sync_count += 1
         self.last_sync = now
+        self.heartbeat_since_sync = None
+        self.syncs_since_heartbeat += 1
         if not self.operational:
             return
         if self.state == State.QUICK_STOP_ACTIVE and abs(m.velocity[self.joint]) < 1e-3:
             self.state = State.SWITCH_ON_DISABLED  # quick stop option 2: stop, then disable
         u = self.units
         j = self.joint
-        pos = int(np.clip(round(m.position[j] * u.counts_per_rad), -(2**31), 2**31 - 1))
-        vel = int(np.clip(round(m.velocity[j] * u.counts_per_rad), -(2**31), 2**31 - 1))
+        pos = min(max(round(float(m.position[j]) * u.counts_per_rad), -(2**31)), 2**31 - 1)
+        vel = min(max(round(float(m.velocity[j]) * u.counts_per_rad), -(2**31)), 2**31 - 1)
         cur = int(permille_of(m.current[j], u.rated_current_a))
         self.values.update({(0x6064, 0): pos, (0x606C, 0): vel, (0x6078, 0): cur, (0x6077, 0): cur,
                             (0x6061, 0): self.raw(0x6060)})

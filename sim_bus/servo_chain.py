@@ -13,7 +13,9 @@ Each servo keeps a control table (the X series' layout); EEPROM (below Torque En
 is writable only with torque off; a hardware error turns torque off until a Reboot. With
 torque off a joint is held by its brake, as in the CAN simulation. Faults are injected
 with :meth:`SimulatedServoChain.inject`: a corrupted CRC, a dropped reply, a partial
-packet, line noise before a reply, a hardware error.
+packet, line noise before a reply, a stale reply before a reply (what a chain descheduled
+past a timeout leaves on the line: the late answer to an earlier request, here the last
+one of the other kind, cyclic or one-off, that the chain sent), a hardware error.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ from armid.schema.errors import RigFileError, SimulationError, UsageError
 
 from .physics import ArmPhysics, Measurement, simulation_config
 
-FAULTS = ("crc", "drop", "partial", "noise", "hardware_error")
+FAULTS = ("crc", "drop", "partial", "noise", "stale", "hardware_error")
 MAX_CATCH_UP_PERIODS = 500  # a stall longer than a second of arm time is not replayed in full
 READ_ONLY = ((0, Address.ID), (Address.HARDWARE_ERROR_STATUS, Address.HARDWARE_ERROR_STATUS + 1),
              (Address.REALTIME_TICK, dxl.CONTROL_TABLE_SIZE))  # model, firmware; hardware error; present values
@@ -160,17 +162,21 @@ class SimulatedServoChain:
         self.line_free_at = 0.0
         self.instructions = 0
         self.bad_instructions: list[str] = []
+        self._last_sync_reply = b""  # the last Sync Read / Fast Sync Read reply sent, and the last
+        self._last_status = b""  # one-off status: what a "stale" fault puts on the line again
         self._rng = np.random.default_rng(self.seed + 1)
         m = self._measure()
         for s in self.servos:
             s.sense(m, 0)
         self._thread = threading.Thread(target=self._run, name="armid-servo-chain", daemon=True)
+        self._physics_thread = threading.Thread(target=self._run_physics, name="armid-servo-chain-physics", daemon=True)
         self._thread.start()
+        self._physics_thread.start()
 
     # --- faults ---
     def inject(self, kind: str, servo_id: int, count: int = 1, bits: int = 0x20) -> None:
         """The next ``count`` replies of ``servo_id`` carry the fault ``kind`` (one of
-        FAULTS). ``hardware_error`` sets Hardware Error Status to ``bits`` (default:
+        FAULTS; ``stale`` applies to one-off replies too, the others to sync reads). ``hardware_error`` sets Hardware Error Status to ``bits`` (default:
         overload) and turns torque off, until a Reboot."""
         if kind not in FAULTS:
             raise UsageError(f"unknown fault {kind!r}; known: {', '.join(FAULTS)}")
@@ -190,30 +196,41 @@ class SimulatedServoChain:
         zeros = np.zeros(p.n)
         return Measurement(p.time_s, p.position, p.velocity, zeros, p.position, p.velocity, zeros)
 
-    def _advance(self, now: float) -> None:
-        """Step the physics to the last period boundary before ``now``."""
-        due = int((now - self._start) / self.rig.period_s) - self.periods - self.skipped_periods
+    def _due(self, now: float) -> int:
+        """Periods the physics is behind the last period boundary before ``now``."""
+        return int((now - self._start) / self.rig.period_s) - self.periods - self.skipped_periods
+
+    def _advance(self, now: float, most: int = MAX_CATCH_UP_PERIODS) -> None:
+        """Step the physics towards the last period boundary before ``now``, ``most`` periods
+        at most. The control tables are locked only to read the demand and to latch the
+        sensors, never for the step itself: the line is answered while the physics computes."""
+        due = self._due(now)
         if due > MAX_CATCH_UP_PERIODS:
             self.skipped_periods += due - MAX_CATCH_UP_PERIODS
             due = MAX_CATCH_UP_PERIODS
-        for _ in range(max(0, due)):
-            q, qd = self.physics.position, self.physics.velocity
-            demand = np.array([s.current_demand(q[s.joint], qd[s.joint]) for s in self.servos])
-            braked = np.array([not s.torque_on or bool(s.hardware_error) for s in self.servos])
+        for _ in range(max(0, min(due, most))):
+            with self._lock:
+                q, qd = self.physics.position, self.physics.velocity
+                demand = np.array([s.current_demand(q[s.joint], qd[s.joint]) for s in self.servos])
+                braked = np.array([not s.torque_on or bool(s.hardware_error) for s in self.servos])
             m = self.physics.step(demand, braked)
-            self.periods += 1
             ms = int(1000 * m.time_s)
-            for s in self.servos:
-                s.sense(m, ms)
+            with self._lock:
+                self.periods += 1
+                for s in self.servos:
+                    s.sense(m, ms)
 
     # --- the line ---
     def _run(self) -> None:
-        # requests are answered at once from the control tables; the physics advances in
-        # between, at each period boundary, as a servo's own loop does
-        period = self.rig.period_s
+        # requests are answered at once from the control tables, on this thread; the physics
+        # advances on its own thread, at each period boundary, as a servo's own loop does. A
+        # period of physics costs about a millisecond of Python (more on a loaded machine):
+        # on the line's thread, a request that came during a step waited for it, and one that
+        # came while a descheduled chain caught up waited for all of the catch-up (measured
+        # beside one busy core: Ping round trips of p50 9 ms, p99 380 ms, replies that came
+        # after the driver's timeout and were stale on the line for its next request)
         while not self._stop.is_set():
-            next_boundary = self._start + (self.periods + self.skipped_periods + 1) * period
-            ready, _, _ = select.select([self._master], [], [], max(0.0, next_boundary - time.monotonic()))
+            ready, _, _ = select.select([self._master], [], [], 0.05)
             if ready:
                 try:
                     chunk = os.read(self._master, 4096)
@@ -222,8 +239,15 @@ class SimulatedServoChain:
                 self._buffer += chunk
                 for item in dxl.split_packets(self._buffer):
                     self._serve(item, time.monotonic())
-            with self._lock:
-                self._advance(time.monotonic())
+
+    def _run_physics(self) -> None:
+        period = self.rig.period_s
+        while not self._stop.is_set():
+            next_boundary = self._start + (self.periods + self.skipped_periods + 1) * period
+            delay = next_boundary - time.monotonic()
+            if delay > 0 and self._stop.wait(delay):
+                return
+            self._advance(time.monotonic(), most=1)
 
     def _wire(self, n_bytes: int) -> float:
         return n_bytes * dxl.BITS_PER_BYTE / self.baudrate
@@ -248,10 +272,21 @@ class SimulatedServoChain:
         self.line_free_at = request_end
         with self._lock:
             replies = self._answer(p)
+            if p.instruction not in (Instruction.SYNC_READ, Instruction.FAST_SYNC_READ) and replies:
+                servo = self._by_id.get(p.id)
+                if servo is not None and servo.faults and servo.faults[0].kind == "stale":
+                    servo.take_fault()
+                    replies = [(0.0, self._last_sync_reply or self._last_status or self._stale_for(servo))] + replies
         when = request_end
         for delay_s, data in replies:
             when += delay_s + self._wire(len(data))
             self._send_at(when, data)
+        if replies:
+            last = replies[-1][1]
+            if p.instruction in (Instruction.SYNC_READ, Instruction.FAST_SYNC_READ):
+                self._last_sync_reply = last
+            else:
+                self._last_status = last
         self.line_free_at = max(self.line_free_at, when)
 
     def _return_delay(self, servo: SimulatedServo) -> float:
@@ -322,6 +357,8 @@ class SimulatedServoChain:
                     break
                 if f is not None and f.kind == "noise":
                     noise = self._rng.integers(0, 256, 5, dtype=np.uint8).tobytes()
+                if f is not None and f.kind == "stale":
+                    noise = self._stale_for(s)
             first = servos[0] if servos and servos[0] is not None else None
             delay = self._return_delay(first) if first is not None else 0.0
             return [(delay, noise + bytes(reply))] if len(reply) > 8 else []
@@ -340,8 +377,17 @@ class SimulatedServoChain:
                     packet = packet[: len(packet) // 2]
                 elif f.kind == "noise":
                     packet = bytearray(self._rng.integers(0, 256, 5, dtype=np.uint8).tobytes()) + packet
+                elif f.kind == "stale":
+                    packet = bytearray(self._stale_for(s)) + packet
             out.append((self._return_delay(s), bytes(packet)))
         return out
+
+    def _stale_for(self, servo: SimulatedServo) -> bytes:
+        """A stale one-off status: the last one sent, or another servo's answer to a Ping."""
+        if self._last_status:
+            return self._last_status
+        other = next((s for s in self.servos if s is not servo), servo)
+        return dxl.encode_status(other.id, 0, struct.pack("<HB", other.model.number, other.table[Address.FIRMWARE_VERSION]))
 
     def status(self) -> dict[str, Any]:
         return {"periods": self.periods, "skipped_periods": self.skipped_periods, "time_s": self.physics.time_s,
@@ -351,6 +397,7 @@ class SimulatedServoChain:
     def close(self) -> None:
         self._stop.set()
         self._thread.join(timeout=1.0)
+        self._physics_thread.join(timeout=1.0)
         for fd in (self._master, self._slave):
             try:
                 os.close(fd)
@@ -436,6 +483,13 @@ def serve(rig_file: str, seed: int | None = None) -> None:
         sys.stdout.write(json.dumps(doc) + "\n")
         sys.stdout.flush()
 
+    # the line's thread takes the interpreter from the physics' within half a millisecond
+    # of a request (the default 5 ms switch interval would hold the reply that long)
+    sys.setswitchinterval(0.0005)
+    from armid.drivers.interface import ProcessSettings
+
+    # hardware answers in hardware time: the chain's threads at real-time priority where allowed
+    ProcessSettings().realtime()  # held until this process ends
     try:
         chain = SimulatedServoChain(load_rig(rig_file), seed=seed)
     except Exception as err:

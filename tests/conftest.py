@@ -24,6 +24,16 @@ ROOT = Path(__file__).resolve().parent.parent
 ROBOTS = ROOT / "config" / "robots"
 SHARED = ROOT.parent / "shared"
 
+REALTIME_MODULES = ("test_canopen", "test_daq", "test_dynamixel", "test_excitation", "test_excitation_dynamixel", "test_serve")
+"""The timing-sensitive tests (a bus, a pty, a simulated arm, a live stream): marked ``realtime``;
+CI runs them a second time with two busy processes beside them (``.ci/run``)."""
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if item.module is not None and item.module.__name__.rsplit(".", 1)[-1] in REALTIME_MODULES:
+            item.add_marker(pytest.mark.realtime)
+
 
 def random_robot(n: int, convention: str, prismatic_at: int | None, seed: int) -> Robot:
     """A random serial arm with physically valid random inertial values."""
@@ -117,7 +127,8 @@ def _track_buses_and_sessions() -> None:
 
 def _process_settings() -> dict[str, Any]:
     return {"sys.getswitchinterval()": sys.getswitchinterval(), "gc.get_freeze_count()": gc.get_freeze_count(),
-            "SIGINT handler": signal.getsignal(signal.SIGINT), "SIGTERM handler": signal.getsignal(signal.SIGTERM)}
+            "SIGINT handler": signal.getsignal(signal.SIGINT), "SIGTERM handler": signal.getsignal(signal.SIGTERM),
+            "scheduling policy": os.sched_getscheduler(0) if hasattr(os, "sched_getscheduler") else None}
 
 
 @pytest.fixture(autouse=True)
@@ -163,38 +174,3 @@ def no_leaks() -> Iterator[None]:
         ProcessSettings._freeze_holders, ProcessSettings._froze = 0, False
     if problems:
         pytest.fail("the test leaks:\n" + "\n".join(problems), pytrace=False)
-
-
-def realtime(pid: int) -> bool:
-    """Every thread of process ``pid`` under the round-robin real-time policy at its lowest
-    priority (``SCHED_RR`` 1), where the system allows it (False where it does not).
-
-    Why the ``udp_multicast`` variant was stopped under load: the arm in its own process
-    answers each SYNC on the wall clock, and ``armid excite`` stops the arm when a joint's
-    frames miss 3 cycles in a row (12 ms at 4 ms) or when its commands come late enough for
-    the tracking or velocity limits. On a loaded 2-core machine ordinary (even nice 0)
-    processes wait that long for a core: at load average 5-6 the records' stamps of one run
-    had 58-76 steps over two cycles, 6 with these threads real-time (which run before every
-    ordinary one; these two only compute when a frame arrives, so they do not starve the
-    machine, and the kernel keeps 5 % of each second for ordinary threads anyway)."""
-    return _set_policy(pid, os.SCHED_RR, 1)
-
-
-def ordinary(pid: int) -> None:
-    """Every thread of process ``pid`` back under the ordinary policy (after :func:`realtime`)."""
-    _set_policy(pid, os.SCHED_OTHER, 0)
-
-
-def _set_policy(pid: int, policy: int, priority: int) -> bool:
-    ok = False
-    try:
-        tasks = os.listdir(f"/proc/{pid}/task")
-    except OSError:
-        tasks = [str(pid)]
-    for tid in tasks:
-        try:
-            os.sched_setscheduler(int(tid), policy, os.sched_param(priority))
-            ok = True
-        except (OSError, AttributeError):  # not allowed here, or the thread has ended
-            pass
-    return ok

@@ -285,6 +285,31 @@ def test_sync_read_mode_loses_only_the_faulted_servo(chain: ServoChainProcess) -
         d.close()
 
 
+def test_a_stale_reply_on_the_line_never_answers_a_one_off_transaction(chain: ServoChainProcess) -> None:
+    """What a chain descheduled past a timeout leaves on the pty: the late answer to an
+    earlier request arrives after the driver flushed its input, just before the answer to
+    the request it is waiting for, on every attempt. Start-up (servo 2's Ping, preceded by
+    servo 1's last status) and enable (servo 1's Torque Enable, preceded by the chain's last
+    Fast Sync Read reply, id 254) skip it and take their own servo's answer."""
+    chain.inject("stale", 2, count=3)  # each of servo 2's next three replies comes after a stale one
+    d = _driver(chain)
+    try:
+        assert d.stale_replies >= 3, d.stale_replies  # (a loaded machine can add late replies of its own)
+        assert [c["model_number"] for c in d.drive_configuration] == [1120, 1120, 1120, 1020, 1020, 1020]
+        for _ in range(10):
+            d.read(1.0)
+        chain.inject("stale", 1, count=3)  # and each of servo 1's next three
+        d.enable()
+        assert chain.status()["torque"] == [True] * 6
+        assert d.stale_replies >= 5, d.stale_replies  # the two of enable (Torque Enable, its read-back)
+        d.events()
+        samples = [d.read(1.0) for _ in range(40)]  # the third goes before a Fast Sync Read reply: skipped too
+        assert d.stale_replies >= 6 and samples[-1].valid.all() and np.mean([s.valid.all() for s in samples]) > 0.9
+    finally:
+        d.disable()
+        d.close()
+
+
 def test_start_up_refuses_a_chain_that_disagrees_with_the_rig(chain: ServoChainProcess) -> None:
     rig = load_rig(DXL_RIG)
     doc = {"robot": rig.robot, "bus": {"interface": "dynamixel", "host_latency_ms": 0.1},

@@ -7,7 +7,6 @@ to it is in the file."""
 from __future__ import annotations
 
 import json
-import os
 import time
 from pathlib import Path
 
@@ -32,32 +31,9 @@ def test_the_rig_names_its_driver_and_the_registry_builds_it() -> None:
     assert load_rig(config_file("rigs/sim.yaml")).driver == "canopen" and set(BACKENDS) >= {"canopen", "dynamixel"}
 
 
-def _rig_at(tmp_path: Path, period_s: float) -> Path:
-    """The shipped simulated chain at another cycle period (its servo process is Python on a
-    pty: on a loaded 2-core machine it cannot answer every 2 ms, and the supervision would
-    rightly stop the run for lost frames; real Dynamixel arms often cycle at 100-200 Hz)."""
-    import yaml
-
-    doc = yaml.safe_load(RIG.read_text())
-    doc["robot"] = str((RIG.parent / doc["robot"]).resolve())
-    doc["period_s"] = period_s
-    # the servos' reflected rotor inertia, as the lab knows it (the simulated chain's value):
-    # the control law's gains scale with it; without it the wrist's current stays below one
-    # current step of the servo and the joint does not follow
-    inertia = {e["joint"]: e["rotor_inertia"] for e in doc["simulation"]["effects"] if "rotor_inertia" in e}
-    for k, servo in enumerate(doc["drives"]):
-        servo["rotor_inertia_kgm2"] = inertia[k + 1]
-    path = tmp_path / "rig.yaml"
-    path.write_text(yaml.safe_dump(doc))
-    return path
-
-
 @pytest.mark.slow
-@pytest.mark.skipif(os.environ.get("ARMID_DXL_EXCITATION") != "1",
-                    reason="not reliable yet: on a loaded 2-core machine the simulated chain (Python on a pty) loses "
-                           "frames or crosses replies at enable; ARMID_DXL_EXCITATION=1 runs it")
 def test_excitation_runs_on_the_servo_chain_and_a_fault_quick_stops_within_3_cycles(tmp_path: Path) -> None:
-    rig = load_rig(_rig_at(tmp_path, 0.005))
+    rig = load_rig(RIG)  # the shipped rig, at its 2 ms period (issue 31)
     with excitation_session(rig, simulate=True) as s:
         assert isinstance(s.driver, DynamixelDriver)
         d = ex.design(s.robot, moving=(1,), q_hold=s.position, base_frequency_hz=0.2, margin=0.5, seed=2)

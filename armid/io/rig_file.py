@@ -99,6 +99,7 @@ def rig_from_dict(doc: Any, src: str = "<rig>", base_dir: Path | None = None) ->
         simulation=dict(doc.get("simulation") or {}),
         source=src,
         driver=_driver(doc, src, "canopen"),
+        control_bandwidth_hz=_bandwidth(doc, src),
     )
     if rig.master_node_id in {d.node_id for d in drives}:
         raise RigFileError(src, "master_node_id", f"{rig.master_node_id} is also a drive's node id")
@@ -214,7 +215,20 @@ def _serial_rig(doc: dict[str, Any], bus_doc: dict[str, Any], robot: Robot, src:
         source=src,
         serial=serial,
         driver=_driver(doc, src, "dynamixel"),
+        control_bandwidth_hz=_bandwidth(doc, src),
     )
+
+
+def _bandwidth(doc: dict[str, Any], src: str) -> float | None:
+    """``control_bandwidth_hz``: the excitation loop's PD bandwidth, where the rig's joints need
+    another than the default (light joints in gear friction need a stiffer loop)."""
+    value = doc.get("control_bandwidth_hz")
+    if value is None:
+        return None
+    hz = _float(value, src, "control_bandwidth_hz", positive=True)
+    if hz > 20.0:
+        raise RigFileError(src, "control_bandwidth_hz", f"{hz:g} Hz leaves no phase margin for a cycle's delay: at most 20")
+    return hz
 
 
 def _drive_rows(doc: dict[str, Any], robot: Robot, src: str, noun: str, key: str, label: str,

@@ -1,7 +1,7 @@
-"""Run the demo's payload phase in a fresh process: ``payload_phase.py ARM_AND_TRAJECTORY.pkl OUT (warm|cold)``.
+"""Run the demo's payload phase in a fresh process: ``payload_phase.py ARM_AND_TRAJECTORY.pkl OUT``.
 
-The test gives this process an empty numba cache, so nothing is compiled before the phase
-starts; it prints the phase's result as JSON, with the numba kernels compiled during it.
+The test gives this process (and so the estimator's, ``armid estimate live``, which it
+starts) an empty numba cache; it prints the phase's result as JSON.
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ import uuid
 from pathlib import Path
 
 from armid.demo import DEFAULT_RIG, run_payload
+from armid.identify.payload import identification_document
 from armid.io.rig_file import load_rig
 
 
@@ -21,10 +22,7 @@ def main() -> None:
         arm, trajectory = pickle.load(f)
     out = Path(sys.argv[2])
     rig = load_rig(DEFAULT_RIG).with_bus(channel=f"armid-phase-{uuid.uuid4().hex[:8]}")
-    result = run_payload(rig, arm, trajectory, out, None, warm=sys.argv[3] == "warm")
-    from armid.identify import _regressor_lanes
-
-    result["regressor_kernel_compiled"] = bool(_regressor_lanes.regressor_kernel.signatures)
+    result = run_payload(rig, identification_document(arm), trajectory, out, None)
     result.pop("report", None)
     print(json.dumps(result))
 

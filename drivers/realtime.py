@@ -1,0 +1,185 @@
+"""Real-time scheduling for the process that owns the bus (STYLE.md, "Real time in Python").
+
+A 2 ms cycle kept by Python threads at normal priority waits behind whatever else the machine
+runs: with two busy processes on a 2-core machine, the scheduler hands the cycle's threads
+the CPU tens of milliseconds late, and the drives see SYNC late. Where the system allows it
+(root, or ``CAP_SYS_NICE`` and an ``RLIMIT_RTPRIO``), every Python thread of the process runs
+at ``SCHED_FIFO``: they share one interpreter lock, so a loop thread at real-time priority
+waiting for the lock held by a normal-priority thread that the scheduler preempted would
+wait all the same (priority inversion). Threads that compute (:data:`ORDINARY_THREADS`) stay
+ordinary: analysis belongs in another process, and where a test keeps it in this one it must
+not take the cores from the cycle. Threads started later by these threads inherit the
+policy (``pthread_create``'s default). Memory is locked as it is touched
+(``mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT)``), so no page of the loop is swapped out.
+
+``ARMID_REALTIME`` chooses: a priority 1-99 (default 50, below the kernel's threaded
+interrupts of a PREEMPT_RT kernel, which the bus itself needs), or ``off``.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+import threading
+from dataclasses import dataclass
+
+DEFAULT_PRIORITY = 50
+ORDINARY_THREADS = ("armid-serve-", "armid-payload", "armid-regressor")
+"""Threads that compute, left at the ordinary policy when they share the process (a test's
+in-process service, the regressor's pool): arithmetic must not take the cores from the cycle."""
+MCL_CURRENT, MCL_FUTURE, MCL_ONFAULT = 1, 2, 4
+
+
+@dataclass(frozen=True)
+class Timing:
+    """What scheduling the cycle's threads got, and why: said once at start-up."""
+
+    policy: str  # "SCHED_FIFO" | "normal"
+    priority: int
+    memory_locked: bool
+    why: str
+
+    @property
+    def realtime(self) -> bool:
+        return self.policy == "SCHED_FIFO"
+
+    def sentence(self, what: str = "cycle threads") -> str:
+        if self.realtime:
+            return f"{what} at SCHED_FIFO {self.priority}" + ("" if self.memory_locked else f" (memory not locked: {self.why})")
+        return f"{what} at normal priority: {self.why}; expect jitter under load"
+
+
+def requested_priority() -> tuple[int, str]:
+    """(priority, why) from ``ARMID_REALTIME``; priority 0 means off."""
+    text = os.environ.get("ARMID_REALTIME", "").strip().lower()
+    if not text:
+        return DEFAULT_PRIORITY, ""
+    if text in ("off", "0", "no", "false"):
+        return 0, "ARMID_REALTIME=off"
+    try:
+        value = int(text)
+    except ValueError:
+        return DEFAULT_PRIORITY, f"ARMID_REALTIME={text!r} is not a priority (1-99 or off): using {DEFAULT_PRIORITY}"
+    return max(1, min(99, value)), ""
+
+
+def _libc() -> ctypes.CDLL | None:
+    name = ctypes.util.find_library("c")
+    return ctypes.CDLL(name, use_errno=True) if name else None
+
+
+class RealtimeScheduling:
+    """Holds ``SCHED_FIFO`` for the process's Python threads; :meth:`release` puts back the
+    policy each had (threads started meanwhile go back to normal)."""
+
+    def __init__(self) -> None:
+        self._before: dict[int, tuple[int, int]] = {}  # every thread's policy and priority before acquire()
+        self._locked = False
+        self.timing: Timing | None = None
+
+    def acquire(self) -> Timing:
+        priority, why = requested_priority()
+        if not hasattr(os, "sched_setscheduler"):
+            self.timing = Timing("normal", 0, False, "this system has no sched_setscheduler")
+            return self.timing
+        if priority == 0:
+            self.timing = Timing("normal", 0, False, why)
+            return self.timing
+        self._before = {tid: policy for tid in _task_ids() if (policy := _policy(tid)) is not None}
+        param = os.sched_param(priority)
+        try:
+            for tid in _python_thread_ids():
+                os.sched_setscheduler(tid, os.SCHED_FIFO, param)
+        except PermissionError:
+            self.release()
+            self.timing = Timing("normal", 0, False, "no permission for SCHED_FIFO (run as root, or give CAP_SYS_NICE and an rtprio limit)")
+            return self.timing
+        except OSError as err:
+            self.release()
+            self.timing = Timing("normal", 0, False, f"SCHED_FIFO refused ({err.strerror or err})")
+            return self.timing
+        locked, lock_why = self._lock_memory()
+        self.timing = Timing("SCHED_FIFO", priority, locked, why or lock_why)
+        return self.timing
+
+    def _lock_memory(self) -> tuple[bool, str]:
+        libc = _libc()
+        if libc is None:
+            return False, "no C library found for mlockall"
+        if libc.mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT) != 0:
+            return False, f"mlockall: {os.strerror(ctypes.get_errno())}"
+        self._locked = True
+        return True, ""
+
+    def release(self) -> None:
+        """Every thread back to the policy it had; a thread started meanwhile (it inherited the
+        real-time policy: ours, a library's, a child process's starter) back to normal."""
+        for tid in _task_ids():
+            policy, priority = self._before.get(tid, (os.SCHED_OTHER, 0))
+            try:
+                if tid in self._before or os.sched_getscheduler(tid) == os.SCHED_FIFO:
+                    os.sched_setscheduler(tid, policy, os.sched_param(priority))
+            except OSError:  # the thread ended meanwhile
+                pass
+        self._before = {}
+        if self._locked:
+            libc = _libc()
+            if libc is not None:
+                libc.munlockall()
+            self._locked = False
+
+
+def realtime_allowed() -> bool:
+    """Whether this process may take ``SCHED_FIFO`` (tried on the calling thread, put back)."""
+    if not hasattr(os, "sched_setscheduler"):
+        return False
+    before = _policy(0)
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+    except OSError:
+        return False
+    if before is not None:
+        os.sched_setscheduler(0, before[0], os.sched_param(before[1]))
+    return True
+
+
+def ordinary_priority() -> None:
+    """This process's threads at the ordinary policy: a process that computes (``armid serve``,
+    ``armid estimate``) started from a real-time thread inherited its policy, and must not keep it."""
+    for tid in _task_ids():
+        try:
+            if os.sched_getscheduler(tid) != os.SCHED_OTHER:
+                os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+        except (OSError, AttributeError):
+            pass
+
+
+def stall_sentence(seconds: float) -> str:
+    """A fault that came from this process not being scheduled, said with the figures."""
+    try:
+        load = f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores"
+    except OSError:
+        load = f"{os.cpu_count()} cores"
+    return f"this process was not scheduled for {seconds:.2f} s ({load})"
+
+
+def _task_ids() -> list[int]:
+    """Every thread of this process, the libraries' (BLAS, Zenoh's runtime) included."""
+    try:
+        return [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        return _python_thread_ids()
+
+
+def _policy(tid: int) -> tuple[int, int] | None:
+    try:
+        return os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority
+    except OSError:
+        return None
+
+
+def _python_thread_ids() -> list[int]:
+    """The Python threads of the cycle's role (all but :data:`ORDINARY_THREADS`)."""
+    return [t.native_id for t in threading.enumerate()
+            if t.native_id is not None and t.is_alive() and not t.name.startswith(ORDINARY_THREADS)]
