@@ -485,7 +485,7 @@ def serve(rig_file: str, seed: int | None = None) -> None:
 
     # the line's thread takes the interpreter from the physics' within half a millisecond
     # of a request (the default 5 ms switch interval would hold the reply that long)
-    sys.setswitchinterval(0.0005)
+    sys.setswitchinterval(0.0001)
     from armid.drivers.interface import ProcessSettings
 
     # hardware answers in hardware time: the chain's threads at real-time priority where allowed
