@@ -90,7 +90,10 @@ class RealtimeScheduling:
         param = os.sched_param(priority)
         try:
             for tid in _python_thread_ids():
-                os.sched_setscheduler(tid, os.SCHED_FIFO, param)
+                try:
+                    os.sched_setscheduler(tid, os.SCHED_FIFO, param)
+                except ProcessLookupError:  # the thread ended meanwhile
+                    pass
         except PermissionError:
             self.release()
             self.timing = Timing("normal", 0, False, "no permission for SCHED_FIFO (run as root, or give CAP_SYS_NICE and an rtprio limit)")
