@@ -141,16 +141,17 @@ DRIVE_RUN_OPTIONS = IdentifyOptions(exclude_reversals=True)
 on :data:`PREPARE`'s equations, the samples next to a velocity reversal left out."""
 
 
-def identify_whole_arm(robot: Robot, run: Prepared, others: list[Prepared]) -> IdentificationResult:
-    """A whole-arm drive run's fit, validated on the ``others``: the one recipe of the demo and
-    the service (a poorly excited parameter is the design's business, said at design time)."""
+def identify_whole_arm(robot: Robot, run: Prepared, others: list[Prepared],
+                       options: IdentifyOptions = DRIVE_RUN_OPTIONS) -> IdentificationResult:
+    """A whole-arm run's fit, validated on the ``others``: the one recipe of the demo and the
+    service (a poorly excited parameter is the design's business, said at design time)."""
     import warnings
 
     from armid.identify.errors import PoorExcitationWarning
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PoorExcitationWarning)
-        return identify(robot, [run], others or None, DRIVE_RUN_OPTIONS)
+        return identify(robot, [run], others or None, options)
 
 
 def service_agreement(doc: dict[str, Any], whole: IdentificationResult, run: str = "whole_a") -> dict[str, Any]:

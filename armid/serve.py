@@ -296,30 +296,23 @@ class EstimatorService:
         info["window_s"] = stop.get("window_s")
 
     def _whole_arm(self, exp: CollectedExperiment, path: Path, info: dict[str, Any]) -> None:
-        from armid.identify.identification import IdentifyOptions, identify
+        from armid.identify.identification import IdentifyOptions
         from armid.identify.preprocess import PrepareOptions, prepare
         from armid.io.recordings import read_recording
 
-        from .experiments import PREPARE, excitation_recording, identify_whole_arm
+        from .experiments import DRIVE_RUN_OPTIONS, PREPARE, excitation_recording, identify_whole_arm
 
         if self.options.whole_arm == "identify":  # as `armid identify RUN.mcap --robot R` does
             prep = prepare(read_recording(path, self.robot), self.robot, PrepareOptions(max_gap_factor=20.0, lowpass_hz="auto"))
+            options = IdentifyOptions(weighting="wls")
         else:  # as `armid demo` does
             period = float((exp.description.get("metadata") or {}).get("period_s") or 0.002)
             prep = prepare(excitation_recording(_report_of(exp, path), self.robot, period), self.robot, PREPARE)
+            options = DRIVE_RUN_OPTIONS
         self._whole[exp.name] = prep
-        import warnings
-
-        from armid.identify.errors import PoorExcitationWarning
-
         for run in list(self._whole):  # each run's fit, validated on every other whole-arm run
             others = [p for r, p in self._whole.items() if r != run]
-            if self.options.whole_arm == "identify":
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore", PoorExcitationWarning)
-                    fit = identify(self.robot, [self._whole[run]], others or None, IdentifyOptions(weighting="wls"))
-            else:
-                fit = identify_whole_arm(self.robot, self._whole[run], others)
+            fit = identify_whole_arm(self.robot, self._whole[run], others, options)
             self.whole_fits[run] = fit
             d = fit.to_json()
             d["validated_on"] = [r for r in self._whole if r != run]

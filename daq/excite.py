@@ -233,7 +233,7 @@ class ExcitationSession:
         self.limits = Limits.of(self.robot)
         armature = [u.reflected_inertia for u in (d.units for d in rig.drives)]
         q_nominal = rig.simulation.get("initial_position") if rig.simulation else None
-        bandwidth_hz = bandwidth_hz or getattr(rig, "control_bandwidth_hz", None) or LOOP_BANDWIDTH_HZ
+        bandwidth_hz = bandwidth_hz or rig.control_bandwidth_hz or LOOP_BANDWIDTH_HZ
         self.controller = ComputedTorque(self.robot, q_nominal=q_nominal, armature=armature, bandwidth_hz=bandwidth_hz,
                                          decoupled=True)
         self.control = ExcitationControl(self.driver, self.robot, self.controller, self.limits,
