@@ -433,6 +433,27 @@ def test_the_same_run_at_1_2_and_10_ms_replayed_without_a_period_agrees(tmp_path
     assert d["rate_changes"] == 1 and abs(d["mass"] - finals[10]["mass"]) <= d["mass_std"] + finals[10]["mass_std"], d
 
 
+@pytest.mark.parametrize("switch", range(0, 20))
+def test_a_rate_change_is_counted_once_wherever_it_falls_and_jitter_never(switch: int) -> None:
+    """Stamps every 2 ms, then every 10 ms from a record ``switch`` ms later (the step across
+    the switch anywhere from 2 to 12 ms): one rate change, in any batching. A window across the
+    switch has a median between the two rates (4 ms), which is neither. 10 ms stamps moved by
+    up to +-4 ms each: no rate change and no gap."""
+    from armid.identify.payload import _Filter
+
+    t = np.concatenate([np.arange(0, 3.0, 0.002), 3.0 + 0.002 * (switch // 2) + 0.001 * (switch % 2) + np.arange(0, 3.0, 0.01)])
+    for batch in (1, 7, t.size):
+        f = _Filter()
+        for a in range(0, t.size, batch):
+            f._steps(t[a:a + batch])
+        assert f.rate_changes == 1, (switch, batch, f.rate_changes)
+    rng = np.random.default_rng(switch)
+    jittered = np.sort(np.arange(0, 6.0, 0.01) + rng.uniform(-0.004, 0.004, 600))
+    f = _Filter()
+    gaps = f._steps(jittered)
+    assert f.rate_changes == 0 and not gaps.any()
+
+
 @pytest.mark.parametrize("extra, message", [
     (["--period", "0"], "--period must be a positive number of seconds"),
     (["--publish-every", "0"], "--publish-every must be a whole number of records >= 1"),
