@@ -701,6 +701,9 @@ def _estimate_summary(n: int, docs: list[dict[str, Any]], seconds: float, stream
     head = f"armid estimate: {n} updates, {len(docs)} estimates in {seconds:.2f} s"
     extra = [f"{v} {k.replace('_', ' ')}" for k, v in (("rate_changes", est.rate_changes_), ("rejected", est.rejected_),
                                                        ("lost", stream.lost), ("invalid", stream.invalid)) if v]
+    if stream.dropped:
+        reasons = ", ".join(f"{v} {k}" for k, v in stream.dropped.items())
+        extra.append(f"dropped {reasons}; last: {stream.last_drop}")
     if not docs:
         return head + "; no estimate (too few records to differentiate)"
     last = docs[-1]

@@ -34,9 +34,23 @@ from armid.schema.joint_state import JointStateRecord, check_encoding
 
 from .stream import key
 
+RESYNC_RECORDS = 10
+"""This many consecutive records on a timeline of their own (each after the one before, the
+last accepted record's time not) are a clock that stepped: the stream follows it."""
+REORDER_RECORDS = 16
+"""The service holds at most this many records back waiting for an earlier one (32 ms at 2 ms)."""
+JUMP_MIN_S, JUMP_STEPS = 1.0, 100.0
+"""A record further ahead of the last accepted one than 1 s and 100 typical steps per
+sequence number is a time jump (a corrupt stamp): dropped, unless the stream stays there."""
+
 
 class EstimateStream:
-    """Records in sequence order -> the documents to publish (pure, no I/O)."""
+    """Records in sequence order -> the documents to publish (pure, no I/O).
+
+    Every record is screened before the estimator sees it (:meth:`_screen`): one that is not
+    finite, flagged invalid, late, or stamped far ahead of the stream is dropped, counted by
+    reason in ``dropped`` (the last one in ``last_drop``) and the derivatives restart; the
+    records around it go on. A clock that stepped is followed after ``RESYNC_RECORDS``."""
 
     def __init__(self, estimator: PayloadRLS, publish_every: int = 10, strict_time: bool = False, source: str = "stream") -> None:
         """``strict_time``: a record whose time is not after the previous one is refused
@@ -54,6 +68,18 @@ class EstimateStream:
         self.lost = 0
         self.invalid = 0
         self.time_faults = 0
+        self.resyncs = 0
+        self.dropped: dict[str, int] = {}
+        self.last_drop: str | None = None
+        self.typical_step: float | None = None
+        self._last_taken_sequence = 0
+        self._clock_offset = 0.0  # the estimator's clock minus the records' (the steps of a stepped clock)
+        self._other_timeline: list[float] = []
+
+    def drop(self, reason: str, detail: str) -> None:
+        """Count a record that is not used, by reason; say the last one."""
+        self.dropped[reason] = self.dropped.get(reason, 0) + 1
+        self.last_drop = detail
 
     def skip(self, count: int) -> None:
         """``count`` records will not be seen: the derivatives start again after them."""
@@ -73,15 +99,94 @@ class EstimateStream:
         return self.feed_arrays(np.array(seq, np.int64), np.array(t, float), np.array(valid, bool), np.array(q, float),
                                 np.array(torque, float))
 
+    def counts(self) -> dict[str, Any]:
+        """What the stream did not use so far, as every document and the status carry it."""
+        return {"skipped": self.skipped, "lost": self.lost, "invalid": self.invalid, "time_faults": self.time_faults,
+                "dropped": dict(self.dropped), "last_drop": self.last_drop}
+
+    def _screen(self, seq: Array, t: Array, valid: Array, q: Array, torque: Array) -> tuple[Array, Array, list[dict[str, Any]], Array]:
+        """Which records the estimator takes, before which the derivatives restart (a gap in
+        the sequence numbers, a dropped record, a stepped clock), the counts after each, and
+        each record's time on the estimator's clock (a stepped clock's step taken out: the
+        estimator's time never goes back).
+        Sequential: each record is judged against the last *accepted* one, so one bad stamp
+        costs one record, not the stream."""
+        n = t.size
+        take = np.zeros(n, bool)
+        restart = np.zeros(n, bool)
+        after: list[dict[str, Any]] = []
+        counts = self.counts()
+        finite = np.isfinite(t) & np.isfinite(q).all(axis=1) & np.isfinite(torque).all(axis=1)
+        flagged = valid.all(axis=1)
+        shifted = np.empty(n)
+        for k, (sk, tk) in enumerate(zip(seq.tolist(), t.tolist())):
+            take[k], restart[k] = self._judge(sk, tk, bool(finite[k]), bool(flagged[k]), q[k], torque[k])
+            shifted[k] = tk + self._clock_offset
+            if not take[k] or restart[k]:
+                counts = self.counts()
+            after.append(counts)
+        return take, restart, after, shifted
+
+    def _judge(self, sk: int, tk: float, finite: bool, flagged: bool, q: Array, torque: Array) -> tuple[bool, bool]:
+        """(taken, restart before it) for one record; counts what is not taken."""
+        if self.last_sequence is not None and sk <= self.last_sequence:
+            self.drop("out of order", f"record {sk} came after record {self.last_sequence}")
+            return False, False
+        gap = self.last_sequence is not None and sk != self.last_sequence + 1
+        if gap:
+            self.lost += sk - self.last_sequence - 1  # type: ignore[operator]
+        self.last_sequence = sk  # received: not lost, whatever becomes of it
+        if not finite:
+            what = "time" if not np.isfinite(tk) else "position" if not np.isfinite(q).all() else "torque"
+            self.drop("not finite", f"record {sk}: {what} not finite (NaN or infinite)")
+            return False, True
+        if not flagged:
+            self.invalid += 1
+            return False, True
+        if self.last_time is not None and not self._on_timeline(sk, tk):
+            return False, True
+        if self.last_time is not None and not gap:
+            step = tk - self.last_time
+            self.typical_step = step if self.typical_step is None else self.typical_step + 0.05 * (step - self.typical_step)
+        self.last_time, self._last_taken_sequence = tk, sk
+        return True, gap
+
+    def _on_timeline(self, sequence: int, time_s: float) -> bool:
+        """Whether a record's time follows the last accepted one; if not, it is dropped, and
+        ``RESYNC_RECORDS`` in a row on a timeline of their own move the stream there."""
+        step = time_s - (self.last_time or 0.0)
+        typical = self.typical_step or 0.0
+        ahead = self.typical_step is not None and step > max(JUMP_MIN_S, JUMP_STEPS * typical * max(1, sequence - self._last_taken_sequence))
+        if step > 0 and not ahead:
+            self._other_timeline.clear()
+            return True
+        other = self._other_timeline
+        if other and not (other[-1] < time_s <= other[-1] + max(JUMP_MIN_S, JUMP_STEPS * typical)):
+            other.clear()
+        other.append(time_s)
+        if len(other) >= RESYNC_RECORDS:  # the clock stepped and stays there: follow it
+            self.resyncs += 1
+            self.time_faults += 1
+            other.clear()
+            self._clock_offset += (self.last_time or 0.0) + typical - time_s
+            self.last_time, self._last_taken_sequence = time_s, sequence
+            self.drop("time", f"record {sequence}: the clock stepped to {time_s:.6g} s; followed after {RESYNC_RECORDS} records")
+            return False
+        if self.strict_time and step <= 0:
+            raise RecordingError(self.source, f"record {sequence}: time {time_s:.6g} s is not after the previous record's "
+                                              f"{self.last_time:.6g} s (time going backwards or repeated); refused")
+        self.time_faults += 1
+        self.drop("time", f"record {sequence}: time {time_s:.6g} s " + (f"jumps {step:.6g} s ahead of the stream" if ahead else
+                  f"is not after the previous record's {self.last_time:.6g} s"))
+        return False
+
     def feed_arrays(self, seq: Array, t: Array, valid: Array, q: Array, torque: Array) -> list[dict[str, Any]]:
         """Records as arrays, in sequence order: sequence numbers (n,), times (n,) in s, valid
         flags, positions and joint torques (n, N), SI. Returns the documents to publish, one on
         every record whose sequence number is a multiple of ``publish_every``.
 
-        Runs of consecutive valid records go to the estimator in one batch each; a gap in
-        the sequence numbers or an invalid record restarts the derivative filter; a record
-        whose time is not after the one before is refused (``strict_time``) or dropped and
-        counted in ``time_faults`` (the clock stepped: the derivatives restart)."""
+        Runs of consecutive accepted records go to the estimator in one batch each; the
+        derivative filter restarts where :meth:`_screen` says."""
         out: list[dict[str, Any]] = []
         n = int(np.size(t))
         if n == 0:
@@ -89,12 +194,8 @@ class EstimateStream:
         seq = np.asarray(seq, np.int64)
         t = np.asarray(t, float)
         valid = np.asarray(valid, bool).reshape(n, -1)
-        prev_t = np.concatenate([[-np.inf if self.last_time is None else self.last_time], t[:-1]])
-        prev_s = np.concatenate([[seq[0] - 1 if self.last_sequence is None else self.last_sequence], seq[:-1]])
-        fault = ~(t > prev_t)
-        gap = ~fault & (seq != prev_s + 1)
-        bad = ~fault & ~valid.all(axis=1)
-        torque = np.asarray(torque, float)
+        q, torque = np.asarray(q, float), np.asarray(torque, float)
+        take, restart, counts, clock = self._screen(seq, t, valid, q, torque)
 
         def flush(a: int, b: int) -> None:
             if b <= a:
@@ -105,35 +206,21 @@ class EstimateStream:
 
             def publish(k: int) -> None:  # the state now; the documents (and their projections) after the batch
                 snaps.append(self.estimator.snapshot())
-                extra.append({"sequence": int(seq[a + k]), "record_time": float(t[a + k]), "skipped": self.skipped, "lost": self.lost,
-                              "invalid": self.invalid, "time_faults": self.time_faults})
+                extra.append({"sequence": int(seq[a + k]), "record_time": float(t[a + k]), **counts[a + k]})
 
-            self.estimator.partial_fit(t[a:b], q[a:b], torque[a:b], marks.tolist(), publish)
+            self.estimator.partial_fit(clock[a:b], q[a:b], torque[a:b], marks.tolist(), publish)
             for doc, more in zip(self.estimator.estimates(snaps), extra):
                 doc.update(more)
                 out.append(doc)
 
         start = 0
-        for k in np.flatnonzero(fault | gap | bad).tolist():
-            flush(start, k)
-            start = k + 1
-            if fault[k]:
-                if self.strict_time:
-                    raise RecordingError(self.source, f"record {seq[k]}: time {t[k]:.6g} s is not after the previous record's "
-                                                      f"{prev_t[k]:.6g} s (time going backwards or repeated); refused")
-                self.time_faults += 1  # the clock stepped: go on from its new time
-                self.estimator.restart_filter()
-                continue
-            if gap[k]:
-                self.lost += max(0, int(seq[k] - prev_s[k] - 1))
-                self.estimator.restart_filter()
-                start = k
-            if bad[k]:
-                self.invalid += 1
-                self.estimator.restart_filter()
-                start = k + 1
+        for k in range(n):
+            if restart[k] or not take[k]:
+                flush(start, k)
+                start = k + 1 if not take[k] else k
+                if restart[k]:
+                    self.estimator.restart_filter()
         flush(start, n)
-        self.last_sequence, self.last_time = int(seq[-1]), float(t[-1])
         return out
 
 
@@ -161,6 +248,8 @@ class PayloadService:
         self.behind = 0  # times the worker fell behind and skipped
         self.on_estimate = on_estimate
         self._pending: deque[bytes] = deque()
+        self._held: dict[int, tuple[int, float, Array, Array, Array]] = {}  # the reorder buffer, by sequence number
+        self._released: int | None = None
         self._wake = threading.Event()
         self._stop = threading.Event()
         self.published = 0
@@ -190,8 +279,7 @@ class PayloadService:
     def _on_query(self, query: Any) -> None:
         st = self.stream
         doc = {"component": "payload_estimator", "updates": st.estimator.n_updates_ if hasattr(st.estimator, "n_updates_") else 0,
-               "published": self.published, "skipped": st.skipped, "lost": st.lost, "invalid": st.invalid,
-               "backlog": len(self._pending), "behind": self.behind, "last": self.last}
+               "published": self.published, **st.counts(), "backlog": len(self._pending), "behind": self.behind, "last": self.last}
         query.reply(key(self.robot, "status"), json.dumps(doc))
 
     def _run(self) -> None:
@@ -201,11 +289,13 @@ class PayloadService:
             batch = []
             while self._pending:
                 batch.append(self._pending.popleft())
-            if not batch:
+            if not batch and not self._held:
                 continue
             try:
-                records = [_from_record(JointStateRecord.unpack(b)) for b in batch]
-                if records[-1][1] - records[0][1] > self.max_backlog_s:
+                records = self._in_order(self._records(batch), idle=not batch)
+                if not records:
+                    continue
+                if self._behind_s(records) > self.max_backlog_s:
                     # behind by more than max_backlog_s of the arm's time: the newest record only
                     self.behind += 1
                     self.stream.skip(len(records) - 1)
@@ -219,6 +309,48 @@ class PayloadService:
             except Exception as err:
                 if len(self.errors) < 100:
                     self.errors.append(f"{type(err).__name__}: {err}")
+
+    @staticmethod
+    def _behind_s(records: list[tuple[int, float, Array, Array, Array]]) -> float:
+        """How much of the arm's time the batch spans: its steps' median times their count
+        (one corrupt stamp in the batch is not a backlog)."""
+        if len(records) < 2:
+            return 0.0
+        steps = np.diff([r[1] for r in records])
+        return float(np.median(steps)) * steps.size if np.isfinite(steps).all() else 0.0
+
+    def _in_order(self, records: list[tuple[int, float, Array, Array, Array]], idle: bool) -> list[tuple[int, float, Array, Array, Array]]:
+        """Records released in sequence order (a reorder buffer): a record waits while the one
+        before it may still come, up to ``REORDER_RECORDS`` records or until the stream goes
+        idle for a wake interval; then the gap is a gap."""
+        for r in records:
+            self._held[r[0]] = r
+        last, out = self._released, []
+        while self._held:
+            first = min(self._held)
+            if last is not None and first > last + 1 and len(self._held) <= REORDER_RECORDS and not idle:
+                break
+            out.append(self._held.pop(first))
+            last = first if last is None else max(last, first)
+        self._released = last
+        return out
+
+    def _records(self, batch: list[bytes]) -> list[tuple[int, float, Array, Array, Array]]:
+        """The batch's records in sequence order (the transport may reorder them); one that
+        cannot be read or is of another arm is dropped, counted and said, never the batch."""
+        n_joints = self.stream.estimator.arm.robot.n_joints
+        records = []
+        for b in batch:
+            try:
+                r = _from_record(JointStateRecord.unpack(b))
+            except Exception as err:  # the record's own bytes: nothing else is lost with it
+                self.stream.drop("malformed", f"a record of {len(b)} bytes could not be read: {err}")
+                continue
+            if len(r[3]) != n_joints:
+                self.stream.drop("joints", f"record {r[0]} has {len(r[3])} joints; this arm has {n_joints}")
+                continue
+            records.append(r)
+        return sorted(records, key=lambda r: r[0])
 
     def close(self) -> None:
         self._stop.set()

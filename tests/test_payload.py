@@ -625,3 +625,105 @@ def test_the_demo_payload_phase_from_a_cold_start(tmp_path: Path) -> None:
     a2, off = r["after_attach_2s"], r["after_removal_2s"]
     assert abs(a2["mass"] - 2.0) <= 0.1 and a2["com_error_m"] <= 0.01, a2
     assert off["mass"] is not None and abs(off["mass"]) <= 0.1, off
+
+
+@functools.cache
+def _loaded_run_2_ms() -> object:
+    arm, plan, cfg = _arm_and_design()
+    return simulate(arm.robot, cfg, plan.evaluate, plan.duration_s, payloads=[(0.0, PAYLOAD)], seed=4)  # type: ignore[arg-type]
+
+
+def _feed_in_batches(stream: EstimateStream, seq: np.ndarray, t: np.ndarray, q: np.ndarray, tau: np.ndarray, batch: int = 7) -> list[dict]:
+    valid = np.ones(q.shape, bool)
+    docs: list[dict] = []
+    for a in range(0, t.size, batch):
+        docs += stream.feed_arrays(seq[a:a + batch], t[a:a + batch], valid[a:a + batch], q[a:a + batch], tau[a:a + batch])
+    return docs
+
+
+def test_bad_records_in_a_live_stream_are_dropped_counted_and_the_estimate_goes_on() -> None:
+    """Issue 35: a live stream (batches of 7) with 10 records whose positions are NaN (valid
+    flags set), a NaN torque, an infinite torque, one record stamped 10^6 s ahead, and a clock
+    that steps 5 s back for the rest of the run. Each bad record is dropped and counted by
+    reason, estimates are published to the end, and the final estimate is the clean run's
+    within its standard deviation. (Before: nothing was published after the first of them.)"""
+    arm, _, _ = _arm_and_design()
+    run = _loaded_run_2_ms()
+    t, q, tau = run.t.copy(), run.position.copy(), run.torque.copy()  # type: ignore[attr-defined]
+    seq = np.arange(t.size)
+    clean = _feed_in_batches(EstimateStream(PayloadRLS(arm)), seq, t, q, tau)
+    q[1500:1510, 2] = np.nan
+    tau[2000, 1] = np.nan
+    tau[2500, 4] = np.inf
+    t[3000] += 1e6
+    step_back = 3500
+    t[step_back:] -= 5.0
+    stream = EstimateStream(PayloadRLS(arm))
+    docs = _feed_in_batches(stream, seq, t, q, tau)
+    assert stream.dropped == {"not finite": 12, "time": 11}, stream.dropped
+    assert stream.resyncs == 1 and stream.time_faults == 11 and stream.lost == 0
+    assert "clock stepped" in (stream.last_drop or ""), stream.last_drop
+    assert len(docs) >= 0.97 * len(clean), (len(docs), len(clean))
+    assert docs[-1]["sequence"] >= seq[-1] - 10  # published to the end
+    published = np.array([d["sequence"] for d in docs])
+    for k in (1510, 2001, 2501, 3001, step_back + 10):
+        assert (published > k).any() and (published < k + 60).any()  # nothing stops at a bad record
+    a, b = docs[-1], clean[-1]
+    assert a["dropped"] == stream.dropped and a["last_drop"] == stream.last_drop
+    assert abs(a["mass"] - b["mass"]) <= a["mass_std"], (a["mass"], b["mass"], a["mass_std"])
+    assert np.all(np.abs(np.array(a["com"]) - np.array(b["com"])) <= np.array(a["com_std"])), (a["com"], b["com"])
+
+
+def test_the_service_drops_unreadable_foreign_and_late_records_and_goes_on() -> None:
+    """Issue 35, over real Zenoh sessions on loopback: after every 100 good records a garbage
+    payload and a truncated one, after every 500 a record of a 5-joint arm, and the records sent
+    in reversed groups of 4. The service publishes estimates to the end, counts each class in its
+    status and documents, and has no error of its own."""
+    from armid.schema.joint_state import JointStateRecord, Sample
+
+    arm, _, _ = _arm_and_design()
+    robot = arm.robot.name
+    run = _loaded_run_2_ms()
+    n = 3000
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    publisher = zenoh_open(listen=[endpoint])
+    estimator = zenoh_open(connect=[endpoint])
+    service = PayloadService(estimator, robot, EstimateStream(PayloadRLS(arm)), max_backlog_s=1e9)
+    stream = Stream(publisher, robot, "test", lambda: {})
+
+    def record(k: int, joints: int = 6) -> bytes:
+        z = np.zeros(joints)
+        s = Sample(k, float(run.t[k]), np.ones(joints, bool), run.position[k, :joints], z, np.ones(joints, bool), z, z,  # type: ignore[attr-defined]
+                   np.zeros(joints, np.int64), torque=run.torque[k, :joints])  # type: ignore[attr-defined]
+        return JointStateRecord(k, s).pack()
+
+    try:
+        assert wait_for(lambda: any(r.ok is not None for r in publisher.liveliness().get(  # type: ignore[attr-defined]
+            f"armid/{robot}/alive/payload_estimator", timeout=1.0)), 10.0)
+        good = [record(k) for k in range(n)]
+        for a in range(0, n, 4):
+            for b in reversed(good[a:a + 4]):
+                stream._pub.put(b)
+            if a % 100 == 0 and a:
+                stream._pub.put(b"not a record at all")
+                stream._pub.put(good[a][: len(good[a]) // 2])
+            if a % 500 == 0 and a:
+                stream._pub.put(record(a, joints=5))
+            time.sleep(0.002)
+        assert wait_for(lambda: service.backlog == 0 and service.last is not None and service.last["sequence"] >= n - 10, 60.0), service.last
+        dropped = service.stream.dropped
+        assert dropped.get("malformed") == 2 * 29 and dropped.get("joints") == 5, dropped
+        assert service.published >= 0.9 * n / 10, service.published
+        import zenoh
+
+        status = [json.loads(r.ok.payload.to_bytes()) for r in publisher.get(f"armid/{robot}/status", target=zenoh.QueryTarget.ALL,
+                                                                             consolidation=zenoh.ConsolidationMode.NONE, timeout=5.0) if r.ok]
+        mine = next(d for d in status if d.get("component") == "payload_estimator")
+        assert mine["dropped"]["malformed"] == 58 and mine["last_drop"], mine
+        assert service.last["dropped"]["joints"] == 5
+        assert not service.errors, service.errors
+    finally:
+        service.close()
+        stream.close()
+        estimator.close()
+        publisher.close()
