@@ -56,6 +56,8 @@ from armid.identify.robot import Robot
 from armid.schema.joint_state import JointStateRecord, check_encoding
 
 WHOLE_ARM_PIPELINES = ("identify", "drives")
+MIN_MOTION_RAD = 0.05
+"""A joint whose position spans less than this in a run did not move in it."""
 """How a whole-arm run is identified: ``identify`` as ``armid identify RUN.mcap`` does (the
 whole recording, low-pass chosen from the data, weighted least squares); ``drives`` as
 ``armid demo`` does (the excitation window, the drives' velocity, no low-pass, reversals
@@ -250,11 +252,15 @@ class EstimatorService:
         info["mcap"] = str(path)
         if not info["completed"]:
             info["note"] = f"the run was stopped ({stop.get('reason')}): not identified"
-        elif kind == "recording":
-            kind = self._kind_from_motion(path)
+        link = desc.get("link")
+        if info["completed"] and kind == "recording":
+            kind, moving = self._kind_from_motion(path)
             info["kind_from_motion"] = kind
-        if info["completed"] and kind == "single_link":
-            link = desc.get("link") or info.get("link")
+            link = int(moving[0]) + 1 if kind == "single_link" else link
+        refusal = self._refusal(kind, link, path) if info["completed"] and kind in ("single_link", "whole_arm") else None
+        if refusal:
+            info["note"] = refusal
+        elif info["completed"] and kind == "single_link":
             self._single_link(exp, path, int(link) - 1, info)
         elif info["completed"] and kind == "whole_arm":
             self._whole_arm(exp, path, info)
@@ -264,14 +270,33 @@ class EstimatorService:
         self.log(f"{exp.name}: {info.get('note') or 'identified'} ({len(exp.records)} records, {exp.missing} missing)")
         return self._document(info)
 
-    def _kind_from_motion(self, path: Path) -> str:
+    def _refusal(self, kind: str, link: Any, path: Path) -> str | None:
+        """Why a run cannot become the arm's parameters (None: it can): a claimed link that is
+        not one of the robot's joints, or a run whose joints did not move (5.2: a trajectory
+        that excites nothing determines nothing; identified, it published a condition number
+        of 1.5e16 as the arm's parameters)."""
+        from armid.io.recordings import read_recording
+
+        n = self.robot.n_joints
+        if kind == "single_link" and not (isinstance(link, int) and not isinstance(link, bool) and 1 <= link <= n):
+            return f"the run claims link {link!r}, not a joint of {self.name} (1..{n}): not identified"
+        moved = np.ptp(read_recording(path, self.robot).q, axis=0) > MIN_MOTION_RAD
+        still = [j + 1 for j in range(n) if not moved[j]]
+        if kind == "single_link" and not moved[link - 1]:
+            return f"not excited: link {link} did not move (range below {MIN_MOTION_RAD} rad): not identified"
+        if kind == "whole_arm" and still:
+            return f"not excited: joints {', '.join(map(str, still))} did not move (range below {MIN_MOTION_RAD} rad): not identified"
+        return None
+
+    def _kind_from_motion(self, path: Path) -> tuple[str, np.ndarray]:
+        """What a plain recording was, from which joints moved (and those joints)."""
         from armid.io.recordings import read_recording
 
         rec = read_recording(path, self.robot)
-        moving = np.flatnonzero(np.ptp(rec.q, axis=0) > 0.05)
+        moving = np.flatnonzero(np.ptp(rec.q, axis=0) > MIN_MOTION_RAD)
         if moving.size == self.robot.n_joints:
-            return "whole_arm"
-        return "single_link" if moving.size == 1 else "partial"
+            return "whole_arm", moving
+        return ("single_link" if moving.size == 1 else "partial"), moving
 
     def _single_link(self, exp: CollectedExperiment, path: Path, k: int, info: dict[str, Any]) -> None:
         from armid.identify.preprocess import prepare

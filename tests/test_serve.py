@@ -505,3 +505,43 @@ def test_once_the_arm_is_identified_the_service_estimates_a_payload_on_the_live_
     print(f"\nservice's payload estimate (true {truth.mass} kg): {before['mass']:.3f} kg 0.5 s before the attach; after it "
           + "; ".join(read) + f"; arm identified {identified_s:.1f} s in, {took:.1f} s in all; "
           f"{len(mine)} estimates over the work, records skipped {skipped}, lost {mine[-1]['lost']}")
+
+
+def test_a_run_that_claims_no_joint_or_moves_nothing_never_becomes_the_arms_parameters(tmp_path: Path) -> None:
+    """Issue 35: a single-link run that claims link 99 or link 0, and whole-arm and single-link
+    runs in which nothing moves (3,000 identical records), are refused with the reason; the
+    service's state is untouched (no link done, no whole-arm fit), so a later run is not
+    poisoned by them. A real Zenoh session on loopback; the experiments handed to the service's
+    own ``process``."""
+    import zenoh
+
+    from armid.daq.experiment_stream import CollectedExperiment
+    from armid.daq.stream import session_config
+    from armid.io.robot_file import load_robot
+    from armid.schema.joint_state import JointStateRecord, Sample
+    from armid.serve import EstimatorService
+
+    robot = load_robot(ROBOT)
+    session = zenoh.open(session_config(listen=[f"tcp/127.0.0.1:{_free_port()}"]))
+    service = EstimatorService(session, robot, tmp_path / "serve")
+    z = np.zeros(6)
+    still = [JointStateRecord(k, Sample(k, 0.002 * k, np.ones(6, bool), np.full(6, 0.3), z, np.ones(6, bool), z, z, np.zeros(6, np.int64),
+                                        torque=np.ones(6))).pack() for k in range(3000)]
+
+    def run(name: str, kind: str, link: object = None) -> dict:
+        experiment = {"kind": kind, **({"link": link} if link is not None else {}), "metadata": {"period_s": 0.002}}
+        exp = CollectedExperiment(name, {"experiment": experiment}, {"completed": True, "experiment": experiment, "window_s": [0.0, 6.0]},
+                                  still, list(range(3000)), 0, [[0, 2999]])
+        service.process(exp)
+        return service.experiments[-1]
+
+    try:
+        assert "claims link 99, not a joint of puma560 (1..6)" in run("link99", "single_link", 99)["note"]
+        assert "claims link 0" in run("link0", "single_link", 0)["note"]
+        assert "not excited: link 3 did not move" in run("still3", "single_link", 3)["note"]
+        assert "not excited: joints 1, 2, 3, 4, 5, 6 did not move" in run("still", "whole_arm")["note"]
+        assert service._single == {} and service.whole_fits == {} and service.sequence is None
+        assert not service.errors, service.errors
+    finally:
+        service.close()
+        session.close()
