@@ -56,12 +56,12 @@ from armid.identify.robot import Robot
 from armid.schema.joint_state import JointStateRecord, check_encoding
 
 WHOLE_ARM_PIPELINES = ("identify", "drives")
-MIN_MOTION_RAD = 0.05
-"""A joint whose position spans less than this in a run did not move in it."""
 """How a whole-arm run is identified: ``identify`` as ``armid identify RUN.mcap`` does (the
 whole recording, low-pass chosen from the data, weighted least squares); ``drives`` as
 ``armid demo`` does (the excitation window, the drives' velocity, no low-pass, reversals
 left out)."""
+MIN_MOTION_RAD = 0.05
+"""A joint whose position spans less than this in a run did not move in it."""
 
 
 @dataclass(frozen=True)
