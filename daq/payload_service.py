@@ -326,8 +326,7 @@ class PayloadService:
         for r in records:
             self._held[r[0]] = r
         last, out = self._released, []
-        while self._held:
-            first = min(self._held)
+        for first in sorted(self._held):  # once per batch: a backlog of thousands stays linear
             if last is not None and first > last + 1 and len(self._held) <= REORDER_RECORDS and not idle:
                 break
             out.append(self._held.pop(first))
@@ -336,8 +335,8 @@ class PayloadService:
         return out
 
     def _records(self, batch: list[bytes]) -> list[tuple[int, float, Array, Array, Array]]:
-        """The batch's records in sequence order (the transport may reorder them); one that
-        cannot be read or is of another arm is dropped, counted and said, never the batch."""
+        """The batch's records (:meth:`_in_order` orders them); one that cannot be read or is
+        of another arm is dropped, counted and said, never the batch."""
         n_joints = self.stream.estimator.arm.robot.n_joints
         records = []
         for b in batch:
@@ -350,7 +349,7 @@ class PayloadService:
                 self.stream.drop("joints", f"record {r[0]} has {len(r[3])} joints; this arm has {n_joints}")
                 continue
             records.append(r)
-        return sorted(records, key=lambda r: r[0])
+        return records
 
     def close(self) -> None:
         self._stop.set()
