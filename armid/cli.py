@@ -360,12 +360,14 @@ def _record(args: argparse.Namespace) -> int:
             stream = Stream(session, rig.robot.name, "recorder", lambda: {"records": acq.sequence, "invalid": acq.invalid.tolist(),
                                                                           "dropped_by_stream": sinks[-1].dropped})
             sinks.append(Sink("zenoh", stream.publish, bounded=True, capacity=5000))
+        from armid.daq.supervision import Supervision
+
+        supervision = Supervision(lambda text: print(f"armid record: {text}", file=sys.stderr, flush=True), stream)
         faults: list[Any] = []
 
         def on_fault(f: Any) -> None:
             faults.append(f)
-            if stream:
-                stream.event("fault", joint=f.joint + 1, code=f.code, meaning=f.meaning)
+            supervision.fault(f)
 
         acq = Acquisition(driver, sinks, on_fault=on_fault)
         from armid.daq.experiment_stream import experiment_description
@@ -382,12 +384,14 @@ def _record(args: argparse.Namespace) -> int:
         print(f"armid record: {rig.name} -> {out / 'run.mcap'} (Ctrl-C stops)", file=sys.stderr, flush=True)
         with live:
             while not stop.wait(0.1):
+                supervision.events(driver.events())
                 elapsed = acq.sequence * rig.period_s if paced else time.monotonic() - start
                 if args.duration and elapsed >= args.duration:
                     break
                 if acq.error:
                     break
         acq.stop()
+        supervision.events(driver.events())
         recorder.close()
         if can_log is not None:
             can_log.stop()
@@ -396,7 +400,11 @@ def _record(args: argparse.Namespace) -> int:
                          reason=acq.error, first_sequence=0, last_sequence=acq.sequence - 1, first_cycle=0, window_s=None)
         print(f"armid record: {acq.sequence} records, invalid per joint {acq.invalid.tolist()}, lost cycles per joint "
               f"{driver.lost_cycles.tolist()}" + (f", dropped by the stream {sinks[-1].dropped}" if stream else ""), file=sys.stderr)
-        return 1 if acq.error else 0
+        for line in supervision.summary():
+            print(f"armid record: {line}", file=sys.stderr)
+        if supervision.failed:
+            print(f"armid record: {supervision.verdict()} ({out / 'run.mcap'} holds every record)", file=sys.stderr)
+        return 1 if acq.error or supervision.failed else 0
     finally:
         driver.close()
         if stream:
@@ -528,7 +536,8 @@ def _excite_run(args: argparse.Namespace, rig: Any, robot: Any, n: int, simulate
     console.print(f"armid excite: {len(experiments)} trajectories checked against every limit; recording to {out}")
     # designing can keep this process busy for tens of seconds: only now the drives run with it
     driver, sim = _open_driver(rig, args)
-    with ExcitationSession(rig, driver, simulator=sim, tracking_limit_rad=args.tracking_limit, stream=stream) as session:
+    with ExcitationSession(rig, driver, simulator=sim, tracking_limit_rad=args.tracking_limit, stream=stream,
+                           say=lambda text: console.print(f"armid excite: {text}", markup=False, highlight=False)) as session:
         holder["session"] = session
         console.print(f"armid excite: timing: {session.driver.timing_note}")
         moved = float(np.abs(start - session.position).max())

@@ -106,6 +106,7 @@ class EstimatorService:
         self._last_seq: int | None = None
         self.published = 0
         self.errors: list[str] = []
+        self.drive_reports: dict[tuple[Any, ...], dict[str, Any]] = {}  # what the drives said, by kind, joint and code
         self.experiments: list[dict[str, Any]] = []
         self.last: dict[str, Any] | None = None
         self.busy: str | None = None
@@ -159,7 +160,7 @@ class EstimatorService:
             self._wake.clear()
             try:
                 while self._events:
-                    self.collector.event(self._events.popleft())
+                    self._take_event(self._events.popleft())
                 while self._inbox and not self._stop.is_set():
                     backlog = len(self._inbox)
                     if backlog > self.options.max_backlog:
@@ -182,12 +183,30 @@ class EstimatorService:
                     if delay:
                         time.sleep(delay)
                     while self._events:
-                        self.collector.event(self._events.popleft())
+                        self._take_event(self._events.popleft())
                     if self.collector.stopping:
                         self._queue_completed()
                 self._queue_completed()
             except Exception as err:
                 self._error(err)
+
+    def _take_event(self, doc: dict[str, Any]) -> None:
+        """An experiment's start or stop to the collector; a drive's fault or event (the
+        recorder's :class:`~armid.daq.supervision.Supervision`) said once per kind, joint
+        and code, and counted in the status."""
+        if doc.get("event") not in ("fault", "drive_event"):
+            self.collector.event(doc)
+            return
+        key = (doc.get("event"), doc.get("kind"), doc.get("joint"), doc.get("code"))
+        seen = self.drive_reports.get(key)
+        if seen is not None:
+            seen["count"] += 1
+            return
+        text = doc.get("meaning") or doc.get("message") or "?"
+        where = f"joint {doc.get('joint')}" + (f" (node {doc['node']})" if doc.get("node") is not None else "")
+        self.drive_reports[key] = {"event": doc.get("event"), "kind": doc.get("kind"), "joint": doc.get("joint"), "code": doc.get("code"),
+                                   "text": text, "count": 1}
+        self.log(f"the drives said: {where}: {text}" if doc.get("event") == "fault" else f"the drives said: {text}")
 
     def _queue_completed(self) -> None:
         for exp in self.collector.completed():
@@ -395,7 +414,8 @@ class EstimatorService:
                "backlog": len(self._inbox), "analysing": self.busy, "queued_experiments": len(self._jobs),
                "open_experiments": sorted(self.collector.started), "published": self.published,
                "experiments": self.experiments, "links_done": sorted((j + 1 for j in self._single), reverse=True),
-               "whole_arm_runs": list(self._whole_docs), "errors": self.errors[-5:]}
+               "whole_arm_runs": list(self._whole_docs), "errors": self.errors[-5:],
+               "drive_reports": list(self.drive_reports.values())[-20:]}
         query.reply(key(self.name, "status"), strict_json(doc))
 
     def close(self) -> None:

@@ -216,13 +216,16 @@ class ExcitationSession:
     """Bus, drives and acquisition for a sequence of plans; ``with`` closes everything."""
 
     def __init__(self, rig: Any, driver: Driver | None = None, *, simulator: Any = None, tracking_limit_rad: float = 0.2,
-                 stream: Any = None, bus: Any = None, bandwidth_hz: float | None = None) -> None:
+                 stream: Any = None, bus: Any = None, bandwidth_hz: float | None = None, say: Callable[[str], None] | None = None) -> None:
         """``driver``: any :class:`Driver` (default: the one the rig names, from the registry,
         on ``bus`` for CANopen). ``simulator``: the simulated hardware the caller started
         (``armid.simulated``), closed with the session; its ``peer`` is :attr:`arm`.
         ``bandwidth_hz``: the loop's PD bandwidth (default: the rig's ``control_bandwidth_hz``,
-        else :data:`LOOP_BANDWIDTH_HZ`)."""
+        else :data:`LOOP_BANDWIDTH_HZ`). ``say``: where the drives' faults and events are said
+        as they come (:class:`~armid.daq.supervision.Supervision`; default: nowhere)."""
         from armid.drivers import open_driver
+
+        from .supervision import Supervision
 
         self.rig = rig
         self.robot: Robot = rig.robot
@@ -230,6 +233,7 @@ class ExcitationSession:
         self.arm = getattr(simulator, "peer", None)
         self.driver = driver if driver is not None else open_driver(rig, **({"bus": bus} if bus is not None else {}))
         self.stream = stream
+        self.supervision = Supervision(say or (lambda text: None), stream)
         self.limits = Limits.of(self.robot)
         armature = [u.reflected_inertia for u in (d.units for d in rig.drives)]
         q_nominal = rig.simulation.get("initial_position") if rig.simulation else None
@@ -263,8 +267,7 @@ class ExcitationSession:
 
     def _on_fault(self, fault: DriveFault) -> None:
         self.control.fault(fault)
-        if self.stream is not None:
-            self.stream.event("fault", joint=fault.joint + 1, code=fault.code, meaning=fault.meaning)
+        self.supervision.fault(fault)
 
     @property
     def position(self) -> Array:
@@ -307,6 +310,7 @@ class ExcitationSession:
                 self.stream.event("start", run=name, duration_s=plan.duration_s,
                                   experiment=experiment_description(name, plan, self.robot.n_joints, meta))
             while not active.done.wait(0.2):
+                self.supervision.events(self.driver.events())
                 if progress is not None:
                     progress(active.cycles * self.rig.period_s, self.control)
                 if self.acquisition.error:

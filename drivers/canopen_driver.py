@@ -28,6 +28,7 @@ import numpy as np
 from canopen.sdo import SdoAbortedError, SdoCommunicationError, SdoVariable
 
 from armid.schema import Array
+from armid.schema.errors import NotOperational
 
 from ..resources import config_file
 from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverError, HeartbeatLost, ProcessSettings, Sample
@@ -43,6 +44,12 @@ CONTROLWORD_REFRESH = 25
 PACE_WAIT_S = 0.05
 STALL_S = 0.05  # a watchdog call this late means this process (not the bus) was stalled
 TARGET_POSITION = (0x607A, 0, 32)
+NMT_OPERATIONAL = 0x05
+NMT_STATES = {0x00: "reset: its boot-up message came (an NMT reset or a power cycle); it is unconfigured until the recording restarts",
+              0x04: "stopped by an NMT command (NMT state STOPPED): it sends no PDOs and takes no commands",
+              0x7F: "sent back to pre-operational by an NMT command: it sends no PDOs and takes no commands"}
+EMCY_BYTES = 8  # CiA 301: error code (2), error register (1), manufacturer data (5)
+EMCY_KEPT = 100  # canopen keeps every EMCY it decodes: a storm would grow its lists without end
 
 EMCY_MEANINGS = {
     0x0000: "error reset or no error",
@@ -148,7 +155,9 @@ class CanopenDriver(Driver):
         self.last_stall: tuple[float, float] = (0.0, 0.0)  # (monotonic time, s) of the newest cycle this process ran late
         self.last_sync_sent = time.monotonic()  # when the SYNC thread last sent one
         self.longest_sync_gap = 0.0  # s between two SYNCs the thread sent, the longest since start
-        self._silent = np.zeros(self.n_joints, bool)
+        self._silent = np.zeros(self.n_joints, bool)  # no heartbeat: lost
+        self._nmt = np.full(self.n_joints, -1, np.int64)  # each drive's NMT state as its heartbeat says
+        self._not_operational = np.zeros(self.n_joints, bool)  # was operational, reports another state
         self._hb_task: can.broadcastmanager.CyclicSendTaskABC | None = None
         self._bcm_task: can.broadcastmanager.CyclicSendTaskABC | None = None
         self.late_frames = np.zeros(self.n_joints, np.int64)
@@ -207,6 +216,10 @@ class CanopenDriver(Driver):
             self.network.add_node(node)
             node.sdo.RESPONSE_TIMEOUT = 0.5
             node.emcy.add_callback(lambda err, j=d.joint, n=d.node_id: self._on_emcy(j, n, err))
+            # canopen's own decoding of EMCY raises on a frame of another length (a bare
+            # "unpack requires a buffer of 8 bytes" line from its listener): checked first here
+            self.network.unsubscribe(0x80 + d.node_id, node.emcy.on_emcy)
+            self.network.subscribe(0x80 + d.node_id, lambda can_id, data, ts, j=d.joint, n=node: self._on_emcy_frame(j, n, can_id, data, ts))
             self.network.subscribe(0x700 + d.node_id, self._on_heartbeat)
             self.nodes.append(node)
         self.network.send_message(0, bytes([0x80, 0]))  # all nodes to pre-operational
@@ -419,7 +432,8 @@ class CanopenDriver(Driver):
         s.measured_current[:], s.status[:] = self._emitted.measured_current, self._emitted.status
         s.commanded_current[:] = self._in_force
         self._in_force = self._commanded.copy()
-        expected = {(t.joint, t.number) for t in self._tpdo.values() if counter % t.every == 0 and not self._silent[t.joint]}
+        quiet = self._silent | self._not_operational  # a drive that sends no PDOs is not waited for
+        expected = {(t.joint, t.number) for t in self._tpdo.values() if counter % t.every == 0 and not quiet[t.joint]}
         c = _Cycle(cycle, counter, now, s, expected)
         self._open.append(c)
         self._last = s
@@ -525,11 +539,47 @@ class CanopenDriver(Driver):
                 self._event("heartbeat_lost", str(fault), j)
 
     def _on_heartbeat(self, can_id: int, data: bytes, timestamp: float) -> None:
-        j = self._node_ids[can_id - 0x700]
+        node = can_id - 0x700
+        j = self._node_ids[node]
         self._heartbeat[j] = time.monotonic()
         if self._silent[j]:
             self._silent[j] = False
-            self._event("heartbeat_back", f"joint {j + 1} (node {can_id - 0x700}) is back (NMT state 0x{data[0]:02X})", j)
+            self._event("heartbeat_back", f"joint {j + 1} (node {node}) is back (NMT state 0x{data[0]:02X})" if data else
+                        f"joint {j + 1} (node {node}) is back", j)
+        if len(data) != 1:
+            self._event("frame_length", f"joint {j + 1}: heartbeat (COB-ID 0x{can_id:03X}) has {len(data)} bytes, CiA 301 says 1", j)
+            return
+        self._supervise_nmt(j, node, data[0] & 0x7F)
+
+    def _supervise_nmt(self, j: int, node: int, state: int) -> None:
+        """A drive that was operational and whose heartbeat reports another NMT state is lost
+        as a silent one is (the others quick-stopped), until it reports operational again:
+        its PDOs stop, and a cycle must not wait for them."""
+        was, self._nmt[j] = self._nmt[j], state
+        if state == NMT_OPERATIONAL:
+            if self._not_operational[j]:
+                self._not_operational[j] = False
+                self._event("nmt_back", f"joint {j + 1} (node {node}) is operational again", j)
+            return
+        if was != NMT_OPERATIONAL or self._not_operational[j] or self._listen_only:
+            return
+        self._not_operational[j] = True
+        self.quick_stop([k for k in range(self.n_joints) if k != j])
+        meaning = NMT_STATES.get(state, f"reports NMT state 0x{state:02X} instead of operational")
+        fault = NotOperational(j, node, state, f"{meaning}; the other drives were quick-stopped")
+        self._faults.put(fault)
+        self._event("nmt", str(fault), j)
+
+    def _on_emcy_frame(self, joint: int, node: canopen.RemoteNode, can_id: int, data: bytes, timestamp: float) -> None:
+        """An EMCY frame of the CiA 301 length goes to canopen's decoder (and so to :meth:`_on_emcy`);
+        another length is an event naming the drive, not an exception in the notifier."""
+        if len(data) != EMCY_BYTES:
+            self._event("frame_length", f"joint {joint + 1} (node {node.id}): EMCY (COB-ID 0x{can_id:03X}) has {len(data)} bytes, "
+                                        f"CiA 301 says {EMCY_BYTES}: not decoded", joint)
+            return
+        node.emcy.on_emcy(can_id, data, timestamp)
+        for kept in (node.emcy.log, node.emcy.active):
+            del kept[:-EMCY_KEPT]
 
     def _on_emcy(self, joint: int, node_id: int, err: canopen.emcy.EmcyError) -> None:
         if err.code == 0:

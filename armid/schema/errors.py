@@ -142,6 +142,16 @@ class ServoLost(HeartbeatLost):
     """A servo has not answered for ``silent_cycles`` cycles in a row."""
 
 
+class NotOperational(DriveFault):
+    """A drive that was operational reports another NMT state in its heartbeat: stopped by an
+    NMT command, or reset (its boot-up message). It sends no PDOs and takes no commands."""
+
+    def __init__(self, joint: int, node_id: int, state: int, meaning: str) -> None:
+        super().__init__(joint, node_id, 0, meaning)
+        self.state = state
+        self.args = (f"joint {joint + 1} (node {node_id}): {meaning}",)
+
+
 class ProtocolError(DriverError):
     """A reply that cannot be used: names the servo and what was wrong with the bytes."""
 
