@@ -236,6 +236,9 @@ class CanopenDriver(Driver):
         self._hb_task = self._bus.send_periodic(
             can.Message(arbitration_id=0x700 + r.master_node_id, data=[0x05], is_extended_id=False), r.master_heartbeat_ms / 1000.0
         )
+        # a drive is supervised from its first operational heartbeat after this start: one that
+        # was operational before (a previous run) and went pre-operational above is not lost
+        self._nmt[:] = -1
         self.network.send_message(0, bytes([0x01, 0]))  # NMT start all
         if r.bus.interface == "socketcan":
             # the kernel's broadcast manager cycles 240 SYNC frames with counters 1..240; the

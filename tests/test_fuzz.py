@@ -279,6 +279,21 @@ def test_mcap_time_going_backwards_is_read_and_said(tmp_path: Path) -> None:
     assert rec.n_samples == ROWS - 25 and np.all(np.diff(rec.t) > 0)
 
 
+def test_an_mcap_that_names_no_robot_is_read_and_said(tmp_path: Path) -> None:
+    """Metadata stripped (another tool's copy): the recording cannot be checked against
+    --robot; it is read as that robot, and the notes say so. One that names another robot is refused."""
+    rec = _read_as_identify_does(_mcap_with(tmp_path / "bare.mcap", lambda m: None, metadata={}))
+    assert any("its metadata names no robot" in n and "puma560" in n for n in rec.notes), rec.notes
+    assert not any("names no robot" in n for n in _read_as_identify_does(_mcap_with(tmp_path / "named.mcap", lambda m: None)).notes)
+    from armid.io.recordings import read_recording
+    from armid.io.robot_file import load_robot
+
+    from armid.identify.errors import RecordingError
+
+    with pytest.raises(RecordingError, match="recorded on robot .ur5."):
+        read_recording(_mcap_with(tmp_path / "other.mcap", lambda m: None, metadata={"robot": "ur5"}), load_robot(PUMA))
+
+
 # -- robot descriptions ------------------------------------------------------------------
 
 def _robot(path: Path, change: Callable[[dict[str, Any]], None]) -> Path:
@@ -309,6 +324,18 @@ def _ur5(path: Path, joint_type: str) -> Path:
     return path
 
 
+def _ur5_urdf_nan(path: Path) -> Path:
+    """The UR5 with ``nan`` in its shoulder link's inertial origin (the URDF parser reads it as a number)."""
+    urdf = (UR5.parent / "ur5.urdf").read_text()
+    at = urdf.index('<link name="shoulder_link">')
+    tail = urdf[at:].replace('<origin xyz="0 0 0"', '<origin xyz="nan 0 0"', 1)
+    (path.parent / "nan.urdf").write_text(urdf[:at] + tail)
+    doc = yaml.safe_load(UR5.read_text())
+    doc["urdf"] = "nan.urdf"
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
 ROBOT_CASES: dict[str, tuple[Callable[[Path], Path], str]] = {
     "nested 5000 deep": (lambda p: (p.write_text("[" * 5000 + "]" * 5000), p)[1], r"nested too deeply"),
     "mapping nested 5000 deep": (lambda p: (p.write_text("a: " + "{b: " * 5000 + "1" + "}" * 5000), p)[1], r"nested too deeply"),
@@ -335,6 +362,7 @@ ROBOT_CASES: dict[str, tuple[Callable[[Path], Path], str]] = {
     "URDF joint type contradicted": (lambda p: _ur5(p, "prismatic"), r"joints\[1\]\.type: prismatic here, but ur5\.urdf makes "
                                                                       r"'shoulder_lift_joint' revolute"),
     "URDF joint type unknown": (lambda p: _ur5(p, "helical"), r"joints\[1\]\.type: must be revolute or prismatic"),
+    "URDF inertial origin NaN": (_ur5_urdf_nan, r"urdf: .*nan\.urdf: the URDF parser left part of it out \(Error: Unable to parse component \[nan\]"),
 }
 for _k in range(6):  # every kinematic number of every joint, broken three ways
     for _key in ("a", "alpha", "d", "theta"):

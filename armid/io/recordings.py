@@ -63,6 +63,9 @@ def _read_mcap(path: Path, robot: Robot) -> Recording:
     if recorded is not None and recorded != robot.name:
         raise RecordingError(str(path), f"metadata armid.run: recorded on robot {recorded!r}, but --robot {robot.source} "
                                         f"describes {robot.name!r}")
+    if recorded is None:
+        notes.append(f"its metadata names no robot (no armid.run record): read as {robot.name}, on the word of --robot "
+                     f"{robot.source} alone")
     n = arrays["position"].shape[1]
     if n != robot.n_joints:
         raise RecordingError(str(path), f"{n} joints recorded, robot {robot.name} has {robot.n_joints}")
