@@ -144,14 +144,20 @@ def _write_json(path: Path, doc: Any) -> None:
 def _read_checked(path: str, robot: Any) -> Any:
     """``read_recording`` and the plausibility checks (time units, torque); their warnings are held
     until every input is read."""
-    from armid.identify.plausibility import check_positions, check_recording
     from armid.io.recordings import read_recording
 
     rec = read_recording(path, robot)
-    limits = [j.limits.position for j in robot.joints]
-    for warning in check_recording(rec.t, rec.q, rec.qd, rec.tau, rec.source) + check_positions(rec.q, limits, [j.revolute for j in robot.joints], rec.source):
-        _WARNINGS.show(warning, None, "", 0)
+    _check_plausible(rec.source, robot, rec.t, rec.q, rec.qd, rec.tau)
     return rec
+
+
+def _check_plausible(source: str, robot: Any, t: Any, q: Any, qd: Any, tau: Any) -> None:
+    """The plausibility checks of :func:`_read_checked` on arrays read another way (a replay's MCAP)."""
+    from armid.identify.plausibility import check_positions, check_recording
+
+    limits = [j.limits.position for j in robot.joints]
+    for warning in check_recording(t, q, qd, tau, source) + check_positions(q, limits, [j.revolute for j in robot.joints], source):
+        _WARNINGS.show(warning, None, "", 0)
 
 
 def _check_model(robot: Any, paths: list[str], prepared: list[Any]) -> None:
@@ -645,7 +651,7 @@ def _replay_records(path: Path, robot: Any, kt: np.ndarray, period_s: float | No
     """(sequence, time, valid, position, torque) of a recording (MCAP or CSV), in order, on
     the recording's own time stamps; time must increase (a CSV names its line). A ROS 2
     recording carries the torque; a JSON one (before it) its measured current times ``kt``."""
-    from armid.io.recordings import read_mcap_arrays, read_recording
+    from armid.io.recordings import read_mcap_arrays
 
     if path.suffix.lower() == ".mcap":
         if not path.exists():
@@ -659,16 +665,21 @@ def _replay_records(path: Path, robot: Any, kt: np.ndarray, period_s: float | No
         torque = a["torque"] if "torque" in a else a["measured_current"] * kt
         records = (np.asarray(a["sequence"], np.int64), t, np.asarray(a["valid"], bool).reshape(t.size, -1),
                    np.asarray(a["position"], float), np.asarray(torque, float))
+        _check_plausible(str(path), robot, t, records[3], None, records[4])
     else:
-        rec = read_recording(path, robot)
+        rec = _read_checked(str(path), robot)  # the checks identify makes: ms stamps, degrees, mN*m refused
         notes, t = list(rec.notes), np.asarray(rec.t, float)
+        line = np.arange(t.size) + 2
+        stamped = np.isfinite(t)  # a garbage row (wrong field count, no number) has no time: left out, as identify does
+        if not stamped.all():
+            notes.append(f"left out {int((~stamped).sum())} row(s) without a time stamp (line {', '.join(map(str, line[~stamped][:5]))})")
+        t, q, tau = t[stamped], np.asarray(rec.q, float)[stamped], np.asarray(rec.tau, float)[stamped]
         back = np.flatnonzero(~(np.diff(t) > 0))
         if back.size:
             k = int(back[0]) + 1
-            raise RecordingError(str(path), f"line {k + 2}: time {t[k]:.6g} s is not after the line before ({t[k - 1]:.6g} s): "
+            raise RecordingError(str(path), f"line {line[stamped][k]}: time {t[k]:.6g} s is not after the line before ({t[k - 1]:.6g} s): "
                                             "time must increase (a reversed or shuffled log?)")
-        records = (np.arange(rec.n_samples, dtype=np.int64), t, np.ones((rec.n_samples, robot.n_joints), bool), np.asarray(rec.q, float),
-                   np.asarray(rec.tau, float))
+        records = (np.arange(t.size, dtype=np.int64), t, np.ones((t.size, robot.n_joints), bool), q, tau)
     if t.size >= 2 and period_s is not None:
         step = float(np.median(np.diff(t)))
         if abs(step - period_s) > 0.1 * period_s:
@@ -724,6 +735,22 @@ def _estimate_summary(n: int, docs: list[dict[str, Any]], seconds: float, stream
     return head + f"; last: {what}" + (f" ({', '.join(extra)})" if extra else "")
 
 
+def _replay_problem(n_records: int, docs: list[dict[str, Any]], stream: Any) -> str | None:
+    """What makes a replay's input unusable: no record the estimator could take (each dropped
+    by the screen: not finite, invalid), or most of them gross outliers against the identified
+    arm (torque in mN*m, another arm's parameters). None when the replay says something."""
+    dropped = sum(stream.dropped.values()) + stream.invalid
+    if not docs:
+        reasons = ", ".join(f"{v} {k}" for k, v in stream.dropped.items()) or "too few records to differentiate"
+        return f"no estimate from {n_records} records ({dropped} dropped: {reasons}; last: {stream.last_drop})" if dropped else \
+               f"no estimate from {n_records} records ({reasons})"
+    rejected = stream.estimator.rejected_
+    if rejected > 0.5 * max(n_records - dropped, 1):
+        return (f"{rejected} of {n_records - dropped} records are gross outliers against the identified arm: is the torque in N*m "
+                "(not mN*m), and are --params this arm's?")
+    return None
+
+
 def _estimate(args: argparse.Namespace) -> int:
     """On-line payload estimation, live or on a recording; always on the records' time stamps."""
     import time
@@ -772,6 +799,9 @@ def _estimate(args: argparse.Namespace) -> int:
                 out.write(json.dumps(d, allow_nan=False) + "\n")
             seconds = time.perf_counter() - start
             print(_estimate_summary(estimator.n_updates_ if hasattr(estimator, "n_updates_") else 0, docs, seconds, stream), file=sys.stderr)
+            problem = _replay_problem(len(records[0]), docs, stream)
+            if problem is not None:  # the estimates made are written; the input is named
+                raise RecordingError(str(args.replay), problem)
             return 0
         from armid.daq.payload_service import PayloadService
         from armid.drivers.realtime import ordinary_priority

@@ -285,10 +285,9 @@ def test_an_mcap_that_names_no_robot_is_read_and_said(tmp_path: Path) -> None:
     rec = _read_as_identify_does(_mcap_with(tmp_path / "bare.mcap", lambda m: None, metadata={}))
     assert any("its metadata names no robot" in n and "puma560" in n for n in rec.notes), rec.notes
     assert not any("names no robot" in n for n in _read_as_identify_does(_mcap_with(tmp_path / "named.mcap", lambda m: None)).notes)
+    from armid.identify.errors import RecordingError
     from armid.io.recordings import read_recording
     from armid.io.robot_file import load_robot
-
-    from armid.identify.errors import RecordingError
 
     with pytest.raises(RecordingError, match="recorded on robot .ur5."):
         read_recording(_mcap_with(tmp_path / "other.mcap", lambda m: None, metadata={"robot": "ur5"}), load_robot(PUMA))

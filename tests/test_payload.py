@@ -13,6 +13,7 @@ import sys
 import threading
 import time
 import uuid
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -727,3 +728,40 @@ def test_the_service_drops_unreadable_foreign_and_late_records_and_goes_on() -> 
         stream.close()
         estimator.close()
         publisher.close()
+
+
+def test_a_replay_gets_identifys_checks_and_names_an_input_it_cannot_use(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 35: ms stamps and degrees were refused by identify but replayed; mN*m, all-NaN
+    positions ended in 'no estimate' with exit 0 (or an internal error); a garbage row (an extra
+    field) stopped the replay as 'time nan is not after the line before'. The shipped example
+    recordings, changed as a logger would get them wrong."""
+    ident = tmp_path / "ident.json"
+    robot = str(ROOT / "config/robots/puma560.yaml")
+    assert main(["identify", str(ROOT / "examples/puma560_excitation.csv"), "--robot", robot, "--json", str(ident)]) == 0
+    lines = (ROOT / "examples/puma560_validation.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    q = [i for i, h in enumerate(header) if h.startswith("q") and not h.startswith("qd")]
+    tau = [i for i, h in enumerate(header) if h.startswith("tau")]
+
+    def changed(name: str, change: Callable[[int, str], str], extra_field_at: int | None = None) -> Path:
+        rows = [",".join(change(i, v) for i, v in enumerate(line.split(","))) for line in lines[1:]]
+        if extra_field_at is not None:
+            rows[extra_field_at] += "," + "1" * 131_000
+        path = tmp_path / f"{name}.csv"
+        path.write_text("\n".join([lines[0], *rows]) + "\n")
+        return path
+
+    cases = {
+        "ms": (changed("ms", lambda i, v: str(float(v) * 1000) if i == 0 else v), "look like milliseconds"),
+        "degrees": (changed("deg", lambda i, v: str(np.degrees(float(v))) if i in q else v), "look like degrees"),
+        "mNm": (changed("mnm", lambda i, v: str(float(v) * 1000) if i in tau else v), "gross outliers against the identified arm: is the torque in N*m"),
+        "NaN positions": (changed("nan", lambda i, v: "nan" if i in q else v), "no estimate from 5000 records (5000 dropped: 5000 not finite"),
+    }
+    for name, (path, said) in cases.items():
+        assert main(["estimate", "--robot", robot, "--params", str(ident), "--replay", str(path), "--out", str(tmp_path / "e.jsonl")]) == 2, name
+        err = capsys.readouterr().err
+        assert said in err and "Traceback" not in err and "internal error" not in err, (name, err)
+    long_line = changed("long", lambda i, v: v, extra_field_at=100)
+    assert main(["estimate", "--robot", robot, "--params", str(ident), "--replay", str(long_line), "--out", str(tmp_path / "e.jsonl")]) == 0
+    err = capsys.readouterr().err
+    assert "left out 1 row(s) without a time stamp (line 102)" in err and "converged" in err, err
