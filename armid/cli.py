@@ -141,22 +141,22 @@ def _write_json(path: Path, doc: Any) -> None:
     path.write_text(strict_json(doc, indent=1, default=float) + "\n")
 
 
-def _read_checked(path: str, robot: Any) -> Any:
+def _read_checked(path: str, robot: Any, need_motion: bool = True) -> Any:
     """``read_recording`` and the plausibility checks (time units, torque); their warnings are held
     until every input is read."""
     from armid.io.recordings import read_recording
 
     rec = read_recording(path, robot)
-    _check_plausible(rec.source, robot, rec.t, rec.q, rec.qd, rec.tau)
+    _check_plausible(rec.source, robot, rec.t, rec.q, rec.qd, rec.tau, need_motion)
     return rec
 
 
-def _check_plausible(source: str, robot: Any, t: Any, q: Any, qd: Any, tau: Any) -> None:
+def _check_plausible(source: str, robot: Any, t: Any, q: Any, qd: Any, tau: Any, need_motion: bool = True) -> None:
     """The plausibility checks of :func:`_read_checked` on arrays read another way (a replay's MCAP)."""
     from armid.identify.plausibility import check_positions, check_recording
 
     limits = [j.limits.position for j in robot.joints]
-    for warning in check_recording(t, q, qd, tau, source) + check_positions(q, limits, [j.revolute for j in robot.joints], source):
+    for warning in check_recording(t, q, qd, tau, source, need_motion) + check_positions(q, limits, [j.revolute for j in robot.joints], source):
         _WARNINGS.show(warning, None, "", 0)
 
 
@@ -665,9 +665,9 @@ def _replay_records(path: Path, robot: Any, kt: np.ndarray, period_s: float | No
         torque = a["torque"] if "torque" in a else a["measured_current"] * kt
         records = (np.asarray(a["sequence"], np.int64), t, np.asarray(a["valid"], bool).reshape(t.size, -1),
                    np.asarray(a["position"], float), np.asarray(torque, float))
-        _check_plausible(str(path), robot, t, records[3], None, records[4])
+        _check_plausible(str(path), robot, t, records[3], None, records[4], need_motion=False)
     else:
-        rec = _read_checked(str(path), robot)  # the checks identify makes: ms stamps, degrees, mN*m refused
+        rec = _read_checked(str(path), robot, need_motion=False)  # identify's checks: ms stamps, degrees refused
         notes, t = list(rec.notes), np.asarray(rec.t, float)
         line = np.arange(t.size) + 2
         stamped = np.isfinite(t)  # a garbage row (wrong field count, no number) has no time: left out, as identify does

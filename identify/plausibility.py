@@ -46,18 +46,21 @@ MIN_MOTION = 1e-9
 """Position range (rad or m) below which a joint is taken as not moving."""
 
 
-def check_recording(t: Array, q: Array, qd: Array | None, tau: Array, source: str) -> list[str]:
+def check_recording(t: Array, q: Array, qd: Array | None, tau: Array, source: str, need_motion: bool = True) -> list[str]:
     """Warnings about a recording, or :class:`RecordingError` when it is garbage.
 
     ``t`` (n,), ``q`` (n, N), ``qd`` (n, N) or None, ``tau`` (n, N), as read (NaN allowed:
     cleaning drops those rows later); ``source`` names the file in every message.
+    ``need_motion``: a recording in which nothing moves is refused (identification); the
+    payload estimator answers "not excited" to it itself.
     """
     t = np.asarray(t, float)
     q = np.asarray(q, float)
     tau = np.asarray(tau, float)
     warnings: list[str] = []
     check_time(t, source)
-    check_motion(q, source)
+    if need_motion:
+        check_motion(q, source)
     warnings += check_torque(tau, source, q)
     if qd is not None:
         warnings += check_time_units(t, q, np.asarray(qd, float), source)

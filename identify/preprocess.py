@@ -272,9 +272,16 @@ CLEAN_KINEMATICS = 1e-3
 the kinematics need no low-pass (simulated or already filtered data)."""
 
 
+GAP_STEPS = 2.5
+"""A step of more than this many periods is a gap (samples missing), not a logger's jitter."""
+
+
 def _acceleration_noise(t: Array, q: Array, qd: Array | None, grid: Array, filt: ParallelFilter) -> float:
     """Largest ratio over the moving joints of the acceleration's content above the cut-off
-    to its content below, the acceleration by the 5-point filter applied twice."""
+    to its content below, the acceleration by the 5-point filter applied twice. The grid's
+    samples within the filter's settling of a gap are left out where enough remain: the
+    straight line interpolated across a gap has a kink at each end, which is not noise (ten
+    NaN rows in a clean 5,000-sample recording read as noise 1e-1 and chose a low-pass)."""
     period = filt.period_s
     v = np.column_stack([np.interp(grid, t, c) for c in (q if qd is None else qd).T])
     if qd is None:
@@ -283,9 +290,20 @@ def _acceleration_noise(t: Array, q: Array, qd: Array | None, grid: Array, filt:
     if a.shape[0] < 32:
         return np.inf
     smooth = filt.smooth(a)
+    keep = _away_from_gaps(t, grid[6:-6], filt.settling * period, period)
+    if keep.sum() >= 32:
+        a, smooth = a[keep], smooth[keep]
     signal = np.std(smooth, axis=0)
     moving = signal > 1e-9 * max(float(signal.max()), 1e-300)
     return float(np.max(np.std(a - smooth, axis=0)[moving] / signal[moving])) if moving.any() else np.inf
+
+
+def _away_from_gaps(t: Array, grid: Array, margin_s: float, period: float) -> Array:
+    """Grid samples farther than ``margin_s`` from every gap of ``t`` (a step over GAP_STEPS periods)."""
+    keep = np.ones(grid.size, bool)
+    for k in np.flatnonzero(np.diff(t) > GAP_STEPS * period):
+        keep &= (grid < t[k] - margin_s) | (grid > t[k + 1] + margin_s)
+    return keep
 
 
 def _choose_band(source: str, t: Array, q: Array, qd: Array | None, pieces: list[tuple[int, int]], period: float,

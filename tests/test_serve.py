@@ -545,3 +545,47 @@ def test_a_run_that_claims_no_joint_or_moves_nothing_never_becomes_the_arms_para
     finally:
         service.close()
         session.close()
+
+
+def test_a_run_with_nan_fields_in_a_few_records_is_identified_as_the_clean_one(tmp_path: Path) -> None:
+    """Issue 35: NaN positions in 10 of 5,000 records made the whole run "not excited: joint 3
+    did not move" (the span of a column with a NaN is NaN). The shipped example recording
+    handed to the service's own ``process`` as a whole-arm run, clean and with the NaN fields:
+    the same base parameters within their std. A real Zenoh session on loopback."""
+    import zenoh
+
+    from armid.daq.experiment_stream import CollectedExperiment
+    from armid.daq.stream import session_config
+    from armid.io.robot_file import load_robot
+    from armid.schema.joint_state import JointStateRecord, Sample
+    from armid.serve import EstimatorService
+
+    a = np.loadtxt(ROOT / "examples" / "puma560_excitation.csv", delimiter=",", skiprows=1)
+    t, q, qd, tau = a[:, 0], a[:, 1:7], a[:, 7:13], a[:, 13:19]
+    robot = load_robot(ROBOT)
+    session = zenoh.open(session_config(listen=[f"tcp/127.0.0.1:{_free_port()}"]))
+    service = EstimatorService(session, robot, tmp_path / "serve")
+
+    def run(name: str, nan_at: range) -> None:
+        records = []
+        for k in range(t.size):
+            position = q[k].copy()
+            if k in nan_at:
+                position[2] = np.nan
+            s = Sample(k, t[k], np.ones(6, bool), position, qd[k], np.ones(6, bool), np.zeros(6), np.zeros(6), np.full(6, 0x27, np.int64),
+                       torque=tau[k])
+            records.append(JointStateRecord(k, s).pack())
+        experiment = {"kind": "whole_arm", "metadata": {"period_s": 0.002}}
+        service.process(CollectedExperiment(name, {"experiment": experiment}, {"completed": True, "experiment": experiment, "window_s": [0.0, 10.0]},
+                                            records, list(range(t.size)), 0, [[0, t.size - 1]]))
+
+    try:
+        run("clean", range(0))
+        run("nan", range(1000, 1010))
+        assert "note" not in service.experiments[-1], service.experiments[-1]
+        clean, nan = service.whole_fits["clean"].estimate, service.whole_fits["nan"].estimate
+        assert np.all(np.abs(nan.beta - clean.beta) <= clean.std), np.max(np.abs(nan.beta - clean.beta) / clean.std)
+        assert not service.errors, service.errors
+    finally:
+        service.close()
+        session.close()
