@@ -163,3 +163,44 @@ def test_the_service_says_what_the_drives_said_once_and_counts_it(tmp_path: Path
         service.close()
         other.close()
         session.close()
+
+
+def test_a_drive_gone_silent_is_named_lost_while_acquisition_goes_on() -> None:
+    """A drive that stops answering (heartbeat and PDOs, as on power loss) while ``armid
+    record``'s acquisition runs: the supervision names it lost, by joint and node, once; the
+    records go on with that joint invalid. The simulated arm and the driver on a virtual bus."""
+    from armid.daq.acquisition import Acquisition, Sink
+    from armid.drivers.canopen_driver import CanopenDriver
+    from armid.io.rig_file import load_rig
+    from armid.sim_bus.arm import SimulatedArm
+
+    channel = f"armid-sup-{uuid.uuid4().hex[:8]}"
+    rig = load_rig(RIG).with_bus(channel=channel)
+    buses = [can.Bus(interface="virtual", channel=channel) for _ in range(2)]
+    arm = SimulatedArm(rig, bus=buses[0])
+    driver = CanopenDriver(rig, bus=buses[1])
+    driver.paced_by_consumer = True
+    said: list[str] = []
+    supervision = Supervision(said.append)
+    records: list = []
+    acq = Acquisition(driver, [Sink("list", records.append, bounded=False)], on_fault=supervision.fault)
+    try:
+        driver.start()
+        acq.start()
+        while acq.sequence < 200:
+            time.sleep(0.01)
+        arm.drive(3).go_silent()
+        silent_from = acq.sequence
+        while acq.sequence < silent_from + 500:
+            time.sleep(0.01)
+            supervision.events(driver.events())
+    finally:
+        acq.stop()
+        driver.close()
+        arm.close()
+        for bus in buses:
+            bus.shutdown()
+    assert supervision.lost == {3}, said
+    assert [s for s in said if "joint 4 (node 4)" in s] == [said[0]] and "no heartbeat" in said[0], said
+    valid = np.array([r.sample.valid for r in records if r is not None and r.sequence > silent_from + 100])
+    assert valid.size and not valid[:, 3].any() and valid[:, [0, 1, 2, 4, 5]].all()
