@@ -472,7 +472,8 @@ class CanopenDriver(Driver):
     def _decode_tpdo(self, can_id: int, data: bytes, timestamp: float) -> None:
         t = self._tpdo[can_id]
         if len(data) != t.unpack.size:
-            self._event("frame_length", f"joint {t.joint + 1}: TPDO{t.number} (COB-ID 0x{can_id:03X}) has {len(data)} bytes, the mapping has {t.unpack.size}", t.joint)
+            self._event("frame_length", f"joint {t.joint + 1} (node {can_id & 0x7F}): TPDO{t.number} (COB-ID 0x{can_id:03X}) has {len(data)} bytes, "
+                                        f"the mapping has {t.unpack.size}", t.joint)
             return
         values = t.unpack.unpack(data)
         key = (t.joint, t.number)

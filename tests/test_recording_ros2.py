@@ -120,3 +120,24 @@ def test_the_cdr_bytes_are_what_a_ros2_serializer_writes() -> None:
                                         "velocity_fresh": s.velocity_fresh.tolist(), "commanded_current": s.commanded_current.tolist(),
                                         "measured_current": s.measured_current.tolist(), "statusword": s.status.tolist()})
             assert ros2_messages(r, names) == (bytes(state), bytes(extra))
+
+
+def test_a_stamp_ros2_time_cannot_hold_is_named_not_a_struct_error() -> None:
+    """Issue 35: a run stamped after 2038 failed in ``struct`` (int32 seconds) where the service
+    writes its copy; ROS 2's Time cannot hold it, and the error says so and names the record."""
+    import numpy as np
+    import pytest
+
+    from armid.schema.errors import RecordFormatError
+    from armid.schema.joint_state import JointStateRecord, Sample, ros2_messages
+
+    z = np.zeros(6)
+
+    def record(t: float) -> JointStateRecord:
+        return JointStateRecord(7, Sample(7, t, np.ones(6, bool), z, z, np.ones(6, bool), z, z, np.zeros(6, np.int64), torque=z))
+
+    names = [f"j{k}" for k in range(6)]
+    assert ros2_messages(record(2.0e9), names)[0]  # 2033: fine
+    for t in (2.2e9, float("nan")):
+        with pytest.raises(RecordFormatError, match=r"record 7: time stamp .* cannot be written in a ROS 2 recording .*2038-01-19"):
+            ros2_messages(record(t), names)

@@ -108,7 +108,7 @@ def test_frames_of_the_wrong_length_and_error_frames_are_said(tmp_path: Path, ca
 
     code, err, _ = _record_with(inject, tmp_path, capsys)
     assert code == 0, err  # nothing was lost: said, not failed
-    assert "joint 3: TPDO1 (COB-ID 0x183) has 3 bytes, the mapping has" in err
+    assert "joint 3 (node 3): TPDO1 (COB-ID 0x183) has 3 bytes, the mapping has" in err
     assert "CAN error frames within 100 ms" in err and "check wiring and termination" in err
 
 

@@ -178,11 +178,18 @@ class _Cdr:
         self.buf += np.ascontiguousarray(values, dtype).tobytes()
 
 
+ROS2_SECONDS = (-(2.0**31), 2.0**31)
+"""The stamps ``builtin_interfaces/Time`` can hold (``sec`` is an int32)."""
+
+
 def ros2_messages(record: JointStateRecord, names: list[str]) -> tuple[bytes, bytes]:
     """The record as CDR bytes of (``sensor_msgs/msg/JointState``, ``armid_msgs/msg/JointStateExtra``),
     byte for byte what a ROS 2 serializer writes for :data:`ROS2_MSGDEFS` (tested against
     ``mcap_ros2``'s), at a small fraction of a generic serializer's cost per cycle."""
     s = record.sample
+    if not (np.isfinite(s.time_s) and ROS2_SECONDS[0] <= s.time_s < ROS2_SECONDS[1]):
+        raise RecordFormatError(f"record {record.sequence}: time stamp {s.time_s:.6g} s cannot be written in a ROS 2 recording "
+                                "(builtin_interfaces/Time counts int32 seconds: 1901-12-13 to 2038-01-19)")
     ns = int(round(s.time_s * 1e9))
     state = _Cdr()
     state.header(ns)
