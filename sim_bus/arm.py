@@ -27,7 +27,6 @@ from armid.drivers.rig import Rig, open_bus
 from .drive import SimulatedDrive
 from .physics import ArmPhysics, Measurement, simulation_config
 
-
 WATCH_PERIOD_S = 0.01
 
 
