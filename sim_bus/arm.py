@@ -27,8 +27,6 @@ from armid.drivers.rig import Rig, open_bus
 from .drive import SimulatedDrive
 from .physics import ArmPhysics, Measurement, simulation_config
 
-WATCH_PERIOD_S = 0.01
-
 
 class StateLog:
     """The physics' state per SYNC in a ring of arrays (no Python object per entry, so the
@@ -109,10 +107,7 @@ class SimulatedArm:
             d.on_master_heartbeat(can_id - 0x700, timestamp)
 
     def _watch(self) -> None:
-        # the drives' timeouts are 0.1 s (SYNC) and the master's heartbeat consumer time: a
-        # look every 10 ms finds them as a 2 ms one would, at a fifth of the cost (this thread
-        # took 12 % of the simulator's CPU, which on a slow machine no longer keeps real time)
-        while not self._stop.wait(WATCH_PERIOD_S):
+        while not self._stop.wait(0.002):
             now = time.monotonic()
             for d in self.drives:
                 d.watchdog(now)
