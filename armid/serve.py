@@ -44,7 +44,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -126,6 +126,7 @@ class EstimatorService:
         self._whole: dict[str, Any] = {}  # run -> Prepared
         self.whole_fits: dict[str, Any] = {}  # run -> IdentificationResult
         self._whole_docs: dict[str, dict[str, Any]] = {}
+        self._names: set[str] = set()  # every experiment's name so far (_with_identity)
         self.payload_service: Any = None
         self._pub = session.declare_publisher(key(self.name, "estimate/parameters"), encoding=zenoh.Encoding.APPLICATION_JSON)
         self._token = session.liveliness().declare_token(key(self.name, "alive/estimator"))
@@ -263,8 +264,25 @@ class EstimatorService:
             rec.close()
         return path
 
+    def _with_identity(self, exp: CollectedExperiment) -> CollectedExperiment:
+        """The experiment under a name no earlier one had: a run named as an earlier one
+        (``armid excite --whole`` names every whole-arm run ``whole``) is told apart by the
+        first sequence number of its records, so that it does not replace the first's copy
+        and fit, and each whole-arm run is validated on the other."""
+        if exp.name not in self._names:
+            self._names.add(exp.name)
+            return exp
+        first = exp.sequences[0] if exp.sequences else exp.stop.get("first_sequence")
+        unique, k = f"{exp.name}@{first}", 2
+        while unique in self._names:
+            unique, k = f"{exp.name}@{first}-{k}", k + 1
+        self._names.add(unique)
+        self.log(f"{exp.name}: a run of that name came before: this one is {unique}")
+        return replace(exp, name=unique)
+
     def process(self, exp: CollectedExperiment) -> dict[str, Any] | None:
         """Identify on one collected experiment; the document to publish (None: nothing to say)."""
+        exp = self._with_identity(exp)
         desc = exp.description
         kind = desc.get("kind") or "recording"
         stop = exp.stop

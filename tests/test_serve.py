@@ -589,3 +589,42 @@ def test_a_run_with_nan_fields_in_a_few_records_is_identified_as_the_clean_one(t
     finally:
         service.close()
         session.close()
+
+
+def test_two_whole_arm_runs_of_one_name_are_each_validated_on_the_other(tmp_path: Path) -> None:
+    """Issue 32: ``armid excite --whole`` names every whole-arm run ``whole``; the service filed
+    experiments by name, so the second replaced the first's copy and fit and the cross-validation
+    never appeared. The shipped example's two recordings handed to the service's own ``process``
+    as two runs named ``whole``: both kept, each validated on the other. A real Zenoh session."""
+    import zenoh
+
+    from armid.daq.experiment_stream import CollectedExperiment
+    from armid.daq.stream import session_config
+    from armid.io.robot_file import load_robot
+    from armid.schema.joint_state import JointStateRecord, Sample
+    from armid.serve import EstimatorService
+
+    robot = load_robot(ROBOT)
+    session = zenoh.open(session_config(listen=[f"tcp/127.0.0.1:{_free_port()}"]))
+    service = EstimatorService(session, robot, tmp_path / "serve")
+    experiment = {"kind": "whole_arm", "metadata": {"period_s": 0.002}}
+    first = 0
+    try:
+        for csv in ("puma560_excitation.csv", "puma560_validation.csv"):
+            a = np.loadtxt(ROOT / "examples" / csv, delimiter=",", skiprows=1)
+            seqs = list(range(first, first + a.shape[0]))
+            records = [JointStateRecord(k, Sample(k, row[0], np.ones(6, bool), row[1:7], row[7:13], np.ones(6, bool), np.zeros(6), np.zeros(6),
+                                                  np.full(6, 0x27, np.int64), torque=row[13:19])).pack() for k, row in zip(seqs, a)]
+            stop = {"completed": True, "experiment": experiment, "window_s": [0.0, 10.0], "first_sequence": seqs[0], "last_sequence": seqs[-1]}
+            service.process(CollectedExperiment("whole", {"experiment": experiment}, stop, records, seqs, 0, [[seqs[0], seqs[-1]]]))
+            first += a.shape[0] + 100
+        runs = [e["run"] for e in service.experiments]
+        assert runs == ["whole", "whole@5100"], runs
+        docs = service._whole_docs
+        assert set(docs) == {"whole", "whole@5100"}
+        assert docs["whole"]["validated_on"] == ["whole@5100"] and docs["whole@5100"]["validated_on"] == ["whole"]
+        assert docs["whole"]["validation"] is not None and docs["whole@5100"]["validation"] is not None
+        assert (tmp_path / "serve" / "whole" / "run.mcap").exists() and len(list((tmp_path / "serve").iterdir())) == 2
+    finally:
+        service.close()
+        session.close()
