@@ -255,11 +255,22 @@ class EstimatorService:
         meta.setdefault("robot", self.name)
         meta["excitation"] = {k: v for k, v in desc.items() if k != "metadata"}
         meta["received_by"] = {"component": "estimator", "missing": exp.missing, "kept": exp.kept}
+        records = [JointStateRecord.unpack(data) for data in exp.records]
+        stamped = [r for r in records if np.isfinite(r.sample.time_s)]
+        if len(stamped) < len(records):  # a record without a time has no place in a recording
+            self.log(f"{exp.name}: left out {len(records) - len(stamped)} record(s) whose time stamp is not finite")
+            records = stamped
+        offset = _ros2_time_offset([r.sample.time_s for r in records])
+        if offset:
+            meta["time_offset_s"] = offset
+            self.log(f"{exp.name}: stamped beyond what ROS 2 time holds (after 2038-01-19): the copy's stamps are "
+                     f"{offset:.0f} s earlier (time_offset_s in its metadata); the fit uses time differences only")
         path = self.out / _safe(exp.name) / "run.mcap"
         rec = McapRecorder(path, [j.name for j in self.robot.joints], meta)
         try:
-            for data in exp.records:
-                rec.write(JointStateRecord.unpack(data))
+            for r in records:
+                r.sample.time_s -= offset
+                rec.write(r)
         finally:
             rec.close()
         return path
@@ -457,6 +468,15 @@ class EstimatorService:
                 entity.undeclare()
             except Exception:  # already gone with the session
                 pass
+
+
+def _ros2_time_offset(stamps: list[float]) -> float:
+    """Whole days to take off stamps that ROS 2's Time (int32 seconds) cannot hold, 0 when it can."""
+    from armid.schema.joint_state import ROS2_SECONDS
+
+    if not stamps or (ROS2_SECONDS[0] <= min(stamps) and max(stamps) < ROS2_SECONDS[1]):
+        return 0.0
+    return float(np.floor(min(stamps) / 86400.0) * 86400.0)
 
 
 def _safe(name: str) -> str:
