@@ -180,6 +180,8 @@ def _identify(args: argparse.Namespace) -> int:
 
     robot = load_robot(args.robot)
     options = PrepareOptions(max_gap_factor=args.max_gap_factor, lowpass_hz=args.lowpass)
+    if args.single_link:
+        return _identify_single_link(args, robot, options)
     raw = [_read_checked(p, robot) for p in args.data]
     raw_validation = [_read_checked(p, robot) for p in args.validate or []]
     _check_lowpass(args.lowpass, raw + raw_validation)
@@ -221,6 +223,93 @@ def _identify(args: argparse.Namespace) -> int:
     if feasible_line:
         print(feasible_line)
     return 0
+
+
+def _identify_single_link(args: argparse.Namespace, robot: Any, options: Any) -> int:
+    """``armid identify --single-link``: Khosla's off-line sequence on the user's recordings,
+    each moving one joint (property 4), identified last link first; each validation recording
+    (one joint moving too) predicted and scored on the joint that moved."""
+    from armid.identify.preprocess import prepare
+    from armid.identify.single_link import single_link_sequence
+    from armid.io.recordings import write_csv
+
+    if args.feasible or args.urdf or args.bounding_box or args.report:
+        raise UsageError("--single-link gives Khosla's tables and predictions: --feasible, --urdf, --bounding-box and --report "
+                         "are for a whole-arm identification")
+    runs: dict[int, list[Any]] = {}
+    for path in args.data:
+        rec, link = _single_joint_run(path, robot)
+        runs.setdefault(link, []).append(prepare(rec, robot, options))
+    checked = [(path, *_single_joint_run(path, robot)) for path in args.validate or []]
+    _inputs_read()
+    seq = single_link_sequence(robot, runs)
+    for row in seq.table():
+        print(f"link {row['link']}: {row['parameter']} = {row['estimate']:.6g} +- {row['std']:.3g} (modeled {row['modeled']:.6g})")
+    validation, predicted = [], []
+    for path, rec, link in checked:
+        prep = prepare(rec, robot, options)
+        t = np.concatenate([g.t for g in prep.segments])
+        tau = np.concatenate([g.tau for g in prep.segments])
+        tau_hat = np.concatenate([seq.predict(g.q, g.qd, g.qdd) for g in prep.segments])
+        error = float(np.linalg.norm(tau[:, link] - tau_hat[:, link]) / max(float(np.linalg.norm(tau[:, link])), 1e-300))
+        validation.append({"recording": path, "joint": link + 1, "samples": int(t.size), "relative_error": error})
+        predicted.append((t, tau_hat))
+        print(f"{path}: joint {link + 1} predicted with relative error {100 * error:.3g} %")
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(strict_json({"single_link": seq.to_json(), "validation": validation}, indent=1) + "\n")
+    if args.predictions:
+        if not predicted:
+            raise IdentificationError("--predictions needs --validate data")
+        Path(args.predictions).parent.mkdir(parents=True, exist_ok=True)
+        write_csv(args.predictions, np.concatenate([t for t, _ in predicted]), {"tau_hat": np.concatenate([h for _, h in predicted])})
+    done = ", ".join(str(step["link"]) for step in seq.steps)
+    print(f"{robot.name}: single-link sequence over links {done}: {len(seq.functionals)} combinations identified"
+          + (f"; validation error {100 * float(np.mean([v['relative_error'] for v in validation])):.3g} % (mean over the runs)" if validation else ""))
+    return 0
+
+
+def _single_joint_run(path: str, robot: Any) -> tuple[Any, int]:
+    """The recording, cut to its excitation window where ``armid excite``'s ``runs.json`` gives
+    it, and the one joint (0-based) that moved in it."""
+    from armid.identify.single_link import MOVING_RAD
+
+    rec = _excitation_window(Path(path), _read_checked(path, robot, need_motion=False))
+    q = np.asarray(rec.q, float)
+    finite = np.isfinite(q)
+    span = np.where(finite.any(axis=0), np.where(finite, q, -np.inf).max(axis=0) - np.where(finite, q, np.inf).min(axis=0), 0.0)
+    moved = np.flatnonzero(span > MOVING_RAD)
+    if moved.size != 1:
+        what = "no joint moved" if moved.size == 0 else f"joints {', '.join(str(j + 1) for j in moved)} moved"
+        raise RecordingError(path, f"{what} (by more than {MOVING_RAD} rad): a single-link experiment moves one joint alone "
+                                   "(Khosla's property 4)")
+    return rec, int(moved[0])
+
+
+def _excitation_window(path: Path, rec: Any) -> Any:
+    """The part of an ``armid excite`` recording inside its plan's excitation window (whole
+    periods of the design, as the demo and the service identify it), when a ``runs.json`` of
+    that run lies in one of the three folders above it; else the whole recording."""
+    from dataclasses import replace
+
+    for folder in list(path.resolve().parents)[:3]:
+        runs = folder / "runs.json"
+        if not runs.is_file() or rec.cycle is None:
+            continue
+        try:
+            reports = json.loads(runs.read_text())
+        except (OSError, ValueError):
+            continue
+        for r in reports if isinstance(reports, list) else []:
+            if not isinstance(r, dict) or Path(str(r.get("recording", ""))).name != path.name or r.get("name") != path.parent.name:
+                continue
+            period = float(np.median(np.diff(rec.t)))
+            t_plan = (rec.cycle - int(r["first_cycle"])) * period
+            w0, w1 = (float(x) for x in r["window_s"])
+            keep = (t_plan >= w0) & (t_plan <= w1)
+            return replace(rec, t=rec.t[keep], q=rec.q[keep], tau=rec.tau[keep], qd=None if rec.qd is None else rec.qd[keep],
+                           cycle=rec.cycle[keep], notes=rec.notes + [f"cut to the excitation window {w0:.2f}-{w1:.2f} s of the plan ({runs})"])
+    return rec
 
 
 def _feasible(args: argparse.Namespace, robot: Any, result: Any, validation: list[Any], doc: dict[str, Any]) -> str | None:
@@ -1061,6 +1150,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lowpass", type=_lowpass, default="auto", metavar="HZ|auto|off",
                    help="zero-phase low-pass of the kinematics, the regressor and the torque alike (default auto: chosen from each recording's spectrum)")
     p.add_argument("--max-gap-factor", type=_gap_factor, default=20.0, help="split where a step exceeds this many median steps")
+    p.add_argument("--single-link", action="store_true",
+                   help="Khosla's off-line sequence: each recording moves one joint alone; identified last link first, its "
+                        "combinations with their std; each --validate run predicted on the joint that moved")
     p.set_defaults(run=_identify)
 
     p = sub.add_parser("diagnose", help="residual analysis: find undeclared effects, add them, refit, error before/after")

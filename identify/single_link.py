@@ -66,6 +66,8 @@ class SequenceResult:
     beta: Array
     covariance: Array
     steps: list[dict[str, Any]] = field(default_factory=list)
+    modeled: Array | None = None
+    """Every column's initial value (the robot file's inertials, zero for effects)."""
 
     @property
     def std(self) -> Array:
@@ -78,6 +80,22 @@ class SequenceResult:
         if np.linalg.norm(f.T @ c - row) > rtol * max(float(np.linalg.norm(row)), 1e-300):
             return None
         return float(c @ self.beta), float(np.sqrt(max(c @ self.covariance @ c, 0.0)))
+
+    def parameters(self) -> Array:
+        """Every column's value, for predictions (eq. 18): the identified combinations met
+        exactly (their minimum-norm solution), the modeled values in every direction the
+        experiments left open (a single-link run of joint k is predicted by what links k..N
+        identified, property 4; what it cannot see comes from the robot file)."""
+        f = np.array([fn.row for fn in self.functionals])
+        f_pinv = np.linalg.pinv(f)
+        phi0 = np.zeros(len(self.names)) if self.modeled is None else self.modeled
+        return np.asarray(f_pinv @ self.beta + (np.eye(len(self.names)) - f_pinv @ f) @ phi0)
+
+    def predict(self, q: Array, qd: Array, qdd: Array) -> Array:
+        """Every joint's torque (samples, N) at these kinematics, with :meth:`parameters`."""
+        n = self.robot.n_joints
+        w = experiment_regressor(self.robot, tuple(range(n)), q, qd, qdd)
+        return np.asarray((w @ self.parameters()).reshape(-1, n))
 
     def table(self) -> list[dict[str, Any]]:
         """Khosla's Tables 2-4: link, parameter (or combined entry), initial value, estimate, std."""
@@ -180,4 +198,4 @@ def single_link_sequence(robot: Robot, experiments: dict[int, list[Prepared]], m
             functionals.append(Functional(k, exprs[j], row, float(row @ phi0)))
         steps.append({"link": k + 1, "samples": int(a.shape[0]), "covariance_block_samples": block, "identified": len(indep), "moving_joints": [int(j) + 1 for j in np.flatnonzero(moving)],
                       "residual_rms": float(np.sqrt(np.mean(resid**2))), "relative_error": float(np.linalg.norm(resid) / max(float(np.linalg.norm(y)), 1e-300))})
-    return SequenceResult(robot, names, functionals, beta, cov, steps)
+    return SequenceResult(robot, names, functionals, beta, cov, steps, phi0)

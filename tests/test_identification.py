@@ -6,6 +6,7 @@ import json
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
@@ -320,3 +321,48 @@ def test_every_torque_negated_is_warned_about_where_no_single_joint_shows_it(tmp
         assert main(["identify", str(path), "--robot", str(ROBOTS / "puma560.yaml")]) == 0
         err = capsys.readouterr().err
         assert ("the torques of all joints together run opposite" in err) == said, err
+
+
+def _single_joint_run(path, joint, frequency_hz, seed, duration=8.0):  # type: ignore[no-untyped-def]
+    """Joint ``joint`` (0-based) alone moving (two sines), the others held at the simulated
+    rig's start pose; torques from Pinocchio's RNEA plus the declared friction, 1 % noise."""
+    from armid.io.rig_file import load_rig
+
+    robot = load_robot(ROBOTS / "puma560.yaml")
+    model = to_pinocchio(robot)
+    data = model.createData()
+    q0 = np.asarray(load_rig(ROOT / "config" / "rigs" / "sim.yaml").simulation["initial_position"], float)
+    t = np.arange(0.0, duration, 0.002)
+    w1, w2 = 2 * np.pi * frequency_hz, 2 * np.pi * 2.3 * frequency_hz
+    q, qd, qdd = np.tile(q0, (t.size, 1)), np.zeros((t.size, 6)), np.zeros((t.size, 6))
+    q[:, joint] += 0.4 * np.sin(w1 * t) + 0.15 * np.sin(w2 * t)
+    qd[:, joint] = 0.4 * w1 * np.cos(w1 * t) + 0.15 * w2 * np.cos(w2 * t)
+    qdd[:, joint] = -0.4 * w1**2 * np.sin(w1 * t) - 0.15 * w2**2 * np.sin(w2 * t)
+    tau = np.array([pin.rnea(model, data, q[k], qd[k], qdd[k]) for k in range(t.size)]) + 0.5 * qd + 0.8 * np.sign(qd)
+    tau += 0.01 * np.random.default_rng(seed).normal(size=tau.shape) * np.maximum(np.std(tau, axis=0), 1e-3)
+    write_csv(path, t, {"q": q, "qd": qd, "qdd": qdd, "tau": tau})
+    return path
+
+
+def test_khoslas_single_link_sequence_from_the_users_recordings(tmp_path):  # type: ignore[no-untyped-def]
+    """Issue 33: ``armid identify --single-link``: six recordings, each moving one joint (data
+    from Pinocchio's RNEA, not armid's regressor), identified last link first; a held-out run
+    of joint 2 at another frequency is predicted at the noise level; a run moving two joints is
+    refused by name."""
+    runs = [str(_single_joint_run(tmp_path / f"link{j + 1}.csv", j, 0.4, j)) for j in range(6)]
+    validation = str(_single_joint_run(tmp_path / "val2.csv", 1, 0.27, 99))
+    out, predictions = tmp_path / "seq.json", tmp_path / "pred.csv"
+    assert main(["identify", *runs, "--robot", str(ROBOTS / "puma560.yaml"), "--single-link", "--validate", validation,
+                 "--json", str(out), "--predictions", str(predictions)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["single_link"]["order"] == [6, 5, 4, 3, 2, 1]
+    assert all(row["std"] > 0 for row in doc["single_link"]["table"])
+    [v] = doc["validation"]
+    assert v["joint"] == 2 and v["relative_error"] < 0.03, v  # 1 % noise on the torque
+    header = predictions.read_text().splitlines()[0].split(",")
+    assert header == ["t"] + [f"tau_hat{j}" for j in range(1, 7)]
+    both = np.loadtxt(runs[0], delimiter=",", skiprows=1)
+    both[:, 2] = both[:, 1]  # joint 2 moves with joint 1
+    header_line = Path(runs[0]).read_text().splitlines()[0]
+    np.savetxt(tmp_path / "two.csv", both, delimiter=",", header=header_line, comments="")
+    assert main(["identify", str(tmp_path / "two.csv"), "--robot", str(ROBOTS / "puma560.yaml"), "--single-link"]) == 2
