@@ -206,14 +206,14 @@ class EstimatorService:
         if doc.get("event") not in ("fault", "drive_event"):
             self.collector.event(doc)
             return
-        key = (doc.get("event"), doc.get("kind"), doc.get("joint"), doc.get("code"))
+        key = (doc.get("event"), doc.get("type"), doc.get("joint"), doc.get("code"))
         seen = self.drive_reports.get(key)
         if seen is not None:
             seen["count"] += 1
             return
         text = doc.get("meaning") or doc.get("message") or "?"
         where = f"joint {doc.get('joint')}" + (f" (node {doc['node']})" if doc.get("node") is not None else "")
-        self.drive_reports[key] = {"event": doc.get("event"), "kind": doc.get("kind"), "joint": doc.get("joint"), "code": doc.get("code"),
+        self.drive_reports[key] = {"event": doc.get("event"), "type": doc.get("type"), "joint": doc.get("joint"), "code": doc.get("code"),
                                    "text": text, "count": 1}
         self.log(f"the drives said: {where}: {text}" if doc.get("event") == "fault" else f"the drives said: {text}")
 

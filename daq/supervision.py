@@ -44,7 +44,7 @@ class Supervision:
         (self.lost if kind == "lost" else self.faulted).add(fault.joint)
         if self.stream is not None:
             self.stream.event("fault", joint=fault.joint + 1, node=fault.node_id, code=fault.code, meaning=fault.meaning,
-                              kind=type(fault).__name__)
+                              type=type(fault).__name__)
         self._note(kind, fault.joint, fault.code, str(fault))
 
     def events(self, events: list[Event]) -> None:
@@ -52,7 +52,7 @@ class Supervision:
             if e.kind in _FAULT_EVENTS:
                 continue
             if self.stream is not None:
-                self.stream.event("drive_event", kind=e.kind, joint=None if e.joint is None else e.joint + 1, message=e.message)
+                self.stream.event("drive_event", type=e.kind, joint=None if e.joint is None else e.joint + 1, message=e.message)
             self._note(e.kind, e.joint, 0, e.message)
 
     def _note(self, kind: str, joint: int | None, code: int, text: str) -> None:

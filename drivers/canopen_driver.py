@@ -158,6 +158,7 @@ class CanopenDriver(Driver):
         self._silent = np.zeros(self.n_joints, bool)  # no heartbeat: lost
         self._nmt = np.full(self.n_joints, -1, np.int64)  # each drive's NMT state as its heartbeat says
         self._not_operational = np.zeros(self.n_joints, bool)  # was operational, reports another state
+        self._nmt_supervised = False  # from NMT start all on: before, the drives are sent to pre-operational on purpose
         self._hb_task: can.broadcastmanager.CyclicSendTaskABC | None = None
         self._bcm_task: can.broadcastmanager.CyclicSendTaskABC | None = None
         self.late_frames = np.zeros(self.n_joints, np.int64)
@@ -239,6 +240,7 @@ class CanopenDriver(Driver):
         # a drive is supervised from its first operational heartbeat after this start: one that
         # was operational before (a previous run) and went pre-operational above is not lost
         self._nmt[:] = -1
+        self._nmt_supervised = True
         self.network.send_message(0, bytes([0x01, 0]))  # NMT start all
         if r.bus.interface == "socketcan":
             # the kernel's broadcast manager cycles 240 SYNC frames with counters 1..240; the
@@ -565,7 +567,7 @@ class CanopenDriver(Driver):
                 self._not_operational[j] = False
                 self._event("nmt_back", f"joint {j + 1} (node {node}) is operational again", j)
             return
-        if was != NMT_OPERATIONAL or self._not_operational[j] or self._listen_only:
+        if was != NMT_OPERATIONAL or self._not_operational[j] or self._listen_only or not self._nmt_supervised:
             return
         self._not_operational[j] = True
         self.quick_stop([k for k in range(self.n_joints) if k != j])

@@ -20,7 +20,7 @@ import pytest
 
 from armid.cli import main
 from armid.daq.supervision import Supervision
-from armid.drivers.interface import Event, HeartbeatLost
+from armid.drivers.interface import DriveFault, Event, HeartbeatLost
 from armid.io.recordings import read_mcap_arrays
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -125,13 +125,13 @@ def test_supervision_says_each_kind_once_per_drive_and_knows_a_lost_one() -> Non
 
 def test_the_service_says_what_the_drives_said_once_and_counts_it(tmp_path: Path) -> None:
     """``armid serve`` hears a recorder's fault and drive events on the run's Zenoh events
-    (real sessions on loopback): each said once by kind, joint and code, counted in its status."""
-    import json
+    (real sessions on loopback, sent by the recorder's own Supervision and Stream): each said
+    once by type, joint and code, counted in its status."""
     import socket
 
     import zenoh
 
-    from armid.daq.stream import session_config
+    from armid.daq.stream import Stream, session_config
     from armid.io.robot_file import load_robot
     from armid.serve import EstimatorService
 
@@ -143,23 +143,25 @@ def test_the_service_says_what_the_drives_said_once_and_counts_it(tmp_path: Path
     session = zenoh.open(session_config(listen=[endpoint]))
     service = EstimatorService(session, robot, tmp_path / "serve", log=said.append)
     other = zenoh.open(session_config(connect=[endpoint]))
+    stream = Stream(other, robot.name, "recorder", lambda: {})
+    recorder_said: list[str] = []
+    supervision = Supervision(recorder_said.append, stream)  # as armid record holds it
     try:
-        pub = other.declare_publisher(f"armid/{robot.name}/events")
         time.sleep(1.0)  # the subscriber's declaration reaches the publisher
-        fault = {"event": "fault", "joint": 2, "node": 2, "code": 0x2310, "meaning": "continuous over-current", "kind": "DriveFault"}
         for _ in range(50):
-            pub.put(json.dumps(fault))
-        pub.put(json.dumps({"event": "drive_event", "kind": "frame_length", "joint": 3, "message": "joint 3: TPDO1 has 3 bytes"}))
+            supervision.fault(DriveFault(1, 2, 0x2310, "continuous over-current"))
+        supervision.events([Event("frame_length", "joint 3: TPDO1 has 3 bytes", 2)])
         for _ in range(100):
-            reports = {r["kind"]: r for r in service.drive_reports.values()}
+            reports = {r["type"]: r for r in service.drive_reports.values()}
             if reports.get("DriveFault", {}).get("count") == 50 and "frame_length" in reports:
                 break
             time.sleep(0.05)
-        reports = {r["kind"]: r for r in service.drive_reports.values()}
+        reports = {r["type"]: r for r in service.drive_reports.values()}
         assert reports["DriveFault"]["count"] == 50 and reports["frame_length"]["count"] == 1, reports
         assert said.count("the drives said: joint 2 (node 2): continuous over-current") == 1, said
         assert "the drives said: joint 3: TPDO1 has 3 bytes" in said
     finally:
+        stream.close()
         service.close()
         other.close()
         session.close()
