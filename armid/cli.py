@@ -272,13 +272,10 @@ def _identify_single_link(args: argparse.Namespace, robot: Any, options: Any) ->
 def _single_joint_run(path: str, robot: Any) -> tuple[Any, int]:
     """The recording, cut to its excitation window where ``armid excite``'s ``runs.json`` gives
     it, and the one joint (0-based) that moved in it."""
-    from armid.identify.single_link import MOVING_RAD
+    from armid.identify.single_link import MOVING_RAD, joint_spans
 
     rec = _excitation_window(Path(path), _read_checked(path, robot, need_motion=False))
-    q = np.asarray(rec.q, float)
-    finite = np.isfinite(q)
-    span = np.where(finite.any(axis=0), np.where(finite, q, -np.inf).max(axis=0) - np.where(finite, q, np.inf).min(axis=0), 0.0)
-    moved = np.flatnonzero(span > MOVING_RAD)
+    moved = np.flatnonzero(joint_spans(rec.q) > MOVING_RAD)
     if moved.size != 1:
         what = "no joint moved" if moved.size == 0 else f"joints {', '.join(str(j + 1) for j in moved)} moved"
         raise RecordingError(path, f"{what} (by more than {MOVING_RAD} rad): a single-link experiment moves one joint alone "
@@ -290,7 +287,7 @@ def _excitation_window(path: Path, rec: Any) -> Any:
     """The part of an ``armid excite`` recording inside its plan's excitation window (whole
     periods of the design, as the demo and the service identify it), when a ``runs.json`` of
     that run lies in one of the three folders above it; else the whole recording."""
-    from dataclasses import replace
+    from .experiments import cut_to_window
 
     for folder in list(path.resolve().parents)[:3]:
         runs = folder / "runs.json"
@@ -303,12 +300,8 @@ def _excitation_window(path: Path, rec: Any) -> Any:
         for r in reports if isinstance(reports, list) else []:
             if not isinstance(r, dict) or Path(str(r.get("recording", ""))).name != path.name or r.get("name") != path.parent.name:
                 continue
-            period = float(np.median(np.diff(rec.t)))
-            t_plan = (rec.cycle - int(r["first_cycle"])) * period
             w0, w1 = (float(x) for x in r["window_s"])
-            keep = (t_plan >= w0) & (t_plan <= w1)
-            return replace(rec, t=rec.t[keep], q=rec.q[keep], tau=rec.tau[keep], qd=None if rec.qd is None else rec.qd[keep],
-                           cycle=rec.cycle[keep], notes=rec.notes + [f"cut to the excitation window {w0:.2f}-{w1:.2f} s of the plan ({runs})"])
+            return cut_to_window(rec, int(r["first_cycle"]), (w0, w1), float(np.median(np.diff(rec.t))))
     return rec
 
 

@@ -123,10 +123,15 @@ def run_experiments(session: ExcitationSession, experiments: list[Experiment], o
 
 def excitation_recording(report: RunReport, robot: Robot, period_s: float) -> Recording:
     """The run's recording, cut to its excitation window (whole periods of the design)."""
-    rec = read_recording(report.recording, robot)
+    return cut_to_window(read_recording(report.recording, robot), report.first_cycle, report.window_s, period_s)
+
+
+def cut_to_window(rec: Recording, first_cycle: int, window_s: tuple[float, float], period_s: float) -> Recording:
+    """A drive recording's samples inside a plan's excitation window, the plan started at
+    ``first_cycle`` (what ``armid excite``'s run report says)."""
     assert rec.cycle is not None  # a drive recording carries its cycle counter
-    t_plan = (rec.cycle - report.first_cycle) * period_s
-    w0, w1 = report.window_s
+    t_plan = (rec.cycle - first_cycle) * period_s
+    w0, w1 = window_s
     keep = (t_plan >= w0) & (t_plan <= w1)
     return replace(rec, t=rec.t[keep], q=rec.q[keep], tau=rec.tau[keep], qd=None if rec.qd is None else rec.qd[keep], cycle=rec.cycle[keep],
                    notes=rec.notes + [f"cut to the excitation window {w0:.2f}-{w1:.2f} s of the plan"])

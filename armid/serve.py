@@ -53,6 +53,7 @@ import numpy as np
 from armid.daq.experiment_stream import CollectedExperiment, ExperimentCollector, event_of
 from armid.daq.stream import key
 from armid.identify.robot import Robot
+from armid.identify.single_link import joint_spans
 from armid.schema.joint_state import JointStateRecord, check_encoding
 
 WHOLE_ARM_PIPELINES = ("identify", "drives")
@@ -62,14 +63,6 @@ whole recording, low-pass chosen from the data, weighted least squares); ``drive
 left out)."""
 MIN_MOTION_RAD = 0.05
 """A joint whose position spans less than this in a run did not move in it."""
-
-
-def _spans(q: np.ndarray) -> np.ndarray:
-    """Each joint's range of position over its finite samples (a few NaN fields must not make a
-    moving joint look still; identification drops those rows itself)."""
-    finite = np.isfinite(q)
-    hi, lo = np.where(finite, q, -np.inf).max(axis=0), np.where(finite, q, np.inf).min(axis=0)
-    return np.where(finite.any(axis=0), hi - lo, 0.0)
 
 
 @dataclass(frozen=True)
@@ -336,7 +329,7 @@ class EstimatorService:
         n = self.robot.n_joints
         if kind == "single_link" and not (isinstance(link, int) and not isinstance(link, bool) and 1 <= link <= n):
             return f"the run claims link {link!r}, not a joint of {self.name} (1..{n}): not identified"
-        moved = _spans(read_recording(path, self.robot).q) > MIN_MOTION_RAD
+        moved = joint_spans(read_recording(path, self.robot).q) > MIN_MOTION_RAD
         still = [j + 1 for j in range(n) if not moved[j]]
         if kind == "single_link" and not moved[link - 1]:
             return f"not excited: link {link} did not move (range below {MIN_MOTION_RAD} rad): not identified"
@@ -349,7 +342,7 @@ class EstimatorService:
         from armid.io.recordings import read_recording
 
         rec = read_recording(path, self.robot)
-        moving = np.flatnonzero(_spans(rec.q) > MIN_MOTION_RAD)
+        moving = np.flatnonzero(joint_spans(rec.q) > MIN_MOTION_RAD)
         if moving.size == self.robot.n_joints:
             return "whole_arm", moving
         return ("single_link" if moving.size == 1 else "partial"), moving

@@ -47,6 +47,15 @@ and a filtered torque smooths the Coulomb step that ``sign(qd)`` does not (as in
 :mod:`identify.diagnosis`)."""
 
 
+def joint_spans(q: Array) -> Array:
+    """Each joint's range of position over its finite samples (a few NaN fields must not make
+    a moving joint look still); 0 for a joint without one."""
+    q = np.asarray(q, float)
+    finite = np.isfinite(q)
+    hi, lo = np.where(finite, q, -np.inf).max(axis=0), np.where(finite, q, np.inf).min(axis=0)
+    return np.where(finite.any(axis=0), hi - lo, 0.0)
+
+
 @dataclass(frozen=True)
 class Functional:
     """A linear combination ``row @ phi`` that an experiment identified (columns as
