@@ -312,16 +312,6 @@ def _stderr_of_c_code() -> Iterator[Callable[[], list[str]]]:
             lines += [" ".join(x.split()) for x in held.read().decode(errors="replace").splitlines() if x.strip()]
 
 
-def _check_finite_urdf(urdf: str, joint: str, placement: Any, inertia: Any, src: str, where: str) -> None:
-    """The URDF parser takes ``nan`` in an origin or an inertial as a number: refused here, as
-    the robot file's own fields are (a NaN lever would make every regressor row NaN)."""
-    parts = {"origin": np.asarray(placement), "inertial origin": np.asarray(inertia.lever),
-             "mass": np.asarray([inertia.mass]), "inertia": np.asarray(inertia.inertia)}
-    bad = [what for what, values in parts.items() if not np.all(np.isfinite(values))]
-    if bad:
-        raise RobotFileError(src, f"{where} ({urdf})", f"joint {joint!r} and its child link: {', '.join(bad)} not finite (NaN or inf)")
-
-
 def _urdf_joints(doc: dict[str, Any], joints_doc: list[Any], src: str, base_dir: Path) -> list[Joint]:
     """Joints matched by name in a URDF loaded through Pinocchio (link frame = child frame)."""
     import pinocchio as pin
@@ -362,7 +352,6 @@ def _urdf_joints(doc: dict[str, Any], joints_doc: list[Any], src: str, base_dir:
         axis = _joint_axis(jm, revolute)
         placement = model.jointPlacements[jid].homogeneous
         inert = model.inertias[jid]
-        _check_finite_urdf(urdf.name, name, placement, inert, src, where)
         inertial = Inertial(float(inert.mass), tuple(float(x) for x in inert.lever), tuple(float(x) for x in inertia_entries(inert.inertia)))  # type: ignore[arg-type]
         iq, iv = model.idx_qs[jid], model.idx_vs[jid]
         # a continuous joint (nq 2: cos, sin) has no position limits
