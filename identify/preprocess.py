@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from .differentiation import five_point_derivative
+from .differentiation import five_point_derivative, sharpened_five_point_derivative
 from .errors import RecordingError
 from .filtering import SAMPLES_PER_CUTOFF, Band, ParallelFilter, choose_filter, noise_level
 from .recordings import Recording
@@ -339,19 +339,20 @@ def _choose_band(source: str, t: Array, q: Array, qd: Array | None, pieces: list
 
 
 def _derivative(x: Array, period: float, order: int = 1, source: Array | None = None) -> Array:
-    """Khosla's 5-point filter (5.1) on ``x``; at the two samples at each end, where it has
-    no neighbours, derivative ``order`` of a least-squares cubic over the nine samples of
-    ``source`` there (``x`` itself for a first derivative, the positions for a second)."""
+    """Khosla's 5-point filter (5.1) on ``x``, sharpened (its in-band droop would read every
+    inertia too high: :mod:`identify.differentiation`); at the four samples at each end,
+    where it has no neighbours, derivative ``order`` of a least-squares cubic over the nine
+    samples of ``source`` there (``x`` itself for a first derivative, the positions for a
+    second)."""
     from scipy.signal import savgol_filter
 
-    d = five_point_derivative(x, period)
+    d = sharpened_five_point_derivative(x, period)
     base = x if source is None else source
     if base.shape[0] >= 9:
         ends = savgol_filter(base, 9, 3, deriv=order, delta=period, axis=0, mode="interp")
-        d[:2], d[-2:] = ends[:2], ends[-2:]
+        d[:4], d[-4:] = ends[:4], ends[-4:]
     elif base.shape[0] >= 2:
-        ends = np.gradient(x, period, axis=0)
-        d[:2], d[-2:] = ends[:2], ends[-2:]
+        d = np.gradient(x, period, axis=0)
     return d
 
 
