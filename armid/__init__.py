@@ -5,8 +5,8 @@ reads every import and fails on one against this direction)::
 
     armid.schema      the joint-state record, its units and codecs, the exception tree
     armid.identify    the numerical core: arrays in, arrays out (no file, bus or network)
-    armid.io          reading recordings (CSV, NPZ, MCAP), robot and rig files
     armid.drivers     the amplifiers (CANopen, Dynamixel) behind one ``Driver``, a registry
+    armid.io          reading recordings (CSV, NPZ, MCAP), robot and rig files (uses the rig's types)
     armid.daq         cycles, recording, streaming over Zenoh, the excitation session
     armid.sim_bus     simulated hardware: a peer on the bus, started by the CLI or a test
     armid.cli, armid.demo, armid.report, ...   the command line and reports, on top

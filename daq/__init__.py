@@ -1,1 +1,1 @@
-"""armid daq: see README (this package fills in with its issue)."""
+"""armid daq: acquisition, recording, streaming over Zenoh, the excitation session (docs/architecture.md)."""

@@ -1,7 +1,7 @@
 """Zenoh: the live stream, events, liveliness and status of a running component.
 
-Keys (INTERFACES.md): ``armid/<robot>/joint_state`` (one :mod:`daq.record_format` record
-per cycle, schema and version in the encoding), ``armid/<robot>/events`` (JSON: faults,
+Keys (docs/reference/zenoh.md): ``armid/<robot>/joint_state`` (one :mod:`armid.schema.joint_state`
+record per cycle, schema and version in the encoding), ``armid/<robot>/events`` (JSON: faults,
 start, stop), ``armid/<robot>/status`` (a queryable answering JSON), and a liveliness
 token ``armid/<robot>/alive/<component>``. Sessions are peers. ``session_config`` makes
 the explicit-endpoint, no-multicast configuration tests use; a lab passes its own file

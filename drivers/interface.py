@@ -237,7 +237,8 @@ class Driver(abc.ABC):
     def _publish(self, sample: Sample) -> None:
         """Hand a cycle's sample to :meth:`read`; a full backlog drops its oldest, with an event.
 
-        The one place the torque constant is applied: ``torque = measured_current * torque_constants``."""
+        Where a live record's torque comes from: ``torque = measured_current * torque_constants``
+        (readers of current-only recordings apply the robot file's torque constants themselves)."""
         sample.torque = sample.measured_current * self.torque_constants
         try:
             self._samples.put_nowait(sample)

@@ -1,1 +1,1 @@
-"""armid sim_bus: see README (this package fills in with its issue)."""
+"""armid sim_bus: simulated hardware, a peer on the bus: the arm on CAN, the Dynamixel chain, off-line (docs/architecture.md)."""

@@ -1,9 +1,12 @@
 """The joint-state record: one cycle of every joint, its units, and its one binary codec.
 
 Units are SI at the joint, everywhere after the driver: position in rad (m for a prismatic
-joint), velocity in rad/s (m/s), current in A, torque in N*m (N). The torque constant is
-applied once, in the driver: ``torque = measured_current * torque_constant`` travels beside
-the currents, so nothing downstream multiplies or divides by a torque constant again.
+joint), velocity in rad/s (m/s), current in A, torque in N*m (N). The driver applies each
+joint's torque constant to the measured current, ``torque = measured_current * torque_constant``,
+and the torque travels beside the currents: a reader takes it as recorded. Where a recording
+carries currents only (a CSV's ``i1..in``, an MCAP in the older JSON layout), the reader applies
+the robot file's torque constant instead (``armid.io.recordings``); a torque command is divided
+by it into a current. Each record is scaled once.
 
 Binary codec (the Zenoh stream): the schema's name and version travel in the Zenoh
 encoding (``application/octet-stream;armid.JointState/2``), so a subscriber knows what it
