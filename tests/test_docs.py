@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import os
 import re
+import shlex
 import shutil
 import socket
 import subprocess
@@ -145,6 +146,51 @@ def test_every_shell_block_is_marked() -> None:
     assert not unmarked, "shell blocks without a docs-test marker (run, run slow, or skip REASON):\n" + "\n".join(unmarked)
     unexplained = [b.where for page in PAGES for b in blocks(page) if b.mode == "skip" and not b.reason]
     assert not unexplained, "skipped blocks must say why:\n" + "\n".join(unexplained)
+
+
+def _table_commands(page: Path) -> list[tuple[int, str]]:
+    """The commands in the "command" column of a page's tables (code spans), with their line."""
+    out, column = [], None
+    for k, line in enumerate(page.read_text().splitlines(), 1):
+        if not line.startswith("|"):
+            column = None
+            continue
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if column is None:
+            column = cells.index("command") if "command" in cells else -1
+            continue
+        if column >= 0 and column < len(cells):
+            out += [(k, m) for m in re.findall(r"`([^`]+)`", cells[column])]
+    return out
+
+
+def test_the_readme_table_commands_are_valid() -> None:
+    """The README's table names long runs (benchmarks, sweeps, the demo): they are not run here,
+    but each parses as armid's parser would take it, and names files that exist."""
+    from armid.cli import build_parser
+
+    commands = _table_commands(ROOT / "README.md")
+    assert len(commands) >= 10
+    problems = []
+    for line, command in commands:
+        argv = shlex.split(command)
+        if argv[:3] == ["python", "-m", "pytest"]:
+            argv = argv[3:]
+        elif argv[0] == "python":
+            argv = argv[1:]
+        elif argv[0] == "armid":
+            try:
+                build_parser().parse_args(argv[1:])
+            except SystemExit:
+                problems.append(f"README.md:{line}: {command}: armid's parser refuses it")
+            argv = argv[2:]
+        for word in argv:
+            if word.startswith(("config/", "examples/", "benchmarks/", "tests/")):
+                if not (ROOT / word.split("::")[0]).exists():
+                    problems.append(f"README.md:{line}: {command}: no {word}")
+            elif word.startswith("../shared/") and SHARED.is_dir() and not (ROOT / word).exists():
+                problems.append(f"README.md:{line}: {command}: no {word}")
+    assert not problems, "\n".join(problems)
 
 
 def _pages_with(mode: str) -> list[Path]:
