@@ -291,8 +291,10 @@ class Finding:
             "spring": "residual grows linearly with position", "gravity_tilt": "residual follows a gravity load about a tilted axis",
             "load_dependent_coulomb": "residual follows sign(qd), growing with the joint's load torque",
         }[self.effect]
-        params = ", ".join(f"{k} {v:.4g}" for k, v in self.parameters.items())
-        text = f"{where}: {signature}: {self.effect.replace('_', ' ')} {params}; held-out error (identification data) {100 * self.error_before:.2f} % -> {100 * self.error_after:.2f} %"
+        name = self.effect.replace("_", " ")
+        # a parameter named as the effect's last word is the effect's value: "torque gain 1.143"
+        params = ", ".join(f"{v:.4g}" if name.endswith(f" {k}") else f"{k} {v:.4g}" for k, v in self.parameters.items())
+        text = f"{where}: {signature}: {name} {params}; held-out error (identification data) {100 * self.error_before:.2f} % -> {100 * self.error_after:.2f} %"
         if self.lookalike:
             text += f" (cannot be told apart from {self.lookalike.replace('_', ' ')} on this data; to separate them: {self.separate_by})"
         return text

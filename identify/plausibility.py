@@ -117,9 +117,17 @@ def check_torque(tau: Array, source: str, q: Array | None = None) -> list[str]:
             for j in range(n) if span[j] == 0]
 
 
+MOVING_SPAN = 0.01
+"""A joint whose positions span less than this (rad or m) holds still: its dq/dt is the
+encoder's quantisation, not motion, and says nothing of the units."""
+
+
 def velocity_ratio(t: Array, q: Array, qd: Array) -> float | None:
-    """The median over moving joints of rms(dq/dt) / rms(qd) (1 when the units agree), or
-    None when no joint moves enough to tell."""
+    """The median over moving joints of the least-squares slope of the position increments
+    on ``qd dt`` (1 when the units agree), or None when no joint moves enough to tell.
+
+    A slope, not a ratio of rms values: the quantisation of q is uncorrelated with qd and
+    averages out, where its rms would dominate a slow joint's dq/dt at a high sample rate."""
     ok = np.isfinite(t) & np.isfinite(q).all(axis=1) & np.isfinite(qd).all(axis=1)
     t, q, qd = t[ok], q[ok], qd[ok]
     if t.size < 3:
@@ -128,14 +136,13 @@ def velocity_ratio(t: Array, q: Array, qd: Array) -> float | None:
     step = dt > 0
     if step.sum() < 2:
         return None
-    dqdt = (np.diff(q, axis=0) / np.where(step, dt, 1.0)[:, None])[step]
-    mid = (0.5 * (qd[1:] + qd[:-1]))[step]
+    dq = np.diff(q, axis=0)[step]
+    travel = (0.5 * (qd[1:] + qd[:-1]) * np.where(step, dt, 0.0)[:, None])[step]
     ratios = []
     for j in range(q.shape[1]):
-        rms_v = float(np.sqrt(np.mean(mid[:, j] ** 2)))
-        rms_d = float(np.sqrt(np.mean(dqdt[:, j] ** 2)))
-        if rms_v > 0 and _span(q[:, j : j + 1])[0] > 1e-6:
-            ratios.append(rms_d / rms_v)
+        power = float(travel[:, j] @ travel[:, j])
+        if power > 0 and _span(q[:, j : j + 1])[0] >= MOVING_SPAN:
+            ratios.append(float(dq[:, j] @ travel[:, j]) / power)
     return float(np.median(ratios)) if ratios else None
 
 
@@ -205,6 +212,11 @@ is a unit, a gear ratio or a torque constant, not a CAD value off by tens of per
 
 SCALE_CORRELATION = 0.9
 
+SCALE_MIN_SHARE = 0.05
+"""A joint's modeled torque must vary by this share of the largest joint's for the scale check:
+a held wrist's modeled torque is near zero, and what its sensor measures beside it (friction,
+a CAD mass off by half) is no unit."""
+
 POOLED_SIGN_CORRELATION = -0.4
 """The torques of all joints together against the modeled ones: below this, every sign is
 flipped (a convention of the logger or of the torque constants). Pooled, the large joints
@@ -235,7 +247,7 @@ def check_against_model(tau: Array, modeled: Array, source: str) -> list[str]:
         if r < SIGN_CORRELATION:
             out.append(f"{source}: column tau{j + 1}: joint {j + 1}'s torque runs opposite to the robot file's modeled torque "
                        f"(correlation {r:.2f}): is the sensor's or the torque constant's sign the model's?")
-        elif r > SCALE_CORRELATION and not SCALE_BAND[0] <= scale <= SCALE_BAND[1]:
+        elif r > SCALE_CORRELATION and spread_m[j] >= SCALE_MIN_SHARE * spread_m.max() and not SCALE_BAND[0] <= scale <= SCALE_BAND[1]:
             out.append(f"{source}: column tau{j + 1}: joint {j + 1} measures {scale:.3g} times the robot file's modeled torque "
                        f"(correlation {r:.2f}): is it in N*m (not mN*m), and its torque_constant (gear ratio included) right?")
     return out

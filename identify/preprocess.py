@@ -260,7 +260,7 @@ def prepare(rec: Recording, robot: Robot, options: PrepareOptions | None = None)
     if qdd is None:
         derived.append("acceleration from velocity")
     if derived:
-        notes.append(f"{' and '.join(derived)} by the 5-point least-squares filter (Khosla 5.1)")
+        notes.append(f"{' and '.join(derived)} by the 5-point least-squares filter (Khosla 5.1), sharpened")
     prepared = Prepared(segments, notes, int(bad.sum()), rec.n_samples, band)
     if left_out:
         notes.append(f"{left_out} of {rec.n_samples} input samples are not predicted (garbage rows, segments too short)")

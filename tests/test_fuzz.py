@@ -674,3 +674,44 @@ def test_plausibility_api_warns_on_what_may_be_right_and_refuses_garbage() -> No
         check_recording(T * 1e3, Q, QD, TAU, "ex.csv")
     with pytest.raises(RecordingError, match=r"^ex\.csv: column tau6: the torque is constant \(0.25\) while joint 6 moves"):
         check_recording(T, Q, QD, held, "ex.csv")
+
+
+def test_the_units_check_reads_motion_not_an_encoders_jitter() -> None:
+    """Issue 33: an arm that holds still (its positions jitter by one encoder count, qd = 0),
+    or moves one joint while the others hold, is no evidence of wrong time units; the same
+    motion with t in milliseconds still is."""
+    from armid.identify.errors import RecordingError
+    from armid.identify.plausibility import check_recording, velocity_ratio
+
+    rng = np.random.default_rng(3)
+    t = np.arange(5000) * 0.001  # 1 kHz
+    count = 2 * np.pi / (4096 * 100)
+    rest = np.array([0.1, 0.7, -0.7, 0.2, 0.3, -0.1])
+    jitter = rest + count * rng.integers(-1, 2, (t.size, 6))
+    tau = np.tile([1.0, 20.0, 5.0, 0.5, 0.3, 0.1], (t.size, 1)) + 0.01 * rng.standard_normal((t.size, 6))
+    drift = 1e-4 * rng.standard_normal((t.size, 6))  # a drive's velocity reading at rest: noise, not 0
+    assert velocity_ratio(t, jitter, drift) is None
+    assert not [w for w in check_recording(t, jitter, drift, tau, "still.csv") if "dq/dt" in w]
+    one = jitter.copy()  # joint 2 moves slowly (0.05 rad/s rms), the others hold with their jitter
+    one[:, 1] = np.round((0.7 + 0.05 * np.sin(1.3 * t) / 1.3) / count) * count
+    qd = drift.copy()
+    qd[:, 1] = 0.05 * np.cos(1.3 * t)
+    assert velocity_ratio(t, one, qd) == pytest.approx(1.0, abs=0.05)
+    assert not [w for w in check_recording(t, one, qd, tau, "one.csv") if "dq/dt" in w]
+    with pytest.raises(RecordingError, match=r"^one\.csv: column t: the time stamps look like milliseconds"):
+        check_recording(t * 1e3, one, qd, tau, "one.csv")
+
+
+def test_the_scale_check_leaves_a_joint_whose_modeled_torque_is_near_zero() -> None:
+    """Issue 33: a held wrist whose modeled torque barely varies (a light CAD wrist) measures
+    many times it: no unit can be read from that; a large joint in mN*m still is said."""
+    from armid.identify.plausibility import check_against_model
+
+    rng = np.random.default_rng(4)
+    s = np.sin(np.linspace(0, 20, 4000))
+    modeled = np.column_stack([30.0 * s, 10.0 * s, 0.02 * s])
+    measured = modeled * [1.0, 1.0, 16.7] + 0.01 * rng.standard_normal(modeled.shape)
+    assert check_against_model(measured, modeled, "wrist.csv") == []
+    measured[:, 1] *= 1000.0  # joint 2 in mN*m
+    said = check_against_model(measured, modeled, "wrist.csv")
+    assert len(said) == 1 and said[0].startswith("wrist.csv: column tau2: joint 2 measures 1e+03 times"), said
