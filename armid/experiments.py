@@ -127,8 +127,9 @@ def prepared_runs(reports: list[RunReport], robot: Robot, period_s: float, warn:
     out = {}
     for r in reports:
         out[r.name], found = pipeline.load_run(r.recording, robot, DRIVE_RUN, run_window(r, period_s))
-        for warning in found if warn is not None else []:
-            warn(warning)
+        if warn is not None:
+            for warning in found:
+                warn(warning)
     return out
 
 
