@@ -161,6 +161,11 @@ def test_the_command_lines_defaults_are_the_user_log_recipe() -> None:
     args = build_parser().parse_args(["identify", "x.csv", "--robot", "r.yaml"])
     assert (args.weighting, args.prior) == (USER_LOG.identify.weighting, USER_LOG.identify.prior)
     assert WHOLE_ARM_PIPELINES == tuple(RECIPES)
+    # and the library's own defaults are the command line's (issue 32: lowpass_hz was None)
+    from armid.identify.identification import IdentifyOptions
+    from armid.identify.preprocess import PrepareOptions
+
+    assert USER_LOG.prepare == PrepareOptions() and USER_LOG.identify == IdentifyOptions()
 
 
 @pytest.mark.slow
