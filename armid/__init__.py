@@ -4,11 +4,12 @@ One distribution, one top-level name. The layers, bottom to top (``tests/test_la
 reads every import and fails on one against this direction)::
 
     armid.schema      the joint-state record, its units and codecs, the exception tree
+    armid.resources   where the package data (``armid.config``) lies on disk
     armid.identify    the numerical core: arrays in, arrays out (no file, bus or network)
     armid.drivers     the amplifiers (CANopen, Dynamixel) behind one ``Driver``, a registry
     armid.io          reading recordings (CSV, NPZ, MCAP), robot and rig files (uses the rig's types)
     armid.daq         cycles, recording, streaming over Zenoh, the excitation session
-    armid.sim_bus     simulated hardware: a peer on the bus, started by the CLI or a test
+    armid.sim_bus     simulated hardware: a peer on the bus, started by the CLI or a test (a rig comes parsed)
     armid.cli, armid.demo, armid.report, ...   the command line and reports, on top
 
 ``armid.config`` is package data (robot descriptions, drive dictionaries, rig files).

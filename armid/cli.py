@@ -96,21 +96,6 @@ def _lowpass(text: str) -> float | str:
     return value
 
 
-def _check_lowpass(value: float | str | None, recordings: list[Any]) -> None:
-    """A numeric cutoff must lie below every recording's Nyquist frequency."""
-    if value is None or isinstance(value, str):
-        return
-    for rec in recordings:
-        dt = np.diff(rec.t)
-        dt = dt[np.isfinite(dt) & (dt > 0)]
-        if dt.size == 0:
-            continue
-        nyquist = 0.5 / float(np.median(dt))
-        if value >= nyquist:
-            raise OptionError("--lowpass", f"{value:g} Hz is not below the Nyquist frequency of {rec.source} "
-                                           f"({nyquist:g} Hz at its {float(np.median(dt)):g} s sample period)")
-
-
 def _finite_or_none(value: Any) -> Any:
     """``value`` with every non-finite float (NaN, inf) replaced by None, recursively."""
     if isinstance(value, float):
@@ -141,62 +126,39 @@ def _write_json(path: Path, doc: Any) -> None:
     path.write_text(strict_json(doc, indent=1, default=float) + "\n")
 
 
-def _read_checked(path: str, robot: Any, need_motion: bool = True) -> Any:
-    """``read_recording`` and the plausibility checks (time units, torque); their warnings are held
-    until every input is read."""
-    from armid.io.recordings import read_recording
-
-    rec = read_recording(path, robot)
-    _check_plausible(rec.source, robot, rec.t, rec.q, rec.qd, rec.tau, need_motion)
-    return rec
-
-
-def _check_plausible(source: str, robot: Any, t: Any, q: Any, qd: Any, tau: Any, need_motion: bool = True) -> None:
-    """The plausibility checks of :func:`_read_checked` on arrays read another way (a replay's MCAP)."""
-    from armid.identify.plausibility import check_positions, check_recording
-
-    limits = [j.limits.position for j in robot.joints]
-    for warning in check_recording(t, q, qd, tau, source, need_motion) + check_positions(q, limits, [j.revolute for j in robot.joints], source):
+def _show(found: list[str]) -> None:
+    """Warnings from the pipeline's checks, held until every input is read (:class:`_HeldWarnings`)."""
+    for warning in found:
         _WARNINGS.show(warning, None, "", 0)
 
 
-def _check_model(robot: Any, paths: list[str], prepared: list[Any]) -> None:
-    """Each recording's torque against the robot file's modeled torque (sign, scale); warnings held."""
-    from armid.identify.identification import modeled_torque
-    from armid.identify.plausibility import check_against_model
+def _recipe(args: argparse.Namespace, **extra: Any) -> Any:
+    """:data:`~armid.pipeline.USER_LOG` with the command's flags (whose defaults are its own)."""
+    from .pipeline import USER_LOG
 
-    for path, prep in zip(paths, prepared):
-        pair = modeled_torque(robot, prep)
-        if pair is not None:
-            for warning in check_against_model(*pair, path):
-                _WARNINGS.show(warning, None, "", 0)
+    return USER_LOG.with_options(max_gap_factor=args.max_gap_factor, lowpass_hz=args.lowpass, torque_hold=args.torque_hold, **extra)
 
 
 def _identify(args: argparse.Namespace) -> int:
-    from armid.identify.identification import IdentifyOptions, identify
-    from armid.identify.preprocess import PrepareOptions, prepare
     from armid.io.recordings import write_csv
     from armid.io.robot_file import load_robot
 
+    from . import pipeline
+
     robot = load_robot(args.robot)
-    options = PrepareOptions(max_gap_factor=args.max_gap_factor, lowpass_hz=args.lowpass)
+    recipe = _recipe(args, weighting=args.weighting, prior=args.prior)
     if args.single_link:
-        return _identify_single_link(args, robot, options)
-    raw = [_read_checked(p, robot) for p in args.data]
-    raw_validation = [_read_checked(p, robot) for p in args.validate or []]
-    _check_lowpass(args.lowpass, raw + raw_validation)
-    experiments = [prepare(r, robot, options) for r in raw]
-    validation = [prepare(r, robot, options) for r in raw_validation]
-    _check_model(robot, list(args.data) + list(args.validate or []), experiments + validation)
+        return _identify_single_link(args, robot, recipe)
+    inputs = pipeline.load(robot, recipe, args.data, args.validate or [])
+    _show(inputs.warnings)
     _inputs_read()
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", PoorExcitationWarning)
-        result = identify(robot, experiments, validation, IdentifyOptions(weighting=args.weighting, prior=args.prior))
-    for w in caught:
-        print(f"warning: {w.message}", file=sys.stderr)
+    experiments, validation = inputs.experiments, inputs.validation
+    result, excitation = pipeline.identify(robot, experiments, validation, recipe)
+    for message in excitation:
+        print(f"warning: {message}", file=sys.stderr)
     doc = result.to_json()
     feasible_line = _feasible(args, robot, result, validation, doc)
-    for path, prep in zip(list(args.data) + list(args.validate or []), experiments + validation):
+    for path, prep in zip(inputs.sources, experiments + validation):
         for note in prep.notes:
             print(f"{path}: {note}", file=sys.stderr)
     for out in (args.json, args.predictions):
@@ -225,7 +187,7 @@ def _identify(args: argparse.Namespace) -> int:
     return 0
 
 
-def _identify_single_link(args: argparse.Namespace, robot: Any, options: Any) -> int:
+def _identify_single_link(args: argparse.Namespace, robot: Any, recipe: Any) -> int:
     """``armid identify --single-link``: Khosla's off-line sequence on the user's recordings,
     each moving one joint (property 4), identified last link first; each validation recording
     (one joint moving too) predicted and scored on the joint that moved."""
@@ -239,7 +201,7 @@ def _identify_single_link(args: argparse.Namespace, robot: Any, options: Any) ->
     runs: dict[int, list[Any]] = {}
     for path in args.data:
         rec, link = _single_joint_run(path, robot)
-        runs.setdefault(link, []).append(prepare(rec, robot, options))
+        runs.setdefault(link, []).append(prepare(rec, robot, recipe.prepare))
     checked = [(path, *_single_joint_run(path, robot)) for path in args.validate or []]
     _inputs_read()
     seq = single_link_sequence(robot, runs)
@@ -247,7 +209,7 @@ def _identify_single_link(args: argparse.Namespace, robot: Any, options: Any) ->
         print(f"link {row['link']}: {row['parameter']} = {row['estimate']:.6g} +- {row['std']:.3g} (modeled {row['modeled']:.6g})")
     validation, predicted = [], []
     for path, rec, link in checked:
-        prep = prepare(rec, robot, options)
+        prep = prepare(rec, robot, recipe.prepare)
         t = np.concatenate([g.t for g in prep.segments])
         tau = np.concatenate([g.tau for g in prep.segments])
         tau_hat = np.concatenate([seq.predict(g.q, g.qd, g.qdd) for g in prep.segments])
@@ -274,7 +236,11 @@ def _single_joint_run(path: str, robot: Any) -> tuple[Any, int]:
     it, and the one joint (0-based) that moved in it."""
     from armid.identify.single_link import MOVING_RAD, joint_spans
 
-    rec = _excitation_window(Path(path), _read_checked(path, robot, need_motion=False))
+    from .pipeline import read
+
+    rec, found = read(path, robot, need_motion=False)
+    _show(found)
+    rec = _excitation_window(Path(path), rec)
     moved = np.flatnonzero(joint_spans(rec.q) > MOVING_RAD)
     if moved.size != 1:
         what = "no joint moved" if moved.size == 0 else f"joints {', '.join(str(j + 1) for j in moved)} moved"
@@ -287,7 +253,7 @@ def _excitation_window(path: Path, rec: Any) -> Any:
     """The part of an ``armid excite`` recording inside its plan's excitation window (whole
     periods of the design, as the demo and the service identify it), when a ``runs.json`` of
     that run lies in one of the three folders above it; else the whole recording."""
-    from .experiments import cut_to_window
+    from .pipeline import Window, cut_to_window
 
     for folder in list(path.resolve().parents)[:3]:
         runs = folder / "runs.json"
@@ -301,7 +267,7 @@ def _excitation_window(path: Path, rec: Any) -> Any:
             if not isinstance(r, dict) or Path(str(r.get("recording", ""))).name != path.name or r.get("name") != path.parent.name:
                 continue
             w0, w1 = (float(x) for x in r["window_s"])
-            return cut_to_window(rec, int(r["first_cycle"]), (w0, w1), float(np.median(np.diff(rec.t))))
+            return cut_to_window(rec, Window(int(r["first_cycle"]), (w0, w1), float(np.median(np.diff(rec.t)))))
     return rec
 
 
@@ -330,24 +296,21 @@ def _feasible(args: argparse.Namespace, robot: Any, result: Any, validation: lis
 
 
 def _diagnose(args: argparse.Namespace) -> int:
-    from armid.identify.diagnosis import diagnose, extrapolation_sentence, set_aside_sentence
-    from armid.identify.preprocess import PrepareOptions, prepare
+    from armid.identify.diagnosis import extrapolation_sentence, set_aside_sentence
     from armid.io.recordings import write_csv
     from armid.io.robot_file import load_robot
 
+    from . import pipeline
+
     robot = load_robot(args.robot)
-    options = PrepareOptions(max_gap_factor=args.max_gap_factor, lowpass_hz=args.lowpass, torque_hold=args.torque_hold)
-    raw = [_read_checked(p, robot) for p in args.data]
-    raw_validation = [_read_checked(p, robot) for p in args.validate]
-    _check_lowpass(args.lowpass, raw + raw_validation)
-    experiments = [prepare(r, robot, options) for r in raw]
-    validation = [prepare(r, robot, options) for r in raw_validation]
-    _check_model(robot, list(args.data) + list(args.validate or []), experiments + validation)
+    inputs = pipeline.load(robot, _recipe(args), args.data, args.validate)
+    _show(inputs.warnings)
     _inputs_read()
-    for path, prep in zip(list(args.data) + list(args.validate), experiments + validation):
+    experiments, validation = inputs.experiments, inputs.validation
+    for path, prep in zip(inputs.sources, experiments + validation):
         for note in prep.notes:
             print(f"{path}: {note}", file=sys.stderr)
-    diag = diagnose(robot, experiments, validation)
+    diag = pipeline.diagnose(robot, inputs)
     doc = diag.to_json()
     feasible_line = None
     if args.feasible or args.urdf or args.bounding_box:
@@ -729,39 +692,14 @@ def load_trajectory(path: str | Path, n_joints: int, period_s: float) -> tuple[A
     return FourierTrajectory(q0, a, b, float(hz)), tuple(j - 1 for j in moving_doc)
 
 
-def _replay_records(path: Path, robot: Any, kt: np.ndarray, period_s: float | None) -> tuple[tuple[np.ndarray, ...], list[str]]:
-    """(sequence, time, valid, position, torque) of a recording (MCAP or CSV), in order, on
-    the recording's own time stamps; time must increase (a CSV names its line). A ROS 2
-    recording carries the torque; a JSON one (before it) its measured current times ``kt``."""
-    from armid.io.recordings import read_mcap_arrays
+def _replay_records(path: Path, robot: Any, period_s: float | None) -> tuple[tuple[np.ndarray, ...], list[str]]:
+    """The replay's records by :func:`armid.pipeline.replay_records` (identify's checks: ms stamps,
+    degrees refused; their warnings held), and ``--period`` against their stamps."""
+    from .pipeline import replay_records
 
-    if path.suffix.lower() == ".mcap":
-        if not path.exists():
-            raise RecordingError(str(path), "no such file")
-        a, _, notes = read_mcap_arrays(path)
-        if not a:
-            raise RecordingError(str(path), "no joint_state record could be read" + (f": {notes[0]}" if notes else ""))
-        if a["position"].shape[1] != robot.n_joints:
-            raise RecordingError(str(path), f"{a['position'].shape[1]} joints recorded, robot {robot.name} has {robot.n_joints}")
-        t = np.asarray(a["t"], float)
-        torque = a["torque"] if "torque" in a else a["measured_current"] * kt
-        records = (np.asarray(a["sequence"], np.int64), t, np.asarray(a["valid"], bool).reshape(t.size, -1),
-                   np.asarray(a["position"], float), np.asarray(torque, float))
-        _check_plausible(str(path), robot, t, records[3], None, records[4], need_motion=False)
-    else:
-        rec = _read_checked(str(path), robot, need_motion=False)  # identify's checks: ms stamps, degrees refused
-        notes, t = list(rec.notes), np.asarray(rec.t, float)
-        line = np.arange(t.size) + 2
-        stamped = np.isfinite(t)  # a garbage row (wrong field count, no number) has no time: left out, as identify does
-        if not stamped.all():
-            notes.append(f"left out {int((~stamped).sum())} row(s) without a time stamp (line {', '.join(map(str, line[~stamped][:5]))})")
-        t, q, tau = t[stamped], np.asarray(rec.q, float)[stamped], np.asarray(rec.tau, float)[stamped]
-        back = np.flatnonzero(~(np.diff(t) > 0))
-        if back.size:
-            k = int(back[0]) + 1
-            raise RecordingError(str(path), f"line {line[stamped][k]}: time {t[k]:.6g} s is not after the line before ({t[k - 1]:.6g} s): "
-                                            "time must increase (a reversed or shuffled log?)")
-        records = (np.arange(t.size, dtype=np.int64), t, np.ones((t.size, robot.n_joints), bool), q, tau)
+    records, notes, found = replay_records(path, robot)
+    _show(found)
+    t = records[1]
     if t.size >= 2 and period_s is not None:
         step = float(np.median(np.diff(t)))
         if abs(step - period_s) > 0.1 * period_s:
@@ -854,10 +792,9 @@ def _estimate(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     doc = _identification_document(args.params, robot)
     arm = arm_model_from_identification(robot, doc)
-    kt = np.array([j.torque_constant for j in robot.joints])
     reference = None
     if args.reference:
-        ref_records, ref_notes = _replay_records(Path(args.reference), robot, kt, args.period)
+        ref_records, ref_notes = _replay_records(Path(args.reference), robot, args.period)
         for note in ref_notes:
             print(f"{args.reference}: {note}", file=sys.stderr)
         keep = ref_records[2].all(axis=1)
@@ -869,7 +806,7 @@ def _estimate(args: argparse.Namespace) -> int:
     stream = EstimateStream(estimator, publish_every=args.publish_every, strict_time=bool(args.replay),
                             source=str(args.replay or "stream"))
     if args.replay:
-        records, notes = _replay_records(Path(args.replay), robot, kt, args.period)
+        records, notes = _replay_records(Path(args.replay), robot, args.period)
         for note in notes:
             print(f"{args.replay}: {note}", file=sys.stderr)
     out = open(args.out, "w") if args.out else sys.stdout  # noqa: SIM115 - closed below
@@ -1142,6 +1079,7 @@ def build_parser() -> argparse.ArgumentParser:
     _feasible_arguments(p)
     p.add_argument("--lowpass", type=_lowpass, default="auto", metavar="HZ|auto|off",
                    help="zero-phase low-pass of the kinematics, the regressor and the torque alike (default auto: chosen from each recording's spectrum)")
+    p.add_argument("--torque-hold", action="store_true", help="torques were held over the period before each sample (drive currents between SYNCs)")
     p.add_argument("--max-gap-factor", type=_gap_factor, default=20.0, help="split where a step exceeds this many median steps")
     p.add_argument("--single-link", action="store_true",
                    help="Khosla's off-line sequence: each recording moves one joint alone; identified last link first, its "

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from rich.markup import escape
 
 from armid.drivers.rig import Rig
 from armid.identify import excitation as ex
@@ -155,7 +156,7 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0) -> int:
         phases.start("identify", "identifying: the single-link sequence (links 6 to 1) and whole arm (validated on whole_b), "
                      "as the estimator service did, both against the simulator's known parameters, then diagnosing the residual")
         write_json(out / "service.json", published)
-        prepared = prepared_runs(reports, robot, rig.period_s)
+        prepared = prepared_runs(reports, robot, rig.period_s, warn=lambda w: phases.note(f"[yellow]warning:[/] {escape(w)}"))
         # the same pipeline as the service's (armid.experiments), on the complete recordings
         seq = single_link_sequence(robot, {e.link: [prepared[e.name]] for e in experiments if e.link is not None})
         whole = identify_whole_arm(robot, prepared["whole_a"], [prepared["whole_b"]])
@@ -165,9 +166,9 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0) -> int:
                       f"{agreement['max_difference_sigma']:.2g} sigma at most")
         truth = check_against_truth(rig, seq, whole)
         comparison = seq.compare(whole)
-        from armid.identify.diagnosis import diagnose
+        from .pipeline import Inputs, diagnose
 
-        diagnosis = diagnose(robot, [prepared["whole_a"]], [prepared["whole_b"]])
+        diagnosis = diagnose(robot, Inputs([prepared["whole_a"]], [prepared["whole_b"]]))
         phases.start("payload", "payload: the identified arm works through whole_a; a 2 kg payload is attached and removed, "
                      "estimated on-line from the live Zenoh stream by `armid estimate live` in a process of its own")
         payload = run_payload(rig, whole.to_json(), experiments[-2].design, out, console)

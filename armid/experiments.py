@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -18,17 +18,12 @@ import numpy as np
 
 from armid.daq.excite import ExcitationSession, RunReport
 from armid.identify import excitation as ex
-from armid.identify.identification import IdentificationResult, IdentifyOptions, identify
-from armid.identify.preprocess import Prepared, PrepareOptions, prepare
+from armid.identify.identification import IdentificationResult
+from armid.identify.preprocess import Prepared
 from armid.identify.robot import Robot
-from armid.io.recordings import Recording, read_recording
 
-PREPARE = PrepareOptions(lowpass_hz=None, torque_hold=True)
-"""How drive recordings are prepared: the drives' velocity through the 5-point filter for
-acceleration, currents re-timed as held over a period, and no low-pass. A zero-phase
-low-pass smears the Coulomb step at every reversal over tens of milliseconds, which
-``sign(qd)`` does not: at 20 Hz viscous friction came out 7-22 % low and Coulomb friction
-2-4 % high, 4-6 sigma, on the simulated PUMA. Noise in the torque does not bias least squares."""
+from . import pipeline
+from .pipeline import DRIVE_RUN, Recipe, Window
 
 
 @dataclass(frozen=True)
@@ -121,42 +116,27 @@ def run_experiments(session: ExcitationSession, experiments: list[Experiment], o
     return reports
 
 
-def excitation_recording(report: RunReport, robot: Robot, period_s: float) -> Recording:
-    """The run's recording, cut to its excitation window (whole periods of the design)."""
-    return cut_to_window(read_recording(report.recording, robot), report.first_cycle, report.window_s, period_s)
+def run_window(report: RunReport, period_s: float) -> Window:
+    """The excitation window (whole periods of the design) of a run, from its report."""
+    return Window(report.first_cycle, report.window_s, period_s)
 
 
-def cut_to_window(rec: Recording, first_cycle: int, window_s: tuple[float, float], period_s: float) -> Recording:
-    """A drive recording's samples inside a plan's excitation window, the plan started at
-    ``first_cycle`` (what ``armid excite``'s run report says)."""
-    assert rec.cycle is not None  # a drive recording carries its cycle counter
-    t_plan = (rec.cycle - first_cycle) * period_s
-    w0, w1 = window_s
-    keep = (t_plan >= w0) & (t_plan <= w1)
-    return replace(rec, t=rec.t[keep], q=rec.q[keep], tau=rec.tau[keep], qd=None if rec.qd is None else rec.qd[keep], cycle=rec.cycle[keep],
-                   notes=rec.notes + [f"cut to the excitation window {w0:.2f}-{w1:.2f} s of the plan"])
+def prepared_runs(reports: list[RunReport], robot: Robot, period_s: float, warn: Callable[[str], None] | None = None) -> dict[str, Prepared]:
+    """Each run's recording through the pipeline as a drive run (:data:`~armid.pipeline.DRIVE_RUN`),
+    cut to its excitation window; what the checks found goes to ``warn``."""
+    out = {}
+    for r in reports:
+        out[r.name], found = pipeline.load_run(r.recording, robot, DRIVE_RUN, run_window(r, period_s))
+        if warn is not None:
+            for warning in found:
+                warn(warning)
+    return out
 
 
-def prepared_runs(reports: list[RunReport], robot: Robot, period_s: float) -> dict[str, Prepared]:
-    return {r.name: prepare(excitation_recording(r, robot, period_s), robot, PREPARE) for r in reports}
-
-
-DRIVE_RUN_OPTIONS = IdentifyOptions(exclude_reversals=True)
-"""How a whole-arm drive run is identified (``armid demo``, ``armid serve --whole-arm drives``):
-on :data:`PREPARE`'s equations, the samples next to a velocity reversal left out."""
-
-
-def identify_whole_arm(robot: Robot, run: Prepared, others: list[Prepared],
-                       options: IdentifyOptions = DRIVE_RUN_OPTIONS) -> IdentificationResult:
+def identify_whole_arm(robot: Robot, run: Prepared, others: list[Prepared], recipe: Recipe = DRIVE_RUN) -> IdentificationResult:
     """A whole-arm run's fit, validated on the ``others``: the one recipe of the demo and the
     service (a poorly excited parameter is the design's business, said at design time)."""
-    import warnings
-
-    from armid.identify.errors import PoorExcitationWarning
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", PoorExcitationWarning)
-        return identify(robot, [run], others or None, options)
+    return pipeline.identify(robot, [run], others, recipe)[0]
 
 
 def service_agreement(doc: dict[str, Any], whole: IdentificationResult, run: str = "whole_a") -> dict[str, Any]:

@@ -57,10 +57,11 @@ from armid.identify.single_link import joint_spans
 from armid.schema.joint_state import JointStateRecord, check_encoding
 
 WHOLE_ARM_PIPELINES = ("identify", "drives")
-"""How a whole-arm run is identified: ``identify`` as ``armid identify RUN.mcap`` does (the
-whole recording, low-pass chosen from the data, weighted least squares); ``drives`` as
-``armid demo`` does (the excitation window, the drives' velocity, no low-pass, reversals
-left out)."""
+"""How a whole-arm run is identified, by the name of its recipe in :data:`armid.pipeline.RECIPES`:
+``identify`` as ``armid identify RUN.mcap`` does (:data:`~armid.pipeline.USER_LOG`: the whole
+recording, low-pass chosen from the data, weighted least squares); ``drives`` as ``armid demo``
+does (:data:`~armid.pipeline.DRIVE_RUN`: the excitation window, the drives' velocity, no
+low-pass, reversals left out)."""
 MIN_MOTION_RAD = 0.05
 """A joint whose position spans less than this in a run did not move in it."""
 
@@ -348,15 +349,12 @@ class EstimatorService:
         return ("single_link" if moving.size == 1 else "partial"), moving
 
     def _single_link(self, exp: CollectedExperiment, path: Path, k: int, info: dict[str, Any]) -> None:
-        from armid.identify.preprocess import prepare
         from armid.identify.single_link import single_link_sequence
 
-        from .experiments import PREPARE, excitation_recording
+        from .pipeline import DRIVE_RUN
 
         stop = exp.stop
-        period = float((exp.description.get("metadata") or {}).get("period_s") or 0.002)
-        report = _report_of(exp, path)
-        self._single[k] = prepare(excitation_recording(report, self.robot, period), self.robot, PREPARE)
+        self._single[k] = self._prepared(exp, path, DRIVE_RUN)
         self._single_runs[k] = exp.name
         self.sequence = single_link_sequence(self.robot, {j: [p] for j, p in self._single.items()})
         doc = self.sequence.to_json()
@@ -370,23 +368,13 @@ class EstimatorService:
         info["window_s"] = stop.get("window_s")
 
     def _whole_arm(self, exp: CollectedExperiment, path: Path, info: dict[str, Any]) -> None:
-        from armid.identify.identification import IdentifyOptions
-        from armid.identify.preprocess import PrepareOptions, prepare
-        from armid.io.recordings import read_recording
+        from . import pipeline
 
-        from .experiments import DRIVE_RUN_OPTIONS, PREPARE, excitation_recording, identify_whole_arm
-
-        if self.options.whole_arm == "identify":  # as `armid identify RUN.mcap --robot R` does
-            prep = prepare(read_recording(path, self.robot), self.robot, PrepareOptions(max_gap_factor=20.0, lowpass_hz="auto"))
-            options = IdentifyOptions(weighting="wls")
-        else:  # as `armid demo` does
-            period = float((exp.description.get("metadata") or {}).get("period_s") or 0.002)
-            prep = prepare(excitation_recording(_report_of(exp, path), self.robot, period), self.robot, PREPARE)
-            options = DRIVE_RUN_OPTIONS
-        self._whole[exp.name] = prep
+        recipe = pipeline.RECIPES[self.options.whole_arm]  # "identify": as `armid identify RUN.mcap`; "drives": as `armid demo`
+        self._whole[exp.name] = self._prepared(exp, path, recipe)
         for run in list(self._whole):  # each run's fit, validated on every other whole-arm run
             others = [p for r, p in self._whole.items() if r != run]
-            fit = identify_whole_arm(self.robot, self._whole[run], others, options)
+            fit, _ = pipeline.identify(self.robot, [self._whole[run]], others, recipe)  # poor excitation: the design's business
             self.whole_fits[run] = fit
             d = fit.to_json()
             d["validated_on"] = [r for r in self._whole if r != run]
@@ -395,6 +383,22 @@ class EstimatorService:
         info["whole_arm_fit"] = exp.name
         if self.options.payload and self.payload_service is None:
             self._start_payload(self.whole_fits[exp.name])
+
+    def _prepared(self, exp: CollectedExperiment, path: Path, recipe: Any) -> Any:
+        """The service's copy of a run through the pipeline by ``recipe``: a drive run cut to its
+        excitation window (as ``armid demo`` cuts it), a user's log whole (as ``armid identify``
+        reads it); what the checks found goes to the log."""
+        from . import pipeline
+
+        window = None
+        if recipe.name == pipeline.DRIVE_RUN.name:
+            period = float((exp.description.get("metadata") or {}).get("period_s") or 0.002)
+            report = _report_of(exp, path)
+            window = pipeline.Window(report.first_cycle, report.window_s, period)
+        prep, found = pipeline.load_run(path, self.robot, recipe, window)
+        for warning in found:
+            self.log(f"{exp.name}: warning: {warning}")
+        return prep
 
     def _start_payload(self, fit: Any) -> None:
         from armid.daq.payload_service import EstimateStream, PayloadService

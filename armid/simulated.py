@@ -17,7 +17,7 @@ from armid.drivers.rig import Rig, open_bus
 
 class Simulator:
     """A running simulator: ``peer`` is the :class:`~armid.sim_bus.arm.SimulatedArm` or the
-    :class:`~armid.sim_bus.servo_chain.ServoChainProcess`; :meth:`close` stops it (safe twice)."""
+    :class:`~armid.chain_process.ServoChainProcess`; :meth:`close` stops it (safe twice)."""
 
     def __init__(self, rig: Rig, in_process_chain: bool = False) -> None:
         self.rig = rig
@@ -30,7 +30,7 @@ class Simulator:
 
                 self.peer = SimulatedServoChain(rig)
             else:
-                from armid.sim_bus.servo_chain import ServoChainProcess
+                from .chain_process import ServoChainProcess
 
                 self.peer = ServoChainProcess(rig.source)  # its own process: the driver's cannot stall it
             self.driver_kwargs["port"] = self.peer.port

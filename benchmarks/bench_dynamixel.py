@@ -27,11 +27,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from armid.chain_process import ServoChainProcess  # noqa: E402
 from armid.drivers import dynamixel_protocol as dxl  # noqa: E402
 from armid.drivers.dynamixel_driver import DynamixelDriver  # noqa: E402
 from armid.identify.control import ComputedTorque  # noqa: E402
 from armid.io.rig_file import load_rig  # noqa: E402
-from armid.sim_bus.servo_chain import ServoChainProcess  # noqa: E402
 
 RIG = ROOT / "config" / "rigs" / "sim_dynamixel.yaml"
 

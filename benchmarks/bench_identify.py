@@ -15,7 +15,7 @@ import numpy as np
 
 from armid.identify.dynamics import regressor
 from armid.identify.identification import identify, stacked_regressor, structural_base
-from armid.identify.preprocess import prepare
+from armid.identify.preprocess import PrepareOptions, prepare
 from armid.identify.trajectories import random_fourier_trajectory
 from armid.io.recordings import read_recording, write_csv
 from armid.io.robot_file import load_robot
@@ -33,7 +33,7 @@ def main(n: int = 100_000) -> None:
         path = Path(tmp) / "run.csv"
         write_csv(path, t, {"q": q, "qd": qd, "tau": tau})
         start = time.perf_counter()
-        prep = prepare(read_recording(path, robot), robot)
+        prep = prepare(read_recording(path, robot), robot, PrepareOptions(lowpass_hz=None))
         t_read = time.perf_counter() - start
     start = time.perf_counter()
     result = identify(robot, [prep])

@@ -22,7 +22,7 @@ from armid.daq.payload_service import EstimateStream
 from armid.identify import excitation as ex
 from armid.identify.identification import IdentifyOptions, identify
 from armid.identify.payload import ArmModel, PayloadRLS, ReferenceRun
-from armid.identify.preprocess import prepare
+from armid.identify.preprocess import PrepareOptions, prepare
 from armid.io.rig_file import load_rig
 from armid.sim_bus.offline import simulate
 from armid.sim_bus.physics import Payload, simulation_config
@@ -64,7 +64,7 @@ for label, kw in [("none", dict(gain=False, offset=False, load=False)), ("gain",
     jitter = "jitter" in label
     cfg = with_errors(base_cfg, **kw)
     run_id = simulate(robot, cfg, plan_id.evaluate, plan_id.duration_s, seed=11)
-    res = identify(robot, [prepare(run_id.recording(), robot)], None, IdentifyOptions(exclude_reversals=True))
+    res = identify(robot, [prepare(run_id.recording(), robot, PrepareOptions(lowpass_hz=None))], None, IdentifyOptions(exclude_reversals=True))
     arm = ArmModel(robot, tuple(res.effects), res.base.independent, res.estimate.beta, res.estimate.joint_sigma)
     t_on = plan.lead_in_s + 3.0
     period = dict(period_s=0.001) if jitter else {}

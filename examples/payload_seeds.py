@@ -20,14 +20,14 @@ import test_payload as tp  # noqa: E402
 from armid.daq.payload_service import EstimateStream  # noqa: E402
 from armid.identify.identification import IdentifyOptions, identify  # noqa: E402
 from armid.identify.payload import ArmModel, PayloadRLS, ReferenceRun  # noqa: E402
-from armid.identify.preprocess import prepare  # noqa: E402
+from armid.identify.preprocess import PrepareOptions, prepare  # noqa: E402
 
 seed = int(sys.argv[1])
 arm0, plan, cfg0 = tp._arm_and_design(seed)
 cfg = tp._with_errors(cfg0)
 robot = arm0.robot
 uid = tp.simulate(robot, cfg, plan.evaluate, plan.duration_s, seed=11 + 100 * seed)
-res = identify(robot, [prepare(uid.recording(), robot)], None, IdentifyOptions(exclude_reversals=True))
+res = identify(robot, [prepare(uid.recording(), robot, PrepareOptions(lowpass_hz=None))], None, IdentifyOptions(exclude_reversals=True))
 arm = ArmModel(robot, tuple(res.effects), res.base.independent, res.estimate.beta, res.estimate.joint_sigma)
 t_on = plan.lead_in_s + 3.0
 loaded = tp.simulate(robot, cfg, plan.evaluate, plan.duration_s, payloads=[(t_on, tp.PAYLOAD)], seed=9 + 100 * seed)

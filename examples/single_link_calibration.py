@@ -43,7 +43,7 @@ def whitened_error(design_seed: int, noise_draw: int) -> tuple[float, float]:
         t0, t1 = p.excitation_window
         keep = (run.t >= t0) & (run.t <= t1)
         rec = Recording("sim", run.t[keep], run.position[keep], run.torque[keep], run.velocity[keep])
-        experiments[k] = [prepare(rec, robot, PrepareOptions(torque_hold=True))]
+        experiments[k] = [prepare(rec, robot, PrepareOptions(lowpass_hz=None, torque_hold=True))]
     seq = single_link_sequence(robot, experiments)
     phi = true_parameters(rig, seq.names)
     error = seq.beta - np.array([fn.row @ phi for fn in seq.functionals])

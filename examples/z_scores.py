@@ -36,7 +36,7 @@ def z_scores(seed: int) -> tuple[list[str], np.ndarray]:
     robot = rig.robot
     cfg = simulation_config(rig.simulation, robot.n_joints)
     limits = ex.Limits.of(robot)
-    options = PrepareOptions(torque_hold=True)
+    options = PrepareOptions(lowpass_hz=None, torque_hold=True)
 
     def run(design: ex.Design, periods: int, sim_seed: int):  # type: ignore[no-untyped-def]
         plan = ex.plan(design, HOLD, limits, periods=periods)

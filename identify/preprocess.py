@@ -36,11 +36,13 @@ from .spatial import Array
 class PrepareOptions:
     max_gap_factor: float = 20.0
     jitter_tolerance: float = 0.05
-    # "auto": chosen from the recording's spectrum (identify.filtering.choose_filter; what
-    # `armid identify` and `diagnose` do unless told otherwise); a number: that cut-off in Hz;
+    # "auto" (the default, as `armid identify` and `diagnose` have it): chosen from the
+    # recording's spectrum (identify.filtering.choose_filter); a number: that cut-off in Hz;
     # None or "off": no low-pass, no decimation (the demo's 2 ms drive data, whose torque
-    # noise does not bias least squares and whose velocity comes from the drives)
-    lowpass_hz: float | str | None = None
+    # noise does not bias least squares and whose velocity comes from the drives). The
+    # commands take a named recipe (armid.pipeline: USER_LOG for a user's log, DRIVE_RUN
+    # for a drive run), never this default alone
+    lowpass_hz: float | str | None = "auto"
     min_segment_samples: int = 20
     # the torque (current) of a sample was held over the period before its time stamp, as a
     # drive's current between two SYNCs is: it then belongs half a period earlier than the

@@ -16,7 +16,7 @@ import pytest
 
 from armid.cli import main
 from armid.drivers.interface import Sample
-from armid.identify.preprocess import prepare
+from armid.identify.preprocess import PrepareOptions, prepare
 from armid.io.recordings import read_mcap_arrays as read_mcap
 from armid.io.recordings import read_recording
 from armid.io.robot_file import load_robot
@@ -104,7 +104,7 @@ def test_record_30_s_every_cycle_reaches_a_subscriber_in_another_process(tmp_pat
     robot = load_robot(ROOT / "config/robots/puma560.yaml")
     rec = read_recording(tmp_path / "run" / "run.mcap", robot)
     assert rec.n_samples == n and rec.torque_held
-    prepare(rec, robot)
+    prepare(rec, robot, PrepareOptions(lowpass_hz=None))
 
 
 def test_killed_or_slow_subscriber_costs_the_recording_nothing(tmp_path: Path) -> None:

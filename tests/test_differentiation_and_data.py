@@ -87,7 +87,7 @@ def test_jittery_1khz_log_is_resampled_and_said():  # type: ignore[no-untyped-de
     steps[::300] = 0.009  # occasional 9 ms stalls
     t = np.cumsum(steps)
     q = np.column_stack([np.sin(t), 0.5 * np.cos(2 * t)])
-    prep = prepare(_recording(t, q, q.copy()), robot)
+    prep = prepare(_recording(t, q, q.copy()), robot, PrepareOptions(lowpass_hz=None))
     assert any("resampled" in n for n in prep.notes)
     seg = prep.segments[0]
     assert np.allclose(np.diff(seg.t), np.diff(seg.t)[0])
@@ -100,7 +100,7 @@ def test_100hz_log_with_gaps_is_split_not_bridged():  # type: ignore[no-untyped-
     t = np.arange(0.0, 10.0, 0.01)
     t = np.concatenate([t[:300], t[334:700], t[733:]])  # two gaps of a third of a second
     q = np.column_stack([np.sin(t), np.cos(t)])
-    prep = prepare(_recording(t, q, q.copy()), robot)
+    prep = prepare(_recording(t, q, q.copy()), robot, PrepareOptions(lowpass_hz=None))
     assert len(prep.segments) == 3
     assert any("split at 2 gap" in n for n in prep.notes)
     for seg in prep.segments:
@@ -119,7 +119,7 @@ def test_garbage_rows_are_dropped_with_their_lines(tmp_path):  # type: ignore[no
     lines[301] = lines[301].split(",")[0] + ",2.9,1,0,1"  # position jump
     lines[401] = "garbage"  # wrong field count
     path.write_text("\n".join(lines) + "\n")
-    prep = prepare(read_recording(path, robot), robot)
+    prep = prepare(read_recording(path, robot), robot, PrepareOptions(lowpass_hz=None))
     notes = {n.split(":")[0] + ":" + n.split(":")[1].split("(")[0]: n for n in prep.notes if n.startswith("dropped")}
     assert "102, 402" in notes["dropped 2 row(s): non-numeric or non-finite value "]
     assert "line 202" in notes["dropped 1 row(s): time not increasing "]

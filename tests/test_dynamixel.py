@@ -13,6 +13,7 @@ import can
 import numpy as np
 import pytest
 
+from armid.chain_process import ServoChainProcess
 from armid.daq.acquisition import Acquisition, Sink
 from armid.daq.recorder import McapRecorder
 from armid.drivers import dynamixel_protocol as dxl
@@ -24,7 +25,6 @@ from armid.io.recordings import read_recording
 from armid.io.rig_file import load_rig, rig_from_dict
 from armid.schema.errors import RigFileError
 from armid.sim_bus.arm import SimulatedArm
-from armid.sim_bus.servo_chain import ServoChainProcess
 
 ROOT = Path(__file__).resolve().parent.parent
 DXL_RIG = ROOT / "config" / "rigs" / "sim_dynamixel.yaml"

@@ -75,7 +75,7 @@ def _single_link_sequence(seed: int) -> SequenceResult:
         t0, t1 = p.excitation_window
         keep = (run.t >= t0) & (run.t <= t1)
         rec = Recording("sim", run.t[keep], run.position[keep], run.torque[keep], run.velocity[keep])
-        experiments[k] = [prepare(rec, PUMA, PrepareOptions(torque_hold=True))]
+        experiments[k] = [prepare(rec, PUMA, PrepareOptions(lowpass_hz=None, torque_hold=True))]
     return single_link_sequence(PUMA, experiments)
 
 
@@ -127,7 +127,7 @@ def test_single_link_sequence_and_whole_arm_recover_the_combinations_within_thei
         t0, t1 = p.excitation_window
         keep = (run.t >= t0) & (run.t <= t1)
         rec = Recording("sim", run.t[keep], run.position[keep], run.torque[keep], run.velocity[keep])
-        prepared.append(prepare(rec, PUMA, PrepareOptions(torque_hold=True)))
+        prepared.append(prepare(rec, PUMA, PrepareOptions(lowpass_hz=None, torque_hold=True)))
     whole = identify(PUMA, [prepared[0]], [prepared[1]], IdentifyOptions(exclude_reversals=True))
     z_whole = (whole.estimate.beta - whole.base.base_values(_truth(whole.names))) / whole.estimate.std
     exprs = whole.base.expressions()

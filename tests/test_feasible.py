@@ -280,12 +280,12 @@ def test_kuka_lwr4_feasible() -> None:
     2 -> 1 2.183 / 2.141 % (1.020), 1 -> 3 7.31 / 7.50 %, 2 -> 3 5.72 / 6.63 %, 3 -> 1
     3.21 / 4.42 %, 3 -> 2 2.80 / 4.15 % (``armid identify --feasible``: 1.034, 1.032, 0.89,
     0.79, 0.66, 0.60)."""
-    from armid.identify.preprocess import prepare
+    from armid.identify.preprocess import PrepareOptions, prepare
     from armid.io.recordings import read_recording
 
     plain, springs = load_robot(ROBOTS / "kuka_lwr4.yaml"), load_robot(ROBOTS / "kuka_lwr4_springs.yaml")
     data = SHARED / "data/kuka_lwr4"
-    prepared = {k: prepare(read_recording(data / f"measurements_{k}.npz", plain), plain) for k in (1, 2, 3)}
+    prepared = {k: prepare(read_recording(data / f"measurements_{k}.npz", plain), plain, PrepareOptions(lowpass_hz=None)) for k in (1, 2, 3)}
     ratios = {}
     # "none": least squares alone; "modeled": the default, the modeled values as a prior
     for robot, k, prior in [(plain, 1, "none"), (plain, 1, "modeled"), *((springs, k, "modeled") for k in (1, 2, 3))]:
@@ -372,7 +372,7 @@ def test_demo_rig_data_feasible_within_ten_percent() -> None:
     controller, velocity from the encoders, acceleration from the 5-point filter."""
     import yaml
 
-    from armid.identify.preprocess import prepare
+    from armid.identify.preprocess import PrepareOptions, prepare
     from armid.sim_bus.offline import simulate
     from armid.sim_bus.physics import simulation_config
 
@@ -383,7 +383,7 @@ def test_demo_rig_data_feasible_within_ten_percent() -> None:
     for k, duration in ((0, 16.0), (1, 8.0)):
         traj = random_fourier_trajectory(robot, harmonics=5, base_frequency_hz=0.125, fill=0.5, seed=40 + k)
         run = simulate(robot, config, traj.evaluate, duration, seed=40 + k)
-        prepared.append(prepare(run.recording(), robot))
+        prepared.append(prepare(run.recording(), robot, PrepareOptions(lowpass_hz=None)))
     feasible, least_squares, fr = _held_out(robot, [prepared[0]], [prepared[1]])
     assert fr.consistent  # type: ignore[attr-defined]
     phi = fr.phi  # type: ignore[attr-defined]

@@ -2,15 +2,18 @@
 
 Layers, bottom to top (``armid/__init__.py`` draws them)::
 
-    armid.schema, armid.resources     imports nothing of armid's
+    armid.schema                      imports nothing of armid's
+    armid.resources, armid.config     imports nothing of armid's (the package data and its finder)
     armid.identify                    schema
-    armid.drivers                     schema, resources
+    armid.drivers                     schema, resources (the drives' dictionaries)
     armid.io                          schema, identify, drivers (the rig's types)
     armid.daq                         schema, identify, io, drivers
-    armid.sim_bus                     schema, identify, io, drivers, resources (a peer on the bus)
+    armid.sim_bus                     schema, identify, drivers, resources (a peer on the bus; a rig comes parsed)
     armid (cli, demo, report, ...)    anything
 
-Only the top layer (or a test) starts the simulator: nothing below imports ``armid.sim_bus``.
+Every module is in exactly one of these layers, by its package: no module is counted in
+another's. Only the top layer (or a test) starts the simulator: nothing below imports
+``armid.sim_bus``; and only the top layer and ``io`` read files: ``sim_bus`` takes a parsed rig.
 """
 
 from __future__ import annotations
@@ -23,12 +26,13 @@ FOLDERS = {"armid": "armid", "armid.identify": "identify", "armid.daq": "daq", "
            "armid.sim_bus": "sim_bus", "armid.config": "config"}
 ALLOWED = {
     "schema": {"schema"},
+    "resources": {"resources"},
     "identify": {"schema", "identify"},
-    "drivers": {"schema", "drivers"},
+    "drivers": {"schema", "resources", "drivers"},
     "io": {"schema", "identify", "drivers", "io"},
     "daq": {"schema", "identify", "io", "drivers", "daq"},
-    "sim_bus": {"schema", "identify", "io", "drivers", "sim_bus"},
-    "app": {"schema", "identify", "io", "drivers", "daq", "sim_bus", "app"},
+    "sim_bus": {"schema", "identify", "drivers", "resources", "sim_bus"},
+    "app": {"schema", "resources", "identify", "io", "drivers", "daq", "sim_bus", "app"},
 }
 IO_LIBRARIES = {"yaml", "mcap", "mcap_ros2", "zenoh", "can", "canopen", "serial", "matplotlib"}
 
@@ -40,9 +44,9 @@ def layer(module: str) -> str:
     if len(parts) == 1:
         return "app"
     second = parts[1]
-    if second in ("schema", "resources", "config"):
-        return "schema"
-    if second in ("identify", "drivers", "io", "daq", "sim_bus"):
+    if second == "config":  # the package data, served by armid.resources
+        return "resources"
+    if second in ("schema", "resources", "identify", "drivers", "io", "daq", "sim_bus"):
         return second
     return "app"
 
@@ -114,6 +118,14 @@ def test_identify_imports_no_io_library() -> None:
             if target.split(".")[0] in IO_LIBRARIES:
                 wrong.append(f"{path.relative_to(ROOT)}:{line}: {module} imports {target}")
     assert not wrong, "\n".join(wrong)
+
+
+def test_resources_and_sim_bus_sit_where_the_layers_say() -> None:
+    """Issue 32: ``armid.resources`` was counted as the schema layer, which hid the drivers'
+    and the simulator's imports of it; ``sim_bus`` parsed rig files (``armid.io``)."""
+    assert layer("armid.resources") == "resources" and layer("armid.schema.errors") == "schema"
+    assert "resources" not in ALLOWED["schema"] and "resources" not in ALLOWED["identify"]
+    assert "io" not in ALLOWED["sim_bus"]
 
 
 def test_the_checker_sees_a_wrong_import(tmp_path: Path) -> None:

@@ -522,13 +522,13 @@ def robustness_runs(gain: bool = True, offset: bool = True, load: bool = True) -
     alone and against an unloaded run of it (reference mode). Returns the published documents
     and the attach time."""
     from armid.identify.identification import IdentifyOptions, identify
-    from armid.identify.preprocess import prepare
+    from armid.identify.preprocess import PrepareOptions, prepare
 
     arm0, plan, cfg0 = _arm_and_design()
     cfg = _with_errors(cfg0, gain, offset, load)
     robot = arm0.robot
     unloaded_id = simulate(robot, cfg, plan.evaluate, plan.duration_s, seed=11)  # type: ignore[arg-type]
-    res = identify(robot, [prepare(unloaded_id.recording(), robot)], None, IdentifyOptions(exclude_reversals=True))
+    res = identify(robot, [prepare(unloaded_id.recording(), robot, PrepareOptions(lowpass_hz=None))], None, IdentifyOptions(exclude_reversals=True))
     arm = ArmModel(robot, tuple(res.effects), res.base.independent, res.estimate.beta, res.estimate.joint_sigma)
     t_on = plan.lead_in_s + 3.0
     loaded = simulate(robot, cfg, plan.evaluate, plan.duration_s, payloads=[(t_on, PAYLOAD)], seed=9)  # type: ignore[arg-type]
