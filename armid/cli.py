@@ -1,4 +1,4 @@
-"""The ``armid`` command line (INTERFACES.md). Exit 0 on success, 2 on bad usage or bad
+"""The ``armid`` command line (docs/reference/interfaces.md). Exit 0 on success, 2 on bad usage or bad
 input (one line on stderr naming the file and what is wrong), 1 on a runtime fault."""
 
 from __future__ import annotations
@@ -1067,10 +1067,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"armid {__version__}")  # the installed metadata
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     p = sub.add_parser("identify", help="least-squares identification (eq. 18) with identifiability classes")
-    p.add_argument("data", nargs="+", help="recordings to identify on (CSV or .npz)")
+    p.add_argument("data", nargs="+", help="recordings to identify on (CSV, NPZ or MCAP)")
     p.add_argument("--robot", required=True, help="robot description (config/robots/*.yaml)")
     p.add_argument("--validate", nargs="+", metavar="DATA", help="held-out recordings for the validation error")
-    p.add_argument("--json", metavar="OUT", help="write the result as JSON (INTERFACES.md)")
+    p.add_argument("--json", metavar="OUT", help="write the result as JSON (docs/reference/interfaces.md)")
     p.add_argument("--report", metavar="DIR", help="write a markdown report with PNG plots")
     p.add_argument("--predictions", metavar="CSV", help="write predicted validation torques (t, tau_hat1..n)")
     p.add_argument("--weighting", choices=("wls", "ols"), default="wls", help="per-joint weighted (default) or ordinary LS")
@@ -1087,9 +1087,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(run=_identify)
 
     p = sub.add_parser("diagnose", help="residual analysis: find undeclared effects, add them, refit, error before/after")
-    p.add_argument("data", nargs="+", help="recordings to identify on (CSV or .npz)")
+    p.add_argument("data", nargs="+", help="recordings to identify on (CSV, NPZ or MCAP)")
     p.add_argument("--robot", required=True, help="robot description (config/robots/*.yaml)")
-    p.add_argument("--validate", nargs="+", metavar="DATA", required=True, help="held-out recordings: every score is measured on them")
+    p.add_argument("--validate", nargs="+", metavar="DATA", required=True, help="held-out recordings: the errors before and after are measured on them, and a finding they contradict is set aside (findings are chosen on the identification data)")
     p.add_argument("--json", metavar="OUT", help="write the findings and the errors before and after as JSON")
     p.add_argument("--report", metavar="DIR", help="write diagnosis.md with residual plots per joint")
     p.add_argument("--predictions", metavar="CSV", help="write the final model's predicted validation torques (t, tau_hat1..n)")
