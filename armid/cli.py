@@ -23,6 +23,7 @@ from armid.schema.errors import (
     OptionError,
     PoorExcitationWarning,
     RecordingError,
+    RobotFileError,
     UsageError,
 )
 
@@ -141,11 +142,10 @@ def _recipe(args: argparse.Namespace, **extra: Any) -> Any:
 
 def _identify(args: argparse.Namespace) -> int:
     from armid.io.recordings import write_csv
-    from armid.io.robot_file import load_robot
 
     from . import pipeline
 
-    robot = load_robot(args.robot)
+    robot = load_robot_argument(args.robot)
     recipe = _recipe(args, weighting=args.weighting, prior=args.prior)
     if args.single_link:
         return _identify_single_link(args, robot, recipe)
@@ -298,11 +298,10 @@ def _feasible(args: argparse.Namespace, robot: Any, result: Any, validation: lis
 def _diagnose(args: argparse.Namespace) -> int:
     from armid.identify.diagnosis import extrapolation_sentence, set_aside_sentence
     from armid.io.recordings import write_csv
-    from armid.io.robot_file import load_robot
 
     from . import pipeline
 
-    robot = load_robot(args.robot)
+    robot = load_robot_argument(args.robot)
     inputs = pipeline.load(robot, _recipe(args), args.data, args.validate)
     _show(inputs.warnings)
     _inputs_read()
@@ -777,7 +776,6 @@ def _estimate(args: argparse.Namespace) -> int:
 
     from armid.daq.payload_service import EstimateStream
     from armid.identify.payload import PayloadRLS, ReferenceRun, arm_model_from_identification
-    from armid.io.robot_file import load_robot
 
     if not args.replay and args.mode != "live":
         raise UsageError("say what to run on: 'live' (the Zenoh stream) or --replay DATA")
@@ -789,7 +787,7 @@ def _estimate(args: argparse.Namespace) -> int:
         raise UsageError(f"--forgetting must be in (0, 1] (a factor per 2 ms of the arm's time; 0.998: about 1 s), got {args.forgetting:g}")
     if args.duration is not None and not (np.isfinite(args.duration) and args.duration > 0):
         raise UsageError(f"--duration must be a positive number of seconds, got {args.duration:g}")
-    robot = load_robot(args.robot)
+    robot = load_robot_argument(args.robot)
     doc = _identification_document(args.params, robot)
     arm = arm_model_from_identification(robot, doc)
     reference = None
@@ -852,16 +850,9 @@ def _serve(args: argparse.Namespace) -> int:
     import threading
     import time
 
-    from armid.io.robot_file import load_robot
-
     from .serve import EstimatorService, ServiceOptions
 
-    robot_path = Path(args.robot)
-    if not robot_path.exists() and "/" not in args.robot and not robot_path.suffix:
-        shipped = Path(__file__).resolve().parent.parent / "config" / "robots" / f"{args.robot}.yaml"
-        if shipped.is_file():
-            robot_path = shipped
-    robot = load_robot(robot_path)
+    robot = load_robot_argument(args.robot)
     _inputs_read()
     from armid.drivers.realtime import ordinary_priority, realtime_allowed
 
@@ -1068,7 +1059,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     p = sub.add_parser("identify", help="least-squares identification (eq. 18) with identifiability classes")
     p.add_argument("data", nargs="+", help="recordings to identify on (CSV, NPZ or MCAP)")
-    p.add_argument("--robot", required=True, help="robot description (config/robots/*.yaml)")
+    p.add_argument("--robot", required=True, help="robot file (YAML), a URDF, or the name of a shipped robot (puma560, kuka_lwr4, ...)")
     p.add_argument("--validate", nargs="+", metavar="DATA", help="held-out recordings for the validation error")
     p.add_argument("--json", metavar="OUT", help="write the result as JSON (docs/reference/interfaces.md)")
     p.add_argument("--report", metavar="DIR", help="write a markdown report with PNG plots")
@@ -1088,7 +1079,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("diagnose", help="residual analysis: find undeclared effects, add them, refit, error before/after")
     p.add_argument("data", nargs="+", help="recordings to identify on (CSV, NPZ or MCAP)")
-    p.add_argument("--robot", required=True, help="robot description (config/robots/*.yaml)")
+    p.add_argument("--robot", required=True, help="robot file (YAML), a URDF, or the name of a shipped robot (puma560, kuka_lwr4, ...)")
     p.add_argument("--validate", nargs="+", metavar="DATA", required=True, help="held-out recordings: the errors before and after are measured on them, and a finding they contradict is set aside (findings are chosen on the identification data)")
     p.add_argument("--json", metavar="OUT", help="write the findings and the errors before and after as JSON")
     p.add_argument("--report", metavar="DIR", help="write diagnosis.md with residual plots per joint")
@@ -1132,7 +1123,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(run=_excite)
 
     p = sub.add_parser("serve", help="the estimator service: streamed experiments in, estimate/parameters (and estimate/payload) out")
-    p.add_argument("--robot", required=True, help="robot description (config/robots/*.yaml), or the name of a shipped one")
+    p.add_argument("--robot", required=True, help="robot file (YAML), a URDF, or the name of a shipped robot (puma560, kuka_lwr4, ...)")
     p.add_argument("--out", metavar="DIR", help="where the service keeps its copy of each experiment it received (default: a temporary folder)")
     p.add_argument("--whole-arm", choices=("identify", "drives"), default="identify",
                    help="identify a whole-arm run as 'armid identify RUN.mcap' does (default), or as 'armid demo' does (excitation window, no low-pass)")
@@ -1209,6 +1200,22 @@ class _HeldWarnings:
 
 _WARNINGS = _HeldWarnings()
 
+
+
+def load_robot_argument(value: str) -> Any:
+    """``--robot``: a robot file's path, a URDF's path (a robot of the URDF alone), or the name
+    of a shipped robot (``puma560``, ``kuka_lwr4``, ...: ``config/robots/NAME.yaml``)."""
+    from armid.io.robot_file import load_robot
+    from armid.resources import config_file
+
+    path = Path(value)
+    if not path.exists() and "/" not in value and not path.suffix:
+        shipped = config_file(f"robots/{value}.yaml")
+        if shipped.is_file():
+            return load_robot(shipped)
+        names = sorted(p.stem for p in config_file("robots").glob("*.yaml"))
+        raise RobotFileError(value, "", f"no such file, nor a shipped robot (shipped: {', '.join(names)})")
+    return load_robot(path)
 
 def _inputs_read() -> None:
     """The command has read and checked its inputs: print what they warned about."""

@@ -402,6 +402,25 @@ def test_urdf_robot_repeating_its_urdf_is_accepted(tmp_path: Path) -> None:
     assert [j.type.value for j in same.joints] == ["revolute"] * 6
 
 
+def test_robot_argument_takes_a_shipped_name_a_robot_file_or_a_urdf(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 36: every ``--robot`` takes a shipped robot's name, a robot file or a URDF (a robot
+    of the URDF alone: its movable joints in order, torque constant 1); an unknown name is one
+    error line that lists the shipped robots."""
+    from armid.cli import load_robot_argument
+    from armid.io.robot_file import load_robot
+
+    assert load_robot_argument("ur5").name == "ur5"
+    from_urdf = load_robot_argument(str(UR5.parent / "ur5.urdf"))
+    from_file = load_robot(UR5)
+    assert [j.name for j in from_urdf.joints] == [j.name for j in from_file.joints]
+    assert all(j.torque_constant == 1.0 for j in from_urdf.joints) and from_urdf.effects == ()
+    q = np.random.default_rng(0).uniform(-1, 1, (5, 6))
+    from armid.identify.dynamics import regressor
+    np.testing.assert_allclose(regressor(from_urdf, q, q, q), regressor(from_file, q, q, q), atol=1e-12)  # the same kinematics
+    code, err = run(["identify", str(EXAMPLE), "--robot", "puma"], capsys)
+    assert_clean_error(code, err, r"puma: no such file, nor a shipped robot \(shipped: .*puma560.*\)")
+
+
 def test_triangle_violating_inertia_is_a_warning(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from armid.identify.errors import ImplausibleDataWarning
     from armid.io.robot_file import load_robot

@@ -48,11 +48,13 @@ JOINT_FIELDS = {"name", "type", "a", "alpha", "d", "theta", "torque_constant", "
 
 
 def load_robot(path: str | Path) -> Robot:
-    """Read and check a robot YAML file."""
+    """Read and check a robot YAML file, or make a robot of a URDF (:func:`robot_from_urdf`)."""
     import yaml
 
     path = Path(path)
     src = str(path)
+    if path.suffix.lower() == ".urdf":
+        return robot_from_urdf(path)
     try:
         text = path.read_text()
     except FileNotFoundError:
@@ -68,6 +70,18 @@ def load_robot(path: str | Path) -> Robot:
         where = f"line {mark.line + 1}" if mark is not None else "YAML"
         raise RobotFileError(src, where, f"not valid YAML ({getattr(err, 'problem', err)})") from err
     return robot_from_dict(doc, src, path.parent)
+
+
+def robot_from_urdf(path: Path) -> Robot:
+    """A robot of a URDF alone, as a robot file ``{name, urdf, joints}`` makes it: its movable
+    joints in the model's order, torque constant 1 (torques in N*m), gravity -z, no effects
+    declared. A robot file around the URDF adds friction, limits and torque constants."""
+    src = str(path)
+    model = _urdf_model(path, src)
+    movable = [str(model.names[i]) for i in range(1, model.njoints) if model.joints[i].nq > 0]
+    if not movable:
+        raise RobotFileError(src, "urdf", "no movable joint")
+    return robot_from_dict({"name": str(model.name) or path.stem, "urdf": path.name, "joints": [{"name": n} for n in movable]}, src, path.parent)
 
 
 def robot_from_dict(doc: Any, src: str = "<robot>", base_dir: Path | None = None) -> Robot:
@@ -312,11 +326,10 @@ def _stderr_of_c_code() -> Iterator[Callable[[], list[str]]]:
             lines += [" ".join(x.split()) for x in held.read().decode(errors="replace").splitlines() if x.strip()]
 
 
-def _urdf_joints(doc: dict[str, Any], joints_doc: list[Any], src: str, base_dir: Path) -> list[Joint]:
-    """Joints matched by name in a URDF loaded through Pinocchio (link frame = child frame)."""
+def _urdf_model(urdf: Path, src: str) -> Any:
+    """The URDF loaded through Pinocchio, or a :class:`RobotFileError` that names what is wrong."""
     import pinocchio as pin
 
-    urdf = base_dir / str(doc["urdf"])
     if not urdf.exists():
         raise RobotFileError(src, "urdf", f"no such file {urdf}")
     with _stderr_of_c_code() as parser_said:
@@ -332,7 +345,13 @@ def _urdf_joints(doc: dict[str, Any], joints_doc: list[Any], src: str, base_dir:
     dropped = [line for line in parser_said() if line.startswith("Error:")]
     if dropped:  # urdfdom leaves out what it cannot parse (a link's inertial with a nan in it) and goes on
         raise RobotFileError(src, "urdf", f"{urdf}: the URDF parser left part of it out ({'; '.join(dropped[:2])})")
-    model = _lock_unlisted(model, joints_doc, src, urdf)
+    return model
+
+
+def _urdf_joints(doc: dict[str, Any], joints_doc: list[Any], src: str, base_dir: Path) -> list[Joint]:
+    """Joints matched by name in a URDF loaded through Pinocchio (link frame = child frame)."""
+    urdf = base_dir / str(doc["urdf"])
+    model = _lock_unlisted(_urdf_model(urdf, src), joints_doc, src, urdf)
     joints = []
     previous = 0
     for k, j in enumerate(joints_doc):
