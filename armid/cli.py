@@ -27,6 +27,8 @@ from armid.schema.errors import (
     UsageError,
 )
 
+ROBOT_HELP = "robot file (YAML), a URDF, or the name of a shipped robot (puma560, kuka_lwr4, ...)"
+
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # type: ignore[override]
@@ -1059,7 +1061,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     p = sub.add_parser("identify", help="least-squares identification (eq. 18) with identifiability classes")
     p.add_argument("data", nargs="+", help="recordings to identify on (CSV, NPZ or MCAP)")
-    p.add_argument("--robot", required=True, help="robot file (YAML), a URDF, or the name of a shipped robot (puma560, kuka_lwr4, ...)")
+    p.add_argument("--robot", required=True, help=ROBOT_HELP)
     p.add_argument("--validate", nargs="+", metavar="DATA", help="held-out recordings for the validation error")
     p.add_argument("--json", metavar="OUT", help="write the result as JSON (docs/reference/interfaces.md)")
     p.add_argument("--report", metavar="DIR", help="write a markdown report with PNG plots")
@@ -1079,7 +1081,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("diagnose", help="residual analysis: find undeclared effects, add them, refit, error before/after")
     p.add_argument("data", nargs="+", help="recordings to identify on (CSV, NPZ or MCAP)")
-    p.add_argument("--robot", required=True, help="robot file (YAML), a URDF, or the name of a shipped robot (puma560, kuka_lwr4, ...)")
+    p.add_argument("--robot", required=True, help=ROBOT_HELP)
     p.add_argument("--validate", nargs="+", metavar="DATA", required=True, help="held-out recordings: the errors before and after are measured on them, and a finding they contradict is set aside (findings are chosen on the identification data)")
     p.add_argument("--json", metavar="OUT", help="write the findings and the errors before and after as JSON")
     p.add_argument("--report", metavar="DIR", help="write diagnosis.md with residual plots per joint")
@@ -1123,7 +1125,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(run=_excite)
 
     p = sub.add_parser("serve", help="the estimator service: streamed experiments in, estimate/parameters (and estimate/payload) out")
-    p.add_argument("--robot", required=True, help="robot file (YAML), a URDF, or the name of a shipped robot (puma560, kuka_lwr4, ...)")
+    p.add_argument("--robot", required=True, help=ROBOT_HELP)
     p.add_argument("--out", metavar="DIR", help="where the service keeps its copy of each experiment it received (default: a temporary folder)")
     p.add_argument("--whole-arm", choices=("identify", "drives"), default="identify",
                    help="identify a whole-arm run as 'armid identify RUN.mcap' does (default), or as 'armid demo' does (excitation window, no low-pass)")

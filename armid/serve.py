@@ -56,7 +56,9 @@ from armid.identify.robot import Robot
 from armid.identify.single_link import joint_spans
 from armid.schema.joint_state import JointStateRecord, check_encoding
 
-WHOLE_ARM_PIPELINES = ("identify", "drives")
+from .pipeline import RECIPES
+
+WHOLE_ARM_PIPELINES = tuple(RECIPES)
 """How a whole-arm run is identified, by the name of its recipe in :data:`armid.pipeline.RECIPES`:
 ``identify`` as ``armid identify RUN.mcap`` does (:data:`~armid.pipeline.USER_LOG`: the whole
 recording, low-pass chosen from the data, weighted least squares); ``drives`` as ``armid demo``

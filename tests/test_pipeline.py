@@ -161,6 +161,8 @@ def test_the_command_lines_defaults_are_the_user_log_recipe() -> None:
     args = build_parser().parse_args(["identify", "x.csv", "--robot", "r.yaml"])
     assert (args.weighting, args.prior) == (USER_LOG.identify.weighting, USER_LOG.identify.prior)
     assert WHOLE_ARM_PIPELINES == tuple(RECIPES)
+    whole_arm = next(a for a in build_parser()._subparsers._group_actions[0].choices["serve"]._actions if a.dest == "whole_arm")
+    assert tuple(whole_arm.choices) == tuple(RECIPES)
     # and the library's own defaults are the command line's (issue 32: lowpass_hz was None)
     from armid.identify.identification import IdentifyOptions
     from armid.identify.preprocess import PrepareOptions
