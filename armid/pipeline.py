@@ -28,7 +28,7 @@ import numpy as np
 
 from armid.identify.identification import IdentificationResult, IdentifyOptions, modeled_torque
 from armid.identify.identification import identify as _identify
-from armid.identify.plausibility import check_against_model, check_positions, check_recording
+from armid.identify.plausibility import check_against_model, check_positions, check_recording, moving_joints
 from armid.identify.preprocess import Prepared, PrepareOptions, prepare
 from armid.identify.recordings import Recording
 from armid.identify.robot import Robot
@@ -138,7 +138,10 @@ def check_lowpass(value: float | str | None, recordings: Sequence[Recording]) ->
 def model_warnings(robot: Robot, prepared: Prepared, source: str) -> list[str]:
     """A prepared recording's torque against the robot file's modeled torque (sign, scale)."""
     pair = modeled_torque(robot, prepared)
-    return [] if pair is None else check_against_model(*pair, source)
+    if pair is None:
+        return []
+    moving = moving_joints(np.concatenate([s.q for s in prepared.segments]))
+    return check_against_model(*pair, source, moving)
 
 
 def prepare_checked(recordings: Sequence[tuple[Recording, list[str]]], robot: Robot, recipe: Recipe,

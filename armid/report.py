@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 
 from armid.identify.diagnosis import extrapolation_sentence, set_aside_sentence
+from armid.identify.feasible import link_list
 from armid.identify.identification import IdentificationResult
 from armid.identify.preprocess import Segment
 
@@ -28,7 +29,8 @@ def feasible_section(feasible: dict[str, Any]) -> list[str]:
     lines = ["## Physical consistency", ""]
     bad = [link for link in ls["links"] if not link["consistent"]]
     lines.append("Least squares (its base estimate completed with the modeled values by the least change): "
-                 + (f"**links {', '.join(str(link['link']) for link in bad)} are not a physical body.**" if bad else "every link is a physical body.")
+                 + (f"**{link_list([link['link'] for link in bad])} {'is' if len(bad) == 1 else 'are'} not a physical body.**" if bad
+                    else "every link is a physical body.")
                  + " Feasible estimate: " + ("every link is a physical body" if fe["consistent"] else "**NOT every link is a physical body**")
                  + f" (pseudo-inertia positive semidefinite); {feasible['distance_from_least_squares']:.3g} sigma from least squares "
                  f"in the data's metric; solver {feasible['status']} in {feasible['iterations']} iterations, {feasible['seconds']:.2f} s.")

@@ -62,6 +62,12 @@ from .spatial import Array
 SIGNED_EFFECTS = ("viscous_friction", "coulomb_friction", "rotor_inertia", "load_dependent_coulomb")
 """Declared effects whose parameter cannot be negative (dissipation, an inertia)."""
 
+
+def link_list(links: list[int]) -> str:
+    """``link 4`` or ``links 1, 3, 4``: the links a sentence names, in one grammar."""
+    return ("link " if len(links) == 1 else "links ") + ", ".join(map(str, links))
+
+
 PRIOR_FLOOR = 1e-2
 """A modeled pseudo-inertia that is not positive definite is replaced, for the prior only,
 by the nearest one with every eigenvalue at least this fraction of its largest."""
@@ -445,7 +451,7 @@ class FeasibleResult:
 
     def summary_line(self) -> str:
         bad = [c.link for c in self.least_squares_checks if not c.consistent]
-        text = "least squares (completed with the modeled values): " + (f"links {', '.join(map(str, bad))} not physical" if bad else "physically consistent")
+        text = "least squares (completed with the modeled values): " + (f"{link_list(bad)} not physical" if bad else "physically consistent")
         text += f"; feasible: {'consistent' if self.consistent else 'NOT consistent'}, {self.fit.distance:.3g} sigma from least squares"
         if self.validation and self.least_squares_validation:
             text += (f", validation error {self.validation['relative_error']:.4g} "
