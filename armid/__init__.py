@@ -10,7 +10,7 @@ reads every import and fails on one against this direction)::
     armid.io          reading recordings (CSV, NPZ, MCAP), robot and rig files (uses the rig's types)
     armid.daq         cycles, recording, streaming over Zenoh, the excitation session
     armid.sim_bus     simulated hardware: a peer on the bus, started by the CLI or a test (a rig comes parsed)
-    armid.cli, armid.demo, armid.report, ...   the command line and reports, on top
+    armid.cli (armid.commands), armid.demo, armid.report, ...   the command line and reports, on top
 
 ``armid.config`` is package data (robot descriptions, drive dictionaries, rig files).
 """

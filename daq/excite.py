@@ -150,6 +150,7 @@ class ExcitationControl:
         lead = max(1, (latest if latest is not None else s.cycle) + 1 - s.cycle)
         newest = self.driver.pending == 0
         if active is not None:
+            assert active.first_cycle is not None  # set above, on the experiment's first cycle
             t = (s.cycle - active.first_cycle) * self.period_s
             q_ref, qd_ref, qdd_ref = (x[0] for x in active.plan.evaluate(np.array([t])))
             active.cycles += 1

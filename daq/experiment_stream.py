@@ -39,16 +39,17 @@ def experiment_description(name: str, plan: Any, n_joints: int, metadata: dict[s
     excitation = dict(meta.pop("excitation", None) or {}) if isinstance(meta.get("excitation"), dict) else {}
     design = excitation.pop("design", None) or {}
     moving = design.get("moving_joints")
+    link = None
     if moving is None:
         kind, moving = "recording", None
     elif len(moving) == 1:
-        kind = "single_link"
+        kind, link = "single_link", moving[0]
     elif len(moving) == n_joints:
         kind = "whole_arm"
     else:
         kind = "partial"
     doc: dict[str, Any] = {
-        "name": name, "kind": kind, "link": moving[0] if kind == "single_link" else None,
+        "name": name, "kind": kind, "link": link,
         "moving": moving, "held": None if moving is None else [j for j in range(1, n_joints + 1) if j not in moving],
         "trajectory": design.get("fourier"), "design": {k: v for k, v in design.items() if k != "fourier"} or None,
         "metadata": meta,

@@ -117,7 +117,7 @@ class EstimateStream:
         after: list[dict[str, Any]] = []
         counts = self.counts()
         finite = np.isfinite(t) & np.isfinite(q).all(axis=1) & np.isfinite(torque).all(axis=1)
-        flagged = valid.all(axis=1)
+        flagged = np.all(valid, axis=1)
         shifted = np.empty(n)
         for k, (sk, tk) in enumerate(zip(seq.tolist(), t.tolist())):
             take[k], restart[k] = self._judge(sk, tk, bool(finite[k]), bool(flagged[k]), q[k], torque[k])

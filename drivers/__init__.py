@@ -11,6 +11,7 @@ group ``armid.drivers`` (``name = "package.module:Class"``).
 from __future__ import annotations
 
 import importlib
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from armid.schema.errors import DriverError
@@ -55,4 +56,7 @@ def driver_class(name: str) -> type[Driver]:
 
 def open_driver(rig: Rig, **kwargs: Any) -> Driver:
     """The rig's driver (``rig.driver``), built with ``kwargs`` (``bus=`` for CANopen, ``port=`` for Dynamixel)."""
-    return driver_class(rig.driver)(rig, **kwargs)
+    # every registered class is built from the rig and its own keywords: a constructor the
+    # abstract Driver (built with none) cannot spell, so the class is called as a factory
+    factory: Callable[..., Driver] = driver_class(rig.driver)
+    return factory(rig, **kwargs)

@@ -16,6 +16,7 @@ frame is in, or three periods after its SYNC with the missing joints marked inva
 
 from __future__ import annotations
 
+import functools
 import struct
 import threading
 import time
@@ -25,6 +26,7 @@ from dataclasses import dataclass, field
 import can
 import canopen
 import numpy as np
+from canopen.objectdictionary import ODArray, ODRecord, ODVariable
 from canopen.sdo import SdoAbortedError, SdoCommunicationError, SdoVariable
 
 from armid.schema import Array
@@ -81,6 +83,16 @@ STATE_MASK = 0x006F
 OPERATION_ENABLED = 0x0027
 FAULT_BITS = 0x0008
 
+
+SIGNED_INTEGERS = (2, 3, 4)
+"""CiA 301 data types INTEGER8, INTEGER16 and INTEGER32: the signed values a PDO maps."""
+
+
+def _signed(entry: ODArray | ODRecord | ODVariable) -> bool:
+    """Whether a PDO-mapped entry of the object dictionary holds a signed integer. A PDO maps
+    variables only (canopen types the entry as any object of the dictionary)."""
+    assert isinstance(entry, ODVariable), f"object 0x{entry.index:04X} is not a variable"
+    return entry.data_type in SIGNED_INTEGERS
 
 def emcy_meaning(code: int, data: bytes = b"") -> str:
     if code in EMCY_MEANINGS:
@@ -216,11 +228,11 @@ class CanopenDriver(Driver):
             node = canopen.RemoteNode(d.node_id, EDS)
             self.network.add_node(node)
             node.sdo.RESPONSE_TIMEOUT = 0.5
-            node.emcy.add_callback(lambda err, j=d.joint, n=d.node_id: self._on_emcy(j, n, err))
+            node.emcy.add_callback(functools.partial(self._on_emcy, d.joint, d.node_id))
             # canopen's own decoding of EMCY raises on a frame of another length (a bare
             # "unpack requires a buffer of 8 bytes" line from its listener): checked first here
             self.network.unsubscribe(0x80 + d.node_id, node.emcy.on_emcy)
-            self.network.subscribe(0x80 + d.node_id, lambda can_id, data, ts, j=d.joint, n=node: self._on_emcy_frame(j, n, can_id, data, ts))
+            self.network.subscribe(0x80 + d.node_id, functools.partial(self._on_emcy_frame, d.joint, node))
             self.network.subscribe(0x700 + d.node_id, self._on_heartbeat)
             self.nodes.append(node)
         self.network.send_message(0, bytes([0x80, 0]))  # all nodes to pre-operational
@@ -303,6 +315,9 @@ class CanopenDriver(Driver):
 
     def _map_pdos(self, joint: int, node: canopen.RemoteNode) -> None:
         """Write the plan's PDO mapping by SDO, read it back, check it, build the decoders."""
+        network, node_id = self.network, node.id
+        # started: the network is open, and each node was made with its id (canopen types both optional)
+        assert network is not None and node_id is not None
         try:
             node.tpdo.read()
             node.rpdo.read()
@@ -314,12 +329,12 @@ class CanopenDriver(Driver):
                     m.clear()
                     if spec is None:
                         m.enabled = False
-                        m.cob_id = base + 0x100 * (number - 1) + node.id
+                        m.cob_id = base + 0x100 * (number - 1) + node_id
                     else:
                         for index, sub, bits in spec.entries:
                             m.add_variable(index, sub, bits)
                         m.enabled = True
-                        m.cob_id = base + 0x100 * (number - 1) + node.id
+                        m.cob_id = base + 0x100 * (number - 1) + node_id
                         m.trans_type = spec.every if (direction == "tpdo" and spec.every) else 1
                 pdos.save()
             node.tpdo.read()
@@ -327,9 +342,10 @@ class CanopenDriver(Driver):
         except SdoAbortedError as err:
             raise DriveConfigError(f"joint {joint + 1} (node {node.id}): PDO mapping refused by SDO abort: {err}") from err
         for pdos in (node.tpdo, node.rpdo):
+            assert pdos.map is not None  # a remote node's PDOs have their maps (canopen types them optional)
             for m in pdos.map.values():
-                if m.on_message in self.network.subscribers.get(m.cob_id, []):
-                    self.network.unsubscribe(m.cob_id, m.on_message)  # we decode TPDOs ourselves
+                if m.on_message in network.subscribers.get(m.cob_id, []):
+                    network.unsubscribe(m.cob_id, m.on_message)  # we decode TPDOs ourselves
         for spec in self.plan:
             m = (node.tpdo if spec.direction == "tpdo" else node.rpdo)[spec.number]
             got = [(v.index, v.subindex, v.length) for v in m.map]
@@ -338,9 +354,9 @@ class CanopenDriver(Driver):
             if spec.direction == "tpdo":
                 if m.trans_type != spec.every:
                     raise DriveConfigError(f"joint {joint + 1} (node {node.id}): TPDO{spec.number} transmission type reads back as {m.trans_type}, expected {spec.every}")
-                fmt = "<" + "".join(_FMT[(v.od.data_type in (2, 3, 4), v.length)] for v in m.map)
+                fmt = "<" + "".join(_FMT[(_signed(v.od), v.length)] for v in m.map)
                 self._tpdo[m.cob_id] = _Tpdo(joint, spec.number, spec.every, struct.Struct(fmt), [(v.index, v.subindex) for v in m.map])
-                self.network.subscribe(m.cob_id, self._on_tpdo)
+                network.subscribe(m.cob_id, self._on_tpdo)
 
     def listen(self) -> None:
         """Decode the bus without taking part in it (a replayed log, another master's bus):
@@ -358,7 +374,7 @@ class CanopenDriver(Driver):
             for spec in self.plan:
                 if spec.direction != "tpdo":
                     continue
-                fmt = "<" + "".join(_FMT[(od[index].data_type in (2, 3, 4), bits)] for index, _, bits in spec.entries)
+                fmt = "<" + "".join(_FMT[(_signed(od[index]), bits)] for index, _, bits in spec.entries)
                 cob = 0x180 + 0x100 * (spec.number - 1) + d.node_id
                 self._tpdo[cob] = _Tpdo(d.joint, spec.number, spec.every, struct.Struct(fmt), [(i, sub) for i, sub, _ in spec.entries])
                 self.network.subscribe(cob, self._on_tpdo)
@@ -405,7 +421,7 @@ class CanopenDriver(Driver):
                 self._event("bus", f"cannot send SYNC {counter}: {err}")
             self._watchdog()
 
-    def _on_sync_echo(self, can_id: int, data: bytes, timestamp: float) -> None:
+    def _on_sync_echo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """A SYNC the broadcast manager sent, seen on the bus: its cycle starts at its stamp."""
         self._cycle += 1
         with self._lock:
@@ -469,13 +485,13 @@ class CanopenDriver(Driver):
         while self._open and not self._open[0].expected:
             self._emit(self._open.pop(0))
 
-    def _on_tpdo(self, can_id: int, data: bytes, timestamp: float) -> None:
+    def _on_tpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         with self._lock:
             if self.decoded_frames is not None:
                 self.decoded_frames(can.Message(timestamp=timestamp, arbitration_id=can_id, data=data, is_extended_id=False))
             self._decode_tpdo(can_id, data, timestamp)
 
-    def _decode_tpdo(self, can_id: int, data: bytes, timestamp: float) -> None:
+    def _decode_tpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         t = self._tpdo[can_id]
         if len(data) != t.unpack.size:
             self._event("frame_length", f"joint {t.joint + 1} (node {can_id & 0x7F}): TPDO{t.number} (COB-ID 0x{can_id:03X}) has {len(data)} bytes, "
@@ -548,7 +564,7 @@ class CanopenDriver(Driver):
                 self._faults.put(fault)
                 self._event("heartbeat_lost", str(fault), j)
 
-    def _on_heartbeat(self, can_id: int, data: bytes, timestamp: float) -> None:
+    def _on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
         node = can_id - 0x700
         j = self._node_ids[node]
         self._heartbeat[j] = time.monotonic()
@@ -580,7 +596,7 @@ class CanopenDriver(Driver):
         self._faults.put(fault)
         self._event("nmt", str(fault), j)
 
-    def _on_emcy_frame(self, joint: int, node: canopen.RemoteNode, can_id: int, data: bytes, timestamp: float) -> None:
+    def _on_emcy_frame(self, joint: int, node: canopen.RemoteNode, can_id: int, data: bytearray, timestamp: float) -> None:
         """An EMCY frame of the CiA 301 length goes to canopen's decoder (and so to :meth:`_on_emcy`);
         another length is an event naming the drive, not an exception in the notifier."""
         if len(data) != EMCY_BYTES:

@@ -18,6 +18,7 @@ from scipy import optimize
 
 from .dynamics import regressor
 from .effects import LOAD_DEPENDENT, PROFILED, SETTINGS, LinearEffect, LoadFriction, effect_columns, linear_effect, load_friction
+from .equations import _advanced, _equation_column, _equation_motion, _measured_torque, _segment_loads, _system, column_count
 from .errors import IdentificationError, PoorExcitationWarning
 from .estimation import (
     ColumnTrials,
@@ -182,11 +183,6 @@ def modeled_torque(robot: Robot, prepared: Prepared, most: int = 5000) -> tuple[
     return tau[take], regressor(robot, q[take], qd[take], qdd[take]) @ phi
 
 
-def column_count(robot: Robot, effects: list[LinearEffect]) -> int:
-    """Columns of eq. (18) with the effects': 10 per link, then each effect's parameters."""
-    return robot.n_parameters + sum(len(e.parameter_names) for e in effects)
-
-
 def base_torque(robot: Robot, effects: list[LinearEffect], independent: Array, beta: Array, q: Array, qd: Array, qdd: Array) -> Array:
     """Torques (n, N) of base parameters ``beta`` (on the regressor's columns ``independent``)
     at each sample of a motion, a block of samples at a time: the regressor of a 20-minute
@@ -346,151 +342,6 @@ class IdentificationResult:
 
 def _num(x: float) -> float | None:
     return None if not np.isfinite(x) else float(x)
-
-
-def _model_torque(tau: Array, t: Array, scale: Array | None, delay: Array | None) -> Array:
-    """The measured torque brought back to the model's: undo each joint's gain, and read each
-    joint's torque ``delay`` later (it reports the model's torque of that long ago)."""
-    out = np.array(tau, dtype=float, copy=True)
-    if delay is not None:
-        for j in np.flatnonzero(delay):
-            out[:, j] = np.interp(t + delay[j], t, out[:, j])
-    if scale is not None:
-        out /= scale
-    return out
-
-
-def _measured_torque(tau_model: Array, t: Array, scale: Array | None, delay: Array | None) -> Array:
-    """The inverse of :func:`_model_torque`: what joint j's sensor shows of the model's torque."""
-    out = np.array(tau_model, dtype=float, copy=True)
-    if scale is not None:
-        out *= scale
-    if delay is not None:
-        for j in np.flatnonzero(delay):
-            out[:, j] = np.interp(t - delay[j], t, out[:, j])
-    return out
-
-
-def _advanced(x: Array, t: Array, delay: Array | None) -> Array:
-    """Each joint's column read ``delay[j]`` later: the motion a late position report hides."""
-    if delay is None or not np.any(delay):
-        return x
-    out = np.array(x, dtype=float, copy=True)
-    for j in np.flatnonzero(delay):
-        out[:, j] = np.interp(t + delay[j], t, x[:, j])
-    return out
-
-
-def equations(robot: Robot, effects: list[LinearEffect], seg: Segment, scale: Array | None = None, delay: Array | None = None,
-              motion_delay: Array | None = None) -> Array:
-    """(n, N, p+1): the regressor's columns and the torque of one segment, at its samples (at
-    the kept ones only when it has no low-pass); :func:`_into_system` puts them through the
-    segment's parallel filter (low-pass, edges, decimation): eq. (18) as least squares sees it.
-    ``scale``/``delay`` (per joint) undo a found drive gain and sensor delay on the torque."""
-    nj = robot.n_joints
-    n_cols = column_count(robot, effects)
-    filt = seg.parallel
-    tau_all = seg.tau if scale is None and delay is None else _model_torque(seg.tau, seg.t, scale, delay)
-    q, qd, qdd = (_advanced(x, seg.t, motion_delay) for x in (seg.q, seg.qd, seg.qdd))
-    if filt.cutoff_hz is None:  # no low-pass: the kept samples only, straight into place
-        idx = filt.kept(seg.n_samples)
-        q, qd, qdd, tau = q[idx], qd[idx], qdd[idx], tau_all[idx]
-    else:
-        tau = tau_all
-    m = np.empty((q.shape[0], nj, n_cols + 1))
-    regressor(robot, q, qd, qdd, out=m[:, :, : 10 * nj])
-    if effects:
-        m[:, :, 10 * nj : n_cols] = effect_columns(effects, q, qd, qdd, rigid=m[:, :, : 10 * nj])
-    m[:, :, n_cols] = tau
-    return m
-
-
-def _into_system(system: Array, start: int, m: Array, seg: Segment) -> int:
-    """Joint by joint, the segment's equations ``m`` (n, N, p+1) through its parallel filter
-    into ``system[j, :, start:]`` (no intermediate copy of all joints), transposed in blocks of
-    512 samples that stay in cache. Returns the equations written."""
-    filt = seg.parallel
-    n = 0
-    for j in range(m.shape[1]):
-        rows = m[:, j, :] if filt.cutoff_hz is None else filt.apply(m[:, j, :])
-        n = rows.shape[0]
-        for b in range(0, n, 512):
-            system[j, :, start + b : start + min(b + 512, n)] = rows[b : b + 512].T
-    return n
-
-
-EQUATION_BYTES = 256 * 2**20
-"""Full-rate equations (regressor and torque, all joints) a segment's parallel filter takes
-at once. A longer segment goes through in blocks, each with ``ParallelFilter.settling``
-samples more on either side, where the zero-phase filter's response to the block's cut
-dies out to rounding: the same equations as the whole segment's, without the whole
-segment's regressor (a 5-minute log at 1 kHz, 7 joints: 1.2 GB)."""
-
-
-def _segment_into_system(system: Array, start: int, robot: Robot, effects: list[LinearEffect], seg: Segment, scale: Array | None,
-                         delay: Array | None, motion_delay: Array | None) -> int:
-    """A segment's equations through its parallel filter into ``system[j, :, start:]``, in
-    blocks of samples when its full-rate equations exceed ``EQUATION_BYTES``. Returns the
-    equations written."""
-    filt = seg.parallel
-    n = seg.n_samples
-    n_cols = column_count(robot, effects)
-    block = max(1, EQUATION_BYTES // (8 * robot.n_joints * (n_cols + 1)))
-    if filt.cutoff_hz is None or n <= block + 2 * filt.settling:
-        return _into_system(system, start, equations(robot, effects, seg, scale, delay, motion_delay), seg)
-    kept = filt.kept(n)
-    written = 0
-    for a in range(0, n, block):
-        b = min(a + block, n)
-        lo, hi = max(0, a - filt.settling), min(n, b + filt.settling)
-        part = replace(seg, t=seg.t[lo:hi], q=seg.q[lo:hi], qd=seg.qd[lo:hi], qdd=seg.qdd[lo:hi], tau=seg.tau[lo:hi], stamps=None)
-        m = equations(robot, effects, part, scale, delay, motion_delay)
-        mine = kept[(kept >= a) & (kept < b)] - lo
-        for j in range(robot.n_joints):
-            system[j, :, start + written : start + written + mine.size] = filt.smooth(m[:, j, :])[mine].T
-        written += mine.size
-    return written
-
-
-def _system(robot: Robot, effects: list[LinearEffect], segments: list[Segment], scale: Array | None = None, delay: Array | None = None,
-            motion_delay: Array | None = None) -> Array:
-    """The equations of all segments, joint by joint: (N, p+1, n); row ``k`` of ``[j]`` is
-    column ``k`` of ``[W_j | tau_j]``, the layout LAPACK factors without a transpose."""
-    nj = robot.n_joints
-    n_cols = column_count(robot, effects)
-    system = np.empty((nj, n_cols + 1, sum(s.n_equations for s in segments)))
-    start = 0
-    for seg in segments:
-        start += _segment_into_system(system, start, robot, effects, seg, scale, delay, motion_delay)
-    return system
-
-
-def _equation_motion(segments: list[Segment], name: str) -> Array:
-    """A kinematic array at the equations' samples (after the parallel filter)."""
-    return np.concatenate([s.parallel.apply(getattr(s, name)) for s in segments])
-
-
-def _equation_column(segments: list[Segment], effect: LinearEffect, motion_delay: Array | None = None,
-                     loads: list[Array] | None = None) -> Array:
-    """An effect's one column through each segment's parallel filter, concatenated
-    (``loads``: each segment's load torque for a load-dependent friction, computed once)."""
-    out = []
-    for k, seg in enumerate(segments):
-        filt = seg.parallel
-        q, qd, qdd = (_advanced(x, seg.t, motion_delay) for x in (seg.q, seg.qd, seg.qdd))
-        # a column is one joint's function of the samples: taken at every sample, then the
-        # kept ones (not a copy of the whole motion per try of a setting's search)
-        if isinstance(effect, LoadFriction):
-            col = effect.columns(q, qd, qdd, load=effect.load(q, qd, qdd) if loads is None else loads[k])[:, 0]
-        else:
-            col = effect.columns(q, qd, qdd)[:, 0]
-        out.append(col[filt.kept(seg.n_samples)] if filt.cutoff_hz is None else filt.apply(col))
-    return np.concatenate(out)
-
-
-def _segment_loads(segments: list[Segment], effect: LoadFriction, motion_delay: Array | None = None) -> list[Array]:
-    """Each segment's load torque (n, N) for a load-dependent friction, at its samples."""
-    return [effect.load(*(_advanced(x, seg.t, motion_delay) for x in (seg.q, seg.qd, seg.qdd))) for seg in segments]
 
 
 def _search_settings(system: Array, names: list[str], effects: list[LinearEffect], searched: set[tuple[str, int]],
@@ -724,6 +575,10 @@ def rigid_parameters(result: IdentificationResult) -> Array:
 
 def _identify(robot: Robot, experiments: list[Prepared], validation: list[Prepared] | None, options: IdentifyOptions,
               load_parameters: Array | None = None) -> IdentificationResult:
+    """One weighted least-squares fit of eq. (18) with the declared effects, their load fixed:
+    the filtered equations, what the robot file leaves to the data (settings, drive gains),
+    the excitation check (5.2) on the structural base parameters (5.4), the prior, the
+    covariance, and the errors against the raw torque."""
     effects = declared_effects(robot, load_parameters)
     names = column_names(robot, effects)
     segments = [s for p in experiments for s in p.segments]
@@ -734,11 +589,7 @@ def _identify(robot: Robot, experiments: list[Prepared], validation: list[Prepar
     motion_delay = None if options.motion_delay_s is None else np.asarray(options.motion_delay_s, float)
     system = _system(robot, effects, segments, scale, delay, motion_delay)
     if options.exclude_reversals:
-        qd = _equation_motion(segments, "qd")
-        qdd = _equation_motion(segments, "qdd")
-        reversing = np.abs(qd) < np.maximum(0.02, np.abs(qdd) * 0.025)
-        for j in range(robot.n_joints):
-            system[j][:, reversing[:, j]] = 0.0  # a zero equation weighs nothing
+        _leave_out_reversals(system, segments)
     base = structural_base(robot, effects, options.seed)
     notes = [f"{s}" for p in experiments for s in p.notes]
     # with reversals left out, a Coulomb model's smoothing has nothing to show itself on
@@ -752,36 +603,80 @@ def _identify(robot: Robot, experiments: list[Prepared], validation: list[Prepar
         # the singular values and column norms of the regressor are those of its R factor
         exc = excitation(factors.combined()[:-1, :-1], base.expressions(), options.max_condition)
     if exc.rank < base.n_base:
-        # the data excites less than the kinematics allow: regroup on the data itself
-        every = _factors(system, np.arange(len(names)))
-        order = preferred_order(robot.n_joints, len(names) - robot.n_parameters)
-        base = base_parameters(every.combined()[:-1, :-1], names, order, rtol=1e-7)
-        notes.append(f"the data excites {exc.rank} of the {exc.n_base} structural base parameters; regrouped on the data")
-        factors = every.select(base.independent)
+        base, factors = _regrouped(robot, system, names, exc, notes)
     for c in caught:
         warnings.warn(c.message, PoorExcitationWarning, stacklevel=2)
     gains = declared_gains(robot)
     if gains:
-        # each declared drive gain by profiling the fit over it; the measured torque is then
-        # brought back to the model's, as a found gain is (_model_torque divides by it; the
-        # parallel filter is linear, so dividing the filtered row is the same, and dividing
-        # the last column of an R factor is the R factor of the divided system)
-        found_gain = _profile_gains(factors, gains, options.weighting)
-        scale = found_gain if scale is None else scale * found_gain
-        system[:, -1] /= found_gain[:, None]
-        factors = JointFactors([r * np.append(np.ones(factors.n_parameters), 1.0 / g) for r, g in zip(factors.r, found_gain)], factors.counts)
-        notes.append("torque gain chosen on the data (the joint measures gain x the model's torque): "
-                     + ", ".join(f"joint {j + 1} {found_gain[j]:.4g}" for j in gains))
+        scale, factors = _with_declared_gains(system, factors, gains, scale, options.weighting, notes)
+    est, tau_hat, penalty, prior_doc = _fit_with_prior(robot, names, effects, base, system, factors, options, notes)
+    tau = system[:, -1].T
+    fit = summary(tau, tau_hat)
+    if options.covariance == "batch_means":
+        est, block = _robust(system, base.independent, tau - tau_hat, est, factors, options.weighting, penalty)
+        notes.append(f"standard deviations: batch-means sandwich over blocks of {block} samples (four times the residual's correlation length)")
+    result = IdentificationResult(robot, names, effects, base, est, exc, sum(p.n_stamps for p in experiments), fit, notes=notes, factors=factors,
+                                  torque_scale=scale, delay_s=delay, motion_delay_s=motion_delay, prior=prior_doc)
+    _measure_errors(result, segments, validation, int(tau.shape[0]))
+    result.filtering = [p.filtering() for p in experiments]
+    return result
+
+
+def _leave_out_reversals(system: Array, segments: list[Segment]) -> None:
+    """``IdentifyOptions.exclude_reversals``: each joint's equations while it is slower than
+    0.02 rad/s or within 25 ms of a velocity reversal set to zero (a zero equation weighs
+    nothing): sign(qd) is wrong there."""
+    qd = _equation_motion(segments, "qd")
+    qdd = _equation_motion(segments, "qdd")
+    reversing = np.abs(qd) < np.maximum(0.02, np.abs(qdd) * 0.025)
+    for j in range(system.shape[0]):
+        system[j][:, reversing[:, j]] = 0.0  # a zero equation weighs nothing
+
+
+def _regrouped(robot: Robot, system: Array, names: list[str], exc: Excitation, notes: list[str]) -> tuple[BaseParameters, JointFactors]:
+    """The data excite fewer base parameters than the kinematics allow (the excitation check,
+    5.2): the base parameters regrouped on the data's own regressor (5.4), with their R factors."""
+    every = _factors(system, np.arange(len(names)))
+    order = preferred_order(robot.n_joints, len(names) - robot.n_parameters)
+    base = base_parameters(every.combined()[:-1, :-1], names, order, rtol=1e-7)
+    notes.append(f"the data excites {exc.rank} of the {exc.n_base} structural base parameters; regrouped on the data")
+    return base, every.select(base.independent)
+
+
+def _with_declared_gains(system: Array, factors: JointFactors, gains: list[int], scale: Array | None, weighting: str,
+                         notes: list[str]) -> tuple[Array, JointFactors]:
+    """Each declared drive gain by profiling the fit over it (:func:`_profile_gains`); the
+    measured torque is then brought back to the model's, as a found gain is (``_model_torque``
+    divides by it; the parallel filter is linear, so dividing the filtered row is the same, and
+    dividing the last column of an R factor is the R factor of the divided system). Returns the
+    torque's scale per joint and the factors of the divided system; ``system`` is divided in place."""
+    found_gain = _profile_gains(factors, gains, weighting)
+    scale = found_gain if scale is None else scale * found_gain
+    system[:, -1] /= found_gain[:, None]
+    factors = JointFactors([r * np.append(np.ones(factors.n_parameters), 1.0 / g) for r, g in zip(factors.r, found_gain)], factors.counts)
+    notes.append("torque gain chosen on the data (the joint measures gain x the model's torque): "
+                 + ", ".join(f"joint {j + 1} {found_gain[j]:.4g}" for j in gains))
+    return scale, factors
+
+
+def _system_torque(system: Array, names: list[str], independent: Array, beta: Array) -> Array:
+    """The model's torque (n, N) at the system's equations, of base parameters ``beta`` on the columns ``independent``."""
+    coef = np.zeros(len(names))
+    coef[independent] = beta
+    return np.stack([system[j, :-1].T @ coef for j in range(system.shape[0])], axis=1)
+
+
+def _fit_with_prior(robot: Robot, names: list[str], effects: list[LinearEffect], base: BaseParameters, system: Array,
+                    factors: JointFactors, options: IdentifyOptions,
+                    notes: list[str]) -> tuple[LeastSquares, Array, Array | None, dict[str, Any] | None]:
+    """Weighted least squares on the R factors, then, with ``prior="modeled"``, the robot
+    file's modeled values as a prior for what the data do not excite (identify.prior: the data
+    weighed as one equation per correlation length, the prior widened until it agrees with
+    them, or at ``options.prior_widening``). Returns the estimate, its torque at the equations,
+    the prior's penalty (None without one) and the prior's document."""
     est = solve_factors(factors, options.weighting)
     tau = system[:, -1].T
-    n = tau.shape[0]
-
-    def model_torque(beta: Array) -> Array:
-        coef = np.zeros(len(names))
-        coef[base.independent] = beta
-        return np.stack([system[j, :-1].T @ coef for j in range(robot.n_joints)], axis=1)
-
-    tau_hat = model_torque(est.beta)
+    tau_hat = _system_torque(system, names, base.independent, est.beta)
     penalty, prior_doc = None, None
     if options.prior not in PRIORS:
         raise ValueError(f"prior must be one of {PRIORS}, got {options.prior!r}")
@@ -794,7 +689,7 @@ def _identify(robot: Robot, experiments: list[Prepared], validation: list[Prepar
         prior_doc = prior.to_json(length)
         if prior.covered:
             est, penalty = with_prior(factors, est, prior.mean, prior.precision, length)
-            tau_hat = model_torque(est.beta)
+            tau_hat = _system_torque(system, names, base.independent, est.beta)
             wider = f", widened {prior.widening:.3g}x in variance to agree with the data" if prior.widening > 1.0 else ""
             notes.append(f"prior: the modeled values (within {100 * RELATIVE_STD:g} % of themselves{wider}) on {prior.covered} of "
                          f"{base.n_base} base parameters, the data weighed as one equation in {length} (their correlation length)")
@@ -802,16 +697,15 @@ def _identify(robot: Robot, experiments: list[Prepared], validation: list[Prepar
             notes.append("prior: the data contradict the modeled values beyond any width; least squares alone")
     elif options.prior == "modeled":
         notes.append("prior: none (the robot file models no link's inertial values); least squares alone")
-    fit = summary(tau, tau_hat)
-    if options.covariance == "batch_means":
-        est, block = _robust(system, base.independent, tau - tau_hat, est, factors, options.weighting, penalty)
-        notes.append(f"standard deviations: batch-means sandwich over blocks of {block} samples (four times the residual's correlation length)")
-    result = IdentificationResult(robot, names, effects, base, est, exc, sum(p.n_stamps for p in experiments), fit, notes=notes, factors=factors,
-                                  torque_scale=scale, delay_s=delay, motion_delay_s=motion_delay, prior=prior_doc)
-    # the errors anyone can check: the model at each input sample against the raw torque
+    return est, tau_hat, penalty, prior_doc
+
+
+def _measure_errors(result: IdentificationResult, segments: list[Segment], validation: list[Prepared] | None, equations: int) -> None:
+    """The errors anyone can check, into ``result``: the model at each input sample against the
+    raw torque, on the identification data (``fit``) and on the validation data."""
     _, tau_raw, tau_hat_raw = result.predict_stamps(segments)
     result.fit = summary(tau_raw, tau_hat_raw)
-    result.fit["equations"] = int(n)
+    result.fit["equations"] = int(equations)
     if validation:
         segs = [s for p in validation for s in p.segments]
         _, tau, tau_hat = result.predict_stamps(segs)
@@ -822,5 +716,3 @@ def _identify(robot: Robot, experiments: list[Prepared], validation: list[Prepar
         result.validation["input_samples"] = int(rows)
         result.validation["left_out"] = int(rows - tau.shape[0])
         result.notes += [f"validation: {s}" for p in validation for s in p.notes]
-    result.filtering = [p.filtering() for p in experiments]
-    return result

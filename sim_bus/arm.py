@@ -86,7 +86,7 @@ class SimulatedArm:
         self._watchdog.start()
         self.step_seconds: deque[float] = deque(maxlen=100_000)
 
-    def _on_sync(self, can_id: int, data: bytes, timestamp: float) -> None:
+    def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         start = time.perf_counter()
         counter = data[0] if len(data) >= 1 else None
         now = time.monotonic()
@@ -102,7 +102,7 @@ class SimulatedArm:
             d.on_sync(counter, m, now)
         self.step_seconds.append(time.perf_counter() - start)
 
-    def _on_master_heartbeat(self, can_id: int, data: bytes, timestamp: float) -> None:
+    def _on_master_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
         for d in self.drives:
             d.on_master_heartbeat(can_id - 0x700, timestamp)
 

@@ -151,6 +151,13 @@ class SimulatedDrive:
         obj = self.node.object_dictionary[index]
         return obj if isinstance(obj, ODVariable) else obj[subindex]
 
+    def _data_type(self, index: int, subindex: int) -> int:
+        """The CiA 301 data type of a variable of the EDS (an EDS variable always names one;
+        canopen types it optional)."""
+        data_type = self._od(index, subindex).data_type
+        assert data_type is not None, f"0x{index:04X} sub {subindex}: no data type in the EDS"
+        return data_type
+
     def raw(self, index: int, subindex: int = 0) -> int:
         """A configuration value as the master left it (data store, else EDS default)."""
         key = (index, subindex)
@@ -201,7 +208,7 @@ class SimulatedDrive:
         self.node.nmt.send_command(0)  # boot-up message
         self.node.nmt.state = "PRE-OPERATIONAL"
 
-    def _on_nmt(self, can_id: int, data: bytes, timestamp: float) -> None:
+    def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if self.silent or len(data) < 2 or data[1] not in (0, self.id):
             return
         if data[0] in (0x81, 0x82):
@@ -239,12 +246,12 @@ class SimulatedDrive:
                 value = self.raw(mapping + k, s)
                 index, sub = value >> 16, (value >> 8) & 0xFF
                 entries.append((index, sub))
-                fmt += _STRUCT[self._od(index, sub).data_type]
+                fmt += _STRUCT[self._data_type(index, sub)]
             out.append(_Pdo(cob & 0x7FF, self.raw(com + k, 2), entries, fmt))
         return out
 
     # --- PDOs ---
-    def _on_rpdo(self, can_id: int, data: bytes, timestamp: float) -> None:
+    def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if self.silent or not self.operational:
             return
         for pdo in self.rpdos:

@@ -62,7 +62,7 @@ def simulate(robot: Robot, config: SimulationConfig, reference, duration_s: floa
     rated = np.array([u.rated_current_a for u in units])
     kt = np.array([u.torque_constant for u in units])
     n = int(round(duration_s / period_s))
-    t = np.arange(n) * period_s
+    t = np.arange(n, dtype=np.float64) * period_s
     q_ref, qd_ref, qdd_ref = reference(t + period_s)  # the command for the period that ends at t + T
     out_q, out_qd, out_i, true_q = (np.zeros((n, robot.n_joints)) for _ in range(4))
     q_meas, qd_meas = q0.copy(), np.zeros(robot.n_joints)

@@ -112,7 +112,7 @@ def simulation_config(data: dict[str, Any] | None, n_joints: int, where: str = "
     from armid.identify.errors import RobotFileError
 
     data = dict(data or {})
-    effects = [dict() for _ in range(n_joints)]
+    effects: list[dict[str, float]] = [dict() for _ in range(n_joints)]
     allowed = {f.name for f in fields(JointEffects)}
     for k, entry in enumerate(data.pop("effects", []) or []):
         if not isinstance(entry, dict) or "joint" not in entry:

@@ -278,6 +278,7 @@ def test_a_long_segment_goes_through_its_parallel_filter_in_blocks_with_the_same
     """A long 1 kHz log's full-rate regressor would not fit in memory whole: it is filtered in
     blocks with ``settling`` samples on either side, and must give the whole segment's
     equations (to rounding: the filter's response to a block's cut has died out)."""
+    from armid.identify import equations
     from armid.identify import identification as ident
     from armid.identify.filtering import ParallelFilter
     from armid.identify.preprocess import Segment
@@ -294,14 +295,14 @@ def test_a_long_segment_goes_through_its_parallel_filter_in_blocks_with_the_same
     tau = rng.normal(0.0, 1.0, q.shape)
     seg = Segment("<long>", t, q, qd, qdd, tau, filter=ParallelFilter(period, cutoff_hz=3.0, decimation=30))
     effects = ident.declared_effects(robot)
-    whole = ident._system(robot, effects, [seg])
+    whole = equations._system(robot, effects, [seg])
     n_cols = whole.shape[1]
-    saved = ident.EQUATION_BYTES
+    saved = equations.EQUATION_BYTES
     try:
-        ident.EQUATION_BYTES = 8 * robot.n_joints * n_cols * 6_000  # blocks of 6,000 samples: seven of them
-        blocked = ident._system(robot, effects, [seg])
+        equations.EQUATION_BYTES = 8 * robot.n_joints * n_cols * 6_000  # blocks of 6,000 samples: seven of them
+        blocked = equations._system(robot, effects, [seg])
     finally:
-        ident.EQUATION_BYTES = saved
+        equations.EQUATION_BYTES = saved
     assert seg.parallel.settling < 6_000 < seg.n_samples // 6
     assert blocked.shape == whole.shape
     scale = np.abs(whole).max(axis=2, keepdims=True)

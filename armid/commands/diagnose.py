@@ -1,0 +1,96 @@
+"""``armid diagnose``: the declared model's fit, the undeclared effects found in its residual,
+and the errors before and after (identify.diagnosis)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import warnings
+from pathlib import Path
+from typing import Any
+
+from armid.schema.errors import PoorExcitationWarning
+
+from .arguments import ROBOT_HELP, _gap_factor, _lowpass, load_robot_argument
+from .identify import _feasible, _feasible_arguments, _recipe
+from .output import _inputs_read, _show, strict_json
+
+
+def _diagnose(args: argparse.Namespace) -> int:
+    from armid.identify.diagnosis import extrapolation_sentence, set_aside_sentence
+    from armid.io.recordings import write_csv
+
+    from .. import pipeline
+
+    robot = load_robot_argument(args.robot)
+    inputs = pipeline.load(robot, _recipe(args), args.data, args.validate)
+    _show(inputs.warnings)
+    _inputs_read()
+    experiments, validation = inputs.experiments, inputs.validation
+    for path, prep in zip(inputs.sources, experiments + validation):
+        for note in prep.notes:
+            print(f"{path}: {note}", file=sys.stderr)
+    diag = pipeline.diagnose(robot, inputs)
+    doc = diag.to_json()
+    feasible_line = None
+    if args.feasible or args.urdf or args.bounding_box:
+        feasible_line = _diagnosed_feasible(args, robot, diag, experiments, validation, doc)
+    for out in (args.json, args.predictions):
+        if out:
+            Path(out).parent.mkdir(parents=True, exist_ok=True)
+    if args.json:
+        Path(args.json).write_text(strict_json(doc, indent=1) + "\n")
+    if args.predictions:
+        assert diag.predictions is not None
+        write_csv(args.predictions, diag.predictions[0], {"tau_hat": diag.predictions[2]})
+    if args.report:
+        from ..report import write_diagnosis_report
+
+        write_diagnosis_report(diag, robot.name, Path(args.report), doc.get("feasible"))
+    for f in diag.found:
+        print(f.sentence())
+    if not diag.found:
+        print("nothing significant found: the declared model explains the data to its noise")
+    for a in diag.absorbed:
+        print(f"absorbed (not a finding): {a['effect']} on joint {a['joint']} joins {a['into']}")
+    for c in diag.conflicting:
+        print(f"set aside (not a finding): {set_aside_sentence(c)}")
+    for x in diag.extrapolated:
+        print(f"extrapolated: {extrapolation_sentence(x)}")
+    print(f"{robot.name}: validation error {100 * doc['before']['relative_error']:.3g} % -> {100 * doc['after']['relative_error']:.3g} %")
+    if feasible_line:
+        print(feasible_line)
+    return 0
+
+
+def _diagnosed_feasible(args: argparse.Namespace, robot: Any, diag: Any, experiments: list[Any], validation: list[Any], doc: dict[str, Any]) -> str | None:
+    """The feasible estimate of the model diagnose ends with: the declared model plus every
+    finding (identify.diagnosis.findings_model), the same fit as its 'after'."""
+    from armid.identify.diagnosis import findings_model
+    from armid.identify.identification import identify
+
+    model, options = findings_model(robot, diag.found)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PoorExcitationWarning)
+        result = identify(model, experiments, validation, options)
+    line = _feasible(args, model, result, validation, doc)
+    doc["feasible"]["model"] = {"declared": doc.get("declared", []),
+                                "added_findings": [f"{f.effect}@{'arm' if f.joint is None else f.joint + 1}" for f in diag.found]}
+    return line
+
+
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """``armid diagnose``: its options."""
+    p = sub.add_parser("diagnose", help="residual analysis: find undeclared effects, add them, refit, error before/after")
+    p.add_argument("data", nargs="+", help="recordings to identify on (CSV, NPZ or MCAP)")
+    p.add_argument("--robot", required=True, help=ROBOT_HELP)
+    p.add_argument("--validate", nargs="+", metavar="DATA", required=True, help="held-out recordings: the errors before and after are measured on them, and a finding they contradict is set aside (findings are chosen on the identification data)")
+    p.add_argument("--json", metavar="OUT", help="write the findings and the errors before and after as JSON")
+    p.add_argument("--report", metavar="DIR", help="write diagnosis.md with residual plots per joint")
+    p.add_argument("--predictions", metavar="CSV", help="write the final model's predicted validation torques (t, tau_hat1..n)")
+    p.add_argument("--lowpass", type=_lowpass, default="auto", metavar="HZ|auto|off",
+                   help="zero-phase low-pass of the kinematics, the regressor and the torque alike (default auto: chosen from each recording's spectrum)")
+    _feasible_arguments(p)
+    p.add_argument("--torque-hold", action="store_true", help="torques were held over the period before each sample (drive currents between SYNCs)")
+    p.add_argument("--max-gap-factor", type=_gap_factor, default=20.0, help="split where a step exceeds this many median steps")
+    p.set_defaults(run=_diagnose)

@@ -1,0 +1,211 @@
+"""``armid identify``: least-squares identification (eq. 18) of recordings, whole arm or
+Khosla's single-link sequence, with ``--feasible``/``--urdf`` the physically consistent estimate."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from armid.schema.errors import IdentificationError, RecordingError, UsageError
+
+from .arguments import ROBOT_HELP, _gap_factor, _lowpass, load_robot_argument
+from .output import _inputs_read, _show, strict_json
+
+
+def _recipe(args: argparse.Namespace, **extra: Any) -> Any:
+    """:data:`~armid.pipeline.USER_LOG` with the command's flags (whose defaults are its own)."""
+    from ..pipeline import USER_LOG
+
+    return USER_LOG.with_options(max_gap_factor=args.max_gap_factor, lowpass_hz=args.lowpass, torque_hold=args.torque_hold, **extra)
+
+
+def _identify(args: argparse.Namespace) -> int:
+    from armid.io.recordings import write_csv
+
+    from .. import pipeline
+
+    robot = load_robot_argument(args.robot)
+    recipe = _recipe(args, weighting=args.weighting, prior=args.prior)
+    if args.single_link:
+        return _identify_single_link(args, robot, recipe)
+    inputs = pipeline.load(robot, recipe, args.data, args.validate or [])
+    _show(inputs.warnings)
+    _inputs_read()
+    experiments, validation = inputs.experiments, inputs.validation
+    result, excitation = pipeline.identify(robot, experiments, validation, recipe)
+    for message in excitation:
+        print(f"warning: {message}", file=sys.stderr)
+    doc = result.to_json()
+    feasible_line = _feasible(args, robot, result, validation, doc)
+    for path, prep in zip(inputs.sources, experiments + validation):
+        for note in prep.notes:
+            print(f"{path}: {note}", file=sys.stderr)
+    for out in (args.json, args.predictions):
+        if out:
+            Path(out).parent.mkdir(parents=True, exist_ok=True)
+    if args.json:
+        Path(args.json).write_text(strict_json(doc, indent=1) + "\n")
+    segments = [s for p in (validation or experiments) for s in p.segments]
+    if args.predictions:
+        if not validation:
+            raise IdentificationError("--predictions needs --validate data")
+        t, _, tau_hat = result.predict_stamps(segments)
+        write_csv(args.predictions, t, {"tau_hat": tau_hat})
+    if args.report:
+        from ..report import write_report
+
+        write_report(result, doc, segments, Path(args.report), "validation data" if validation else "identification data")
+    v = doc["validation"]
+    print(
+        f"{robot.name}: {doc['samples']} samples, {len(doc['base_parameters'])} base parameters, "
+        f"condition number {doc['condition_number']:.3g}, fit error {doc['fit']['relative_error']:.4g}"
+        + (f", validation error {v['relative_error']:.4g}" if v else "")
+    )
+    if feasible_line:
+        print(feasible_line)
+    return 0
+
+
+def _identify_single_link(args: argparse.Namespace, robot: Any, recipe: Any) -> int:
+    """``armid identify --single-link``: Khosla's off-line sequence on the user's recordings,
+    each moving one joint (property 4), identified last link first; each validation recording
+    (one joint moving too) predicted and scored on the joint that moved."""
+    from armid.identify.preprocess import prepare
+    from armid.identify.single_link import single_link_sequence
+    from armid.io.recordings import write_csv
+
+    if args.feasible or args.urdf or args.bounding_box or args.report:
+        raise UsageError("--single-link gives Khosla's tables and predictions: --feasible, --urdf, --bounding-box and --report "
+                         "are for a whole-arm identification")
+    runs: dict[int, list[Any]] = {}
+    for path in args.data:
+        rec, link = _single_joint_run(path, robot)
+        runs.setdefault(link, []).append(prepare(rec, robot, recipe.prepare))
+    checked = [(path, *_single_joint_run(path, robot)) for path in args.validate or []]
+    _inputs_read()
+    seq = single_link_sequence(robot, runs)
+    for row in seq.table():
+        print(f"link {row['link']}: {row['parameter']} = {row['estimate']:.6g} +- {row['std']:.3g} (modeled {row['modeled']:.6g})")
+    validation, predicted = [], []
+    for path, rec, link in checked:
+        prep = prepare(rec, robot, recipe.prepare)
+        t = np.concatenate([g.t for g in prep.segments])
+        tau = np.concatenate([g.tau for g in prep.segments])
+        tau_hat = np.concatenate([seq.predict(g.q, g.qd, g.qdd) for g in prep.segments])
+        error = float(np.linalg.norm(tau[:, link] - tau_hat[:, link]) / max(float(np.linalg.norm(tau[:, link])), 1e-300))
+        validation.append({"recording": path, "joint": link + 1, "samples": int(t.size), "relative_error": error})
+        predicted.append((t, tau_hat))
+        print(f"{path}: joint {link + 1} predicted with relative error {100 * error:.3g} %")
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(strict_json({"single_link": seq.to_json(), "validation": validation}, indent=1) + "\n")
+    if args.predictions:
+        if not predicted:
+            raise IdentificationError("--predictions needs --validate data")
+        Path(args.predictions).parent.mkdir(parents=True, exist_ok=True)
+        write_csv(args.predictions, np.concatenate([t for t, _ in predicted]), {"tau_hat": np.concatenate([h for _, h in predicted])})
+    done = ", ".join(str(step["link"]) for step in seq.steps)
+    print(f"{robot.name}: single-link sequence over links {done}: {len(seq.functionals)} combinations identified"
+          + (f"; validation error {100 * float(np.mean([v['relative_error'] for v in validation])):.3g} % (mean over the runs)" if validation else ""))
+    return 0
+
+
+def _single_joint_run(path: str, robot: Any) -> tuple[Any, int]:
+    """The recording, cut to its excitation window where ``armid excite``'s ``runs.json`` gives
+    it, and the one joint (0-based) that moved in it."""
+    from armid.identify.single_link import MOVING_RAD, joint_spans
+
+    from ..pipeline import read
+
+    rec, found = read(path, robot, need_motion=False)
+    _show(found)
+    rec = _excitation_window(Path(path), rec)
+    moved = np.flatnonzero(joint_spans(rec.q) > MOVING_RAD)
+    if moved.size != 1:
+        what = "no joint moved" if moved.size == 0 else f"joints {', '.join(str(j + 1) for j in moved)} moved"
+        raise RecordingError(path, f"{what} (by more than {MOVING_RAD} rad): a single-link experiment moves one joint alone "
+                                   "(Khosla's property 4)")
+    return rec, int(moved[0])
+
+
+def _excitation_window(path: Path, rec: Any) -> Any:
+    """The part of an ``armid excite`` recording inside its plan's excitation window (whole
+    periods of the design, as the demo and the service identify it), when a ``runs.json`` of
+    that run lies in one of the three folders above it; else the whole recording."""
+    from ..pipeline import Window, cut_to_window
+
+    for folder in list(path.resolve().parents)[:3]:
+        runs = folder / "runs.json"
+        if not runs.is_file() or rec.cycle is None:
+            continue
+        try:
+            reports = json.loads(runs.read_text())
+        except (OSError, ValueError):
+            continue
+        for r in reports if isinstance(reports, list) else []:
+            if not isinstance(r, dict) or Path(str(r.get("recording", ""))).name != path.name or r.get("name") != path.parent.name:
+                continue
+            w0, w1 = (float(x) for x in r["window_s"])
+            return cut_to_window(rec, Window(int(r["first_cycle"]), (w0, w1), float(np.median(np.diff(rec.t)))))
+    return rec
+
+
+def _feasible(args: argparse.Namespace, robot: Any, result: Any, validation: list[Any], doc: dict[str, Any]) -> str | None:
+    """``--feasible`` / ``--urdf``: the physically consistent estimate into ``doc["feasible"]``
+    and, with ``--urdf OUT``, the identified inertials written back as a URDF."""
+    if not (args.feasible or args.urdf or args.bounding_box):
+        return None
+    from armid.identify.feasible import feasible_estimate
+
+    from ..urdf_export import collision_boxes, effect_values, write_urdf
+
+    boxes = collision_boxes(robot) if args.bounding_box else None
+    if boxes is not None and all(b is None for b in boxes):
+        raise IdentificationError(f"--bounding-box: {robot.source} gives no link a box (no URDF, or only meshes)")
+    fr = feasible_estimate(result, validation or None, boxes=boxes)
+    doc["feasible"] = fr.to_json()
+    if args.urdf:
+        write_urdf(args.urdf, robot, fr.phi, effect_values(doc["feasible"]))
+    for note in fr.fit.prior_notes:
+        print(f"{robot.source}: {note}", file=sys.stderr)
+    for check in fr.least_squares_checks:
+        for v in check.violations:
+            print(f"least squares, link {check.link}: {v}")
+    return f"{robot.name}: {fr.summary_line()}" + (f"; URDF written to {args.urdf}" if args.urdf else "")
+
+
+def _feasible_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--feasible", action="store_true",
+                   help="also the physically consistent estimate (pseudo-inertia PSD, friction >= 0) and a consistency report in the JSON")
+    p.add_argument("--urdf", metavar="OUT", help="write the physically consistent model as a URDF (implies --feasible)")
+    p.add_argument("--bounding-box", action="store_true",
+                   help="keep each link's mass inside the box of its URDF collision geometry (links with a mesh or without geometry: "
+                        "no box; implies --feasible)")
+
+
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """``armid identify``: its options."""
+    p = sub.add_parser("identify", help="least-squares identification (eq. 18) with identifiability classes")
+    p.add_argument("data", nargs="+", help="recordings to identify on (CSV, NPZ or MCAP)")
+    p.add_argument("--robot", required=True, help=ROBOT_HELP)
+    p.add_argument("--validate", nargs="+", metavar="DATA", help="held-out recordings for the validation error")
+    p.add_argument("--json", metavar="OUT", help="write the result as JSON (docs/reference/interfaces.md)")
+    p.add_argument("--report", metavar="DIR", help="write a markdown report with PNG plots")
+    p.add_argument("--predictions", metavar="CSV", help="write predicted validation torques (t, tau_hat1..n)")
+    p.add_argument("--weighting", choices=("wls", "ols"), default="wls", help="per-joint weighted (default) or ordinary LS")
+    p.add_argument("--prior", choices=("modeled", "none"), default="modeled",
+                   help="the robot file's modeled values as a prior for what the data do not excite (default), or least squares alone")
+    _feasible_arguments(p)
+    p.add_argument("--lowpass", type=_lowpass, default="auto", metavar="HZ|auto|off",
+                   help="zero-phase low-pass of the kinematics, the regressor and the torque alike (default auto: chosen from each recording's spectrum)")
+    p.add_argument("--torque-hold", action="store_true", help="torques were held over the period before each sample (drive currents between SYNCs)")
+    p.add_argument("--max-gap-factor", type=_gap_factor, default=20.0, help="split where a step exceeds this many median steps")
+    p.add_argument("--single-link", action="store_true",
+                   help="Khosla's off-line sequence: each recording moves one joint alone; identified last link first, its "
+                        "combinations with their std; each --validate run predicted on the joint that moved")
+    p.set_defaults(run=_identify)

@@ -1,0 +1,83 @@
+"""What a command writes: strict JSON (``null``, never ``NaN``), and warnings held while it
+reads its inputs (bad input then ends in its one error line alone), one line each."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def _finite_or_none(value: Any) -> Any:
+    """``value`` with every non-finite float (NaN, inf) replaced by None, recursively."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, np.floating):
+        return float(value) if np.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    if isinstance(value, np.ndarray):
+        return _finite_or_none(value.tolist())
+    if isinstance(value, dict):
+        return {k: _finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite_or_none(v) for v in value]
+    return value
+
+
+def strict_json(doc: Any, **kwargs: Any) -> str:
+    """JSON that every parser reads: ``null`` where a value is not finite, never a bare ``NaN``."""
+    return json.dumps(_finite_or_none(doc), allow_nan=False, **kwargs)
+
+
+def _write_json(path: Path, doc: Any) -> None:
+    """Write ``doc`` as strict JSON (see :func:`strict_json`), making the folder."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(strict_json(doc, indent=1, default=float) + "\n")
+
+
+def _show(found: list[str]) -> None:
+    """Warnings from the pipeline's checks, held until every input is read (:class:`_HeldWarnings`)."""
+    for warning in found:
+        _WARNINGS.show(warning, None, "", 0)
+
+
+class _HeldWarnings:
+    """Warnings are held while a command reads its inputs: bad input then ends in its one
+    error line alone. Once the inputs are read (:meth:`release`) and at a successful end,
+    they are printed, one line each."""
+
+    def __init__(self) -> None:
+        self.command = ""
+        self.held: list[str] | None = []
+
+    def show(self, message: Any, category: Any, filename: str, lineno: int, file: Any = None, line: Any = None) -> None:
+        text = f"armid {self.command}: warning: {_one_line(str(message))}"
+        if self.held is None:
+            print(text, file=sys.stderr)
+        elif text not in self.held:
+            self.held.append(text)
+
+    def release(self) -> None:
+        for text in self.held or []:
+            print(text, file=sys.stderr)
+        self.held = None
+
+
+_WARNINGS = _HeldWarnings()
+
+
+def _inputs_read() -> None:
+    """The command has read and checked its inputs: print what they warned about."""
+    _WARNINGS.release()
+
+
+def _one_line(text: str, most: int = 600) -> str:
+    line = " ".join(str(text).split())
+    return line if len(line) <= most else line[: most - 3] + "..."

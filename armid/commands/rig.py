@@ -1,0 +1,63 @@
+"""The rig at the command line: its file with the bus overridden, its driver (on the simulated
+hardware when simulating), and stopping on SIGINT/SIGTERM or after a duration."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+
+def _rig(args: argparse.Namespace) -> Any:
+    """The rig file, with ``--interface``/``--channel`` replacing its CAN bus's."""
+    from armid.io.rig_file import load_rig
+
+    rig = load_rig(args.rig)
+    changes = {k: v for k, v in (("interface", args.interface), ("channel", args.channel)) if v}
+    return rig.with_bus(**changes) if changes and not rig.is_serial else rig
+
+
+def _simulating(rig: Any, args: argparse.Namespace) -> bool:
+    """``--simulate``/``--no-simulate``, else: a serial rig on ``port: sim``, a CAN rig on ``virtual``."""
+    if args.simulate is not None:
+        return bool(args.simulate)
+    if rig.serial is not None:
+        return (getattr(args, "channel", None) or rig.serial.port) == "sim"
+    return bool(rig.bus.interface == "virtual")
+
+
+def _open_driver(rig: Any, args: argparse.Namespace) -> tuple[Any, Any]:
+    """The rig's driver (the registry names it), on the simulated hardware when simulating: (driver, simulator or None)."""
+    from armid.drivers import open_driver
+
+    if _simulating(rig, args):
+        from ..simulated import simulated_driver
+
+        return simulated_driver(rig)
+    kwargs = {"port": args.channel} if rig.serial is not None and getattr(args, "channel", None) else {}
+    return open_driver(rig, **kwargs), None
+
+
+def _stop_on_signals(stop: Any) -> Any:
+    """SIGINT and SIGTERM set ``stop`` until the returned function puts the previous handlers back."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    def restore() -> None:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+    return restore
+
+
+def _run_until(stop: Any, duration: float | None) -> None:
+    """Until ``stop`` is set (a signal) or ``duration`` seconds have passed."""
+    import time
+
+    start = time.monotonic()
+    while not stop.wait(0.05):
+        if duration and time.monotonic() - start > duration:
+            return

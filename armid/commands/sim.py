@@ -1,0 +1,85 @@
+"""``armid sim``: the simulated arm on a CAN bus, or a Dynamixel chain on a pty, until stopped."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .arguments import _positive, _seed
+from .output import _inputs_read
+from .rig import _rig, _run_until, _stop_on_signals
+
+
+def _sim(args: argparse.Namespace) -> int:
+    import threading
+
+    rig = _rig(args)
+    _inputs_read()
+    stop = threading.Event()
+    restore = _stop_on_signals(stop)
+    try:
+        return _sim_chain(rig, args, stop) if rig.is_serial else _sim_arm(rig, args, stop)
+    finally:
+        restore()
+
+
+def _sim_arm(rig: Any, args: argparse.Namespace, stop: Any) -> int:
+    from armid.sim_bus.arm import SimulatedArm
+
+    arm = SimulatedArm(rig, seed=args.seed)
+    print(f"armid sim: {rig.name}: {rig.n_joints} drives (nodes {', '.join(str(d.node_id) for d in rig.drives)}) "
+          f"on {rig.bus.interface}:{rig.bus.channel}, lock-step with SYNC at {rig.period_s * 1000:g} ms (co-simulated: a late "
+          f"SYNC pauses the arm); {arm.timing.sentence('simulator threads')}", file=sys.stderr, flush=True)
+    if args.ready:
+        Path(args.ready).write_text("ready\n")
+    try:
+        _run_until(stop, args.duration)
+    finally:
+        arm.close()
+        if args.log:
+            _write_sim_log(arm, Path(args.log))
+    st = arm.status()
+    print(f"armid sim: {st['syncs']} SYNC periods simulated ({st['time_s']:.3f} s of arm time)", file=sys.stderr)
+    return 0
+
+
+def _sim_chain(rig: Any, args: argparse.Namespace, stop: Any) -> int:
+    """A Dynamixel rig: the simulated servo chain on a pty; the driver opens the printed port."""
+
+    from armid.sim_bus.servo_chain import SimulatedServoChain
+
+    chain = SimulatedServoChain(rig, seed=args.seed)
+    print(f"armid sim: {rig.name}: {rig.n_joints} Dynamixel servos (ids {', '.join(str(d.node_id) for d in rig.drives)}) "
+          f"at {rig.bus.bitrate:,} baud on {chain.port}", file=sys.stderr, flush=True)
+    print(chain.port, flush=True)
+    if args.ready:
+        Path(args.ready).write_text(chain.port + "\n")
+    try:
+        _run_until(stop, args.duration)
+    finally:
+        chain.close()
+    print(f"armid sim: {chain.periods} periods simulated ({chain.physics.time_s:.3f} s of arm time), "
+          f"{chain.instructions} instructions served", file=sys.stderr)
+    return 0
+
+
+def _write_sim_log(arm: object, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, **arm.log.arrays())  # type: ignore[attr-defined]
+
+
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """``armid sim``: its options."""
+    p = sub.add_parser("sim", help="simulated arm on a CAN bus (virtual, udp_multicast, socketcan), or a Dynamixel chain on a pty")
+    p.add_argument("--rig", required=True, help="rig file (config/rigs/sim.yaml)")
+    p.add_argument("--interface", help="override the rig's python-can interface")
+    p.add_argument("--channel", help="override the rig's channel")
+    p.add_argument("--seed", type=_seed, help="override the simulation seed")
+    p.add_argument("--duration", type=_positive, help="stop after this many seconds (default: until SIGINT/SIGTERM)")
+    p.add_argument("--log", metavar="NPZ", help="on exit, write the simulated state per SYNC")
+    p.add_argument("--ready", metavar="FILE", help="write this file once the drives are on the bus (a serial chain: its port)")
+    p.set_defaults(run=_sim)

@@ -1,0 +1,27 @@
+"""``armid watch``: a live view of the stream in the terminal."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from .arguments import _positive
+from .session import _zenoh_arguments, open_zenoh
+
+
+def _watch(args: argparse.Namespace) -> int:
+    from ..watch import watch
+
+    with open_zenoh(args) as session:
+        state = watch(session, args.robot, args.duration)
+    print(f"armid watch: {state.received} records, {state.gaps} gaps ({state.missing} missing), {state.bad} unreadable", file=sys.stderr)
+    return 0
+
+
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """``armid watch``: its options."""
+    p = sub.add_parser("watch", help="a live view of the stream in the terminal (joints, rate, gaps, events, payload)")
+    p.add_argument("--robot", required=True, help="robot name, as in armid/<robot>/... (e.g. puma560)")
+    p.add_argument("--duration", type=_positive, help="stop after this many seconds (default: until Ctrl-C)")
+    _zenoh_arguments(p)
+    p.set_defaults(run=_watch)

@@ -1,0 +1,173 @@
+"""The data as the diagnosis sees them (:mod:`identify.diagnosis`).
+
+Every equation of the identification and the validation data, stacked sample by sample
+through each segment's parallel filter (low-pass, edges, decimation) so that torque and
+motion stay aligned (:func:`_stack`, :class:`_Data`); the identification data split into
+its even tenths to fit on and its odd tenths to choose by (:func:`_blocks`); and the
+torque's own noise, what a low-pass at the chosen cut-off removes (:func:`_noise_levels`
+per joint for gate (e), :func:`_noise_floor` for the report).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from .effects import ColumnFunction
+from .preprocess import Prepared
+from .spatial import Array
+
+
+@dataclass
+class _Data:
+    """One data set stacked sample by sample: rows ``k N + j`` are joint j of sample k."""
+
+    q: Array
+    qd: Array
+    qdd: Array
+    tau: Array
+    period: float
+    t: Array | None = None
+    # pointwise columns of the motion computed at the input's full rate and put through the
+    # same parallel filter as the torque (for columns that vary faster than the cut-off:
+    # cogging at speed); None: computed on the filtered samples themselves
+    full_rate: Callable[[ColumnFunction], Array] | None = None
+    _cache: dict[Any, Array] = field(default_factory=dict, compare=False, repr=False)
+
+    def filtered(self, fn: ColumnFunction) -> Array:
+        """``fn(q, qd, qdd)`` -> (n, k) as the equations see it (see ``full_rate``); the same
+        function (a partial: the same function and arguments) is computed once per data set."""
+        if self.full_rate is None:
+            return fn(self.q, self.qd, self.qdd)
+        key = (fn.func, fn.args, tuple(sorted(fn.keywords.items()))) if isinstance(fn, functools.partial) else fn
+        if key not in self._cache:
+            self._cache[key] = self.full_rate(fn)
+        return self._cache[key]
+
+    @property
+    def n_joints(self) -> int:
+        return int(self.q.shape[1])
+
+    @property
+    def y(self) -> Array:
+        return self.tau.reshape(-1)
+
+    def on_joint(self, j: int, columns: Array) -> Array:
+        """(rows, k) with ``columns`` (n, k) in joint j's rows and zeros elsewhere."""
+        out = np.zeros((self.q.shape[0] * self.n_joints, columns.shape[1]))
+        out[j :: self.n_joints] = columns
+        return out
+
+    def lagged(self, j: int | None, delay: float) -> _Data:
+        """The data with a found delay undone: joint j's motion read ``delay`` later (its
+        position was reported late), or for ``j`` None every joint's torque read ``delay``
+        later (the torque channel lags the positions)."""
+        n = self.q.shape[0]
+        idx = np.arange(n, dtype=float)
+        src = idx + delay / self.period
+
+        def later(x: Array, cols: range | list[int]) -> Array:
+            x = x.copy()
+            for c in cols:
+                x[:, c] = np.interp(src, idx, x[:, c])
+            return x
+
+        if j is None:
+            return replace(self, tau=later(self.tau, range(self.n_joints)), _cache={})
+        # the full-rate columns would not see the lag: computed on the lagged samples instead
+        return replace(self, q=later(self.q, [j]), qd=later(self.qd, [j]), qdd=later(self.qdd, [j]), full_rate=None, _cache={})
+
+    def shifted(self, j: int, steps: int) -> _Data:
+        """Joint j's motion ``steps`` samples later (edges repeated)."""
+        def shift(x: Array) -> Array:
+            x = x.copy()
+            x[:, j] = np.roll(x[:, j], -steps)
+            if steps > 0:
+                x[-steps:, j] = x[-steps - 1, j]
+            elif steps < 0:
+                x[:-steps, j] = x[-steps, j]
+            return x
+        return _Data(shift(self.q), shift(self.qd), shift(self.qdd), self.tau, self.period, self.t)
+
+
+def _stack(prepared: list[Prepared]) -> _Data:
+    """The equations' samples: kinematics and torque through each segment's parallel filter
+    (low-pass, edges, decimation), so that torque and motion stay aligned."""
+    segs = [s for p in prepared for s in p.segments]
+    filt = segs[0].parallel
+    period = filt.period_s * filt.decimation
+    q, qd, qdd, tau = (np.concatenate([s.parallel.apply(getattr(s, k)) for s in segs]) for k in ("q", "qd", "qdd", "tau"))
+    t = np.concatenate([s.t[s.parallel.kept(s.n_samples)] for s in segs])
+
+    def full_rate(fn: ColumnFunction) -> Array:
+        return np.concatenate([s.parallel.apply(fn(s.q, s.qd, s.qdd)) if s.parallel.cutoff_hz is not None
+                               else fn(s.q, s.qd, s.qdd)[s.parallel.kept(s.n_samples)] for s in segs])
+
+    return _Data(q, qd, qdd, tau, period, t, full_rate)
+
+
+def _rate(d: _Data, tau: Array) -> Array:
+    """d(tau)/dt along the samples (n, N), by their stamps where they have them."""
+    if tau.shape[0] < 2:
+        return np.zeros_like(tau)
+    return np.gradient(tau, d.t, axis=0) if d.t is not None and np.all(np.diff(d.t) > 0) else np.gradient(tau, d.period, axis=0)
+
+
+def _blocks(d: _Data, parts: int = 10) -> tuple[_Data, _Data]:
+    """The identification data split into every other tenth: the even tenths to fit on, the
+    odd ones held out to choose by (neighbouring samples are not independent, so whole
+    blocks, each spanning the trajectory's phases alike)."""
+    n = d.q.shape[0]
+    block = np.minimum(np.arange(n) * parts // max(n, 1), parts - 1)
+    held = block % 2 == 1
+
+    full = d.full_rate
+
+    def take(mask: Array) -> _Data:
+        rows = None if full is None else (lambda fn: full(fn)[mask])
+        return _Data(d.q[mask], d.qd[mask], d.qdd[mask], d.tau[mask], d.period, None if d.t is None else d.t[mask], rows)
+
+    return take(~held), take(held)
+
+
+def _noise_floor(validation: list[Prepared]) -> dict[str, Any]:
+    """The validation torque's noise, estimated as what a low-pass at the chosen cut-off
+    removes (or, without one, at a tenth of the Nyquist frequency), as a relative error."""
+    num = den = 0.0
+    for seg, sd in _segment_noise(validation):
+        num += float(np.sum(sd**2)) * seg.n_samples
+        den += float(np.sum(seg.tau**2))
+    value = float(np.sqrt(num / den)) if den > 0 else None
+    return {"relative_error": value, "how": "the validation torque's content above the low-pass cut-off (white noise spreads "
+            "over the whole band; what lies below the cut-off is not counted), over its norm"}
+
+
+def _noise_levels(experiments: list[Prepared], n_joints: int) -> Array:
+    """(N,) each joint's raw torque noise in the identification data: the rms of what a
+    low-pass at the chosen cut-off removes (as :func:`_noise_floor`), over all segments."""
+    power, count = np.zeros(n_joints), 0
+    for seg, sd in _segment_noise(experiments):
+        power += sd**2 * seg.n_samples
+        count += seg.n_samples
+    return np.sqrt(power / max(count, 1))
+
+
+def _segment_noise(prepared: list[Prepared]) -> list[tuple[Any, Array]]:
+    """Each segment with its per-joint torque noise: what a low-pass at its chosen cut-off
+    removes (without one, at a tenth of the Nyquist frequency)."""
+    from .filtering import ParallelFilter, noise_level
+
+    out = []
+    for p in prepared:
+        for seg in p.segments:
+            filt = seg.parallel if seg.parallel.cutoff_hz is not None else ParallelFilter(seg.parallel.period_s, 0.05 / seg.parallel.period_s)
+            out.append((seg, noise_level(seg.tau, filt)))
+    return out
+
+
+def _rel(y: Array, y_hat: Array) -> float:
+    return float(np.linalg.norm(y - y_hat)) / max(float(np.linalg.norm(y)), 1e-300)

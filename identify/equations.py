@@ -1,0 +1,172 @@
+"""Eq. (18) as least squares sees it: the equations of each segment, through its parallel filter.
+
+Each sample gives one equation per joint, ``tau_j = W_j(q, qd, qdd) phi``, with the declared
+effects' columns after the 10 N rigid-body ones (:func:`column_count`). Whatever filters the
+motion filters the torque: each segment's regressor rows and torque go through the same
+zero-phase low-pass and decimation (its ``ParallelFilter``), joint by joint, into one system
+``(N, p + 1, n)`` that LAPACK factors without a transpose (:func:`_system`). A found drive
+gain or torque delay is undone on the measured torque, a late position report on the motion,
+before anything is filtered.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from .dynamics import regressor
+from .effects import LinearEffect, LoadFriction, effect_columns
+from .preprocess import Segment
+from .robot import Robot
+from .spatial import Array
+
+
+def column_count(robot: Robot, effects: list[LinearEffect]) -> int:
+    """Columns of eq. (18) with the effects': 10 per link, then each effect's parameters."""
+    return robot.n_parameters + sum(len(e.parameter_names) for e in effects)
+
+
+def _model_torque(tau: Array, t: Array, scale: Array | None, delay: Array | None) -> Array:
+    """The measured torque brought back to the model's: undo each joint's gain, and read each
+    joint's torque ``delay`` later (it reports the model's torque of that long ago)."""
+    out = np.array(tau, dtype=float, copy=True)
+    if delay is not None:
+        for j in np.flatnonzero(delay):
+            out[:, j] = np.interp(t + delay[j], t, out[:, j])
+    if scale is not None:
+        out /= scale
+    return out
+
+
+def _measured_torque(tau_model: Array, t: Array, scale: Array | None, delay: Array | None) -> Array:
+    """The inverse of :func:`_model_torque`: what joint j's sensor shows of the model's torque."""
+    out = np.array(tau_model, dtype=float, copy=True)
+    if scale is not None:
+        out *= scale
+    if delay is not None:
+        for j in np.flatnonzero(delay):
+            out[:, j] = np.interp(t - delay[j], t, out[:, j])
+    return out
+
+
+def _advanced(x: Array, t: Array, delay: Array | None) -> Array:
+    """Each joint's column read ``delay[j]`` later: the motion a late position report hides."""
+    if delay is None or not np.any(delay):
+        return x
+    out = np.array(x, dtype=float, copy=True)
+    for j in np.flatnonzero(delay):
+        out[:, j] = np.interp(t + delay[j], t, x[:, j])
+    return out
+
+
+def equations(robot: Robot, effects: list[LinearEffect], seg: Segment, scale: Array | None = None, delay: Array | None = None,
+              motion_delay: Array | None = None) -> Array:
+    """(n, N, p+1): the regressor's columns and the torque of one segment, at its samples (at
+    the kept ones only when it has no low-pass); :func:`_into_system` puts them through the
+    segment's parallel filter (low-pass, edges, decimation): eq. (18) as least squares sees it.
+    ``scale``/``delay`` (per joint) undo a found drive gain and sensor delay on the torque."""
+    nj = robot.n_joints
+    n_cols = column_count(robot, effects)
+    filt = seg.parallel
+    tau_all = seg.tau if scale is None and delay is None else _model_torque(seg.tau, seg.t, scale, delay)
+    q, qd, qdd = (_advanced(x, seg.t, motion_delay) for x in (seg.q, seg.qd, seg.qdd))
+    if filt.cutoff_hz is None:  # no low-pass: the kept samples only, straight into place
+        idx = filt.kept(seg.n_samples)
+        q, qd, qdd, tau = q[idx], qd[idx], qdd[idx], tau_all[idx]
+    else:
+        tau = tau_all
+    m = np.empty((q.shape[0], nj, n_cols + 1))
+    regressor(robot, q, qd, qdd, out=m[:, :, : 10 * nj])
+    if effects:
+        m[:, :, 10 * nj : n_cols] = effect_columns(effects, q, qd, qdd, rigid=m[:, :, : 10 * nj])
+    m[:, :, n_cols] = tau
+    return m
+
+
+def _into_system(system: Array, start: int, m: Array, seg: Segment) -> int:
+    """Joint by joint, the segment's equations ``m`` (n, N, p+1) through its parallel filter
+    into ``system[j, :, start:]`` (no intermediate copy of all joints), transposed in blocks of
+    512 samples that stay in cache. Returns the equations written."""
+    filt = seg.parallel
+    n = 0
+    for j in range(m.shape[1]):
+        rows = m[:, j, :] if filt.cutoff_hz is None else filt.apply(m[:, j, :])
+        n = rows.shape[0]
+        for b in range(0, n, 512):
+            system[j, :, start + b : start + min(b + 512, n)] = rows[b : b + 512].T
+    return n
+
+
+EQUATION_BYTES = 256 * 2**20
+"""Full-rate equations (regressor and torque, all joints) a segment's parallel filter takes
+at once. A longer segment goes through in blocks, each with ``ParallelFilter.settling``
+samples more on either side, where the zero-phase filter's response to the block's cut
+dies out to rounding: the same equations as the whole segment's, without the whole
+segment's regressor (a 5-minute log at 1 kHz, 7 joints: 1.2 GB)."""
+
+
+def _segment_into_system(system: Array, start: int, robot: Robot, effects: list[LinearEffect], seg: Segment, scale: Array | None,
+                         delay: Array | None, motion_delay: Array | None) -> int:
+    """A segment's equations through its parallel filter into ``system[j, :, start:]``, in
+    blocks of samples when its full-rate equations exceed ``EQUATION_BYTES``. Returns the
+    equations written."""
+    filt = seg.parallel
+    n = seg.n_samples
+    n_cols = column_count(robot, effects)
+    block = max(1, EQUATION_BYTES // (8 * robot.n_joints * (n_cols + 1)))
+    if filt.cutoff_hz is None or n <= block + 2 * filt.settling:
+        return _into_system(system, start, equations(robot, effects, seg, scale, delay, motion_delay), seg)
+    kept = filt.kept(n)
+    written = 0
+    for a in range(0, n, block):
+        b = min(a + block, n)
+        lo, hi = max(0, a - filt.settling), min(n, b + filt.settling)
+        part = replace(seg, t=seg.t[lo:hi], q=seg.q[lo:hi], qd=seg.qd[lo:hi], qdd=seg.qdd[lo:hi], tau=seg.tau[lo:hi], stamps=None)
+        m = equations(robot, effects, part, scale, delay, motion_delay)
+        mine = kept[(kept >= a) & (kept < b)] - lo
+        for j in range(robot.n_joints):
+            system[j, :, start + written : start + written + mine.size] = filt.smooth(m[:, j, :])[mine].T
+        written += mine.size
+    return written
+
+
+def _system(robot: Robot, effects: list[LinearEffect], segments: list[Segment], scale: Array | None = None, delay: Array | None = None,
+            motion_delay: Array | None = None) -> Array:
+    """The equations of all segments, joint by joint: (N, p+1, n); row ``k`` of ``[j]`` is
+    column ``k`` of ``[W_j | tau_j]``, the layout LAPACK factors without a transpose."""
+    nj = robot.n_joints
+    n_cols = column_count(robot, effects)
+    system = np.empty((nj, n_cols + 1, sum(s.n_equations for s in segments)))
+    start = 0
+    for seg in segments:
+        start += _segment_into_system(system, start, robot, effects, seg, scale, delay, motion_delay)
+    return system
+
+
+def _equation_motion(segments: list[Segment], name: str) -> Array:
+    """A kinematic array at the equations' samples (after the parallel filter)."""
+    return np.concatenate([s.parallel.apply(getattr(s, name)) for s in segments])
+
+
+def _equation_column(segments: list[Segment], effect: LinearEffect, motion_delay: Array | None = None,
+                     loads: list[Array] | None = None) -> Array:
+    """An effect's one column through each segment's parallel filter, concatenated
+    (``loads``: each segment's load torque for a load-dependent friction, computed once)."""
+    out = []
+    for k, seg in enumerate(segments):
+        filt = seg.parallel
+        q, qd, qdd = (_advanced(x, seg.t, motion_delay) for x in (seg.q, seg.qd, seg.qdd))
+        # a column is one joint's function of the samples: taken at every sample, then the
+        # kept ones (not a copy of the whole motion per try of a setting's search)
+        if isinstance(effect, LoadFriction):
+            col = effect.columns(q, qd, qdd, load=effect.load(q, qd, qdd) if loads is None else loads[k])[:, 0]
+        else:
+            col = effect.columns(q, qd, qdd)[:, 0]
+        out.append(col[filt.kept(seg.n_samples)] if filt.cutoff_hz is None else filt.apply(col))
+    return np.concatenate(out)
+
+
+def _segment_loads(segments: list[Segment], effect: LoadFriction, motion_delay: Array | None = None) -> list[Array]:
+    """Each segment's load torque (n, N) for a load-dependent friction, at its samples."""
+    return [effect.load(*(_advanced(x, seg.t, motion_delay) for x in (seg.q, seg.qd, seg.qdd))) for seg in segments]
