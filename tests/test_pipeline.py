@@ -150,19 +150,30 @@ def _column(docs: list[dict], key: str) -> np.ndarray:
 def test_the_command_lines_defaults_are_the_user_log_recipe() -> None:
     """The library's recipe for a user's log is what ``armid identify`` and ``armid diagnose``
     do unless told otherwise, and ``armid serve --whole-arm`` names exactly the recipes there are."""
-    from armid.pipeline import RECIPES, USER_LOG
+    from dataclasses import replace
+
+    from armid.commands.identify import _recipe
+    from armid.pipeline import DRIVE_RUN, RECIPES, USER_LOG
     from armid.serve import WHOLE_ARM_PIPELINES
 
+    def recipe(command: str, *flags: str) -> object:
+        args = build_parser().parse_args([command, "x.csv", "--robot", "r.yaml", "--validate", "v.csv", *flags])
+        return _recipe(args, weighting=args.weighting, prior=args.prior) if command == "identify" else _recipe(args)
+
     for command in ("identify", "diagnose"):
-        args = build_parser().parse_args([command, "x.csv", "--robot", "r.yaml", "--validate", "v.csv"])
-        for option, value in (("lowpass", USER_LOG.prepare.lowpass_hz), ("max_gap_factor", USER_LOG.prepare.max_gap_factor),
-                              ("torque_hold", USER_LOG.prepare.torque_hold)):
-            assert getattr(args, option) == value, (command, option)
-    args = build_parser().parse_args(["identify", "x.csv", "--robot", "r.yaml"])
-    assert (args.weighting, args.prior) == (USER_LOG.identify.weighting, USER_LOG.identify.prior)
+        assert recipe(command) == USER_LOG, command
+        # --recipe drives is what the demo and the service do (a flag left out keeps the recipe's value)
+        assert recipe(command, "--recipe", "drives") == DRIVE_RUN, command
+        changed = recipe(command, "--recipe", "drives", "--lowpass", "20", "--max-gap-factor", "5")
+        assert changed == DRIVE_RUN.with_options(lowpass_hz=20.0, max_gap_factor=5.0), command
+        assert recipe(command, "--lowpass", "off", "--torque-hold") == replace(USER_LOG, prepare=replace(USER_LOG.prepare, lowpass_hz="off", torque_hold=True))
+    assert recipe("identify", "--weighting", "ols", "--prior", "none") == USER_LOG.with_options(weighting="ols", prior="none")
     assert WHOLE_ARM_PIPELINES == tuple(RECIPES)
-    whole_arm = next(a for a in build_parser()._subparsers._group_actions[0].choices["serve"]._actions if a.dest == "whole_arm")
+    commands = build_parser()._subparsers._group_actions[0].choices
+    whole_arm = next(a for a in commands["serve"]._actions if a.dest == "whole_arm")
     assert tuple(whole_arm.choices) == tuple(RECIPES)
+    for command in ("identify", "diagnose"):
+        assert tuple(next(a for a in commands[command]._actions if a.dest == "recipe").choices) == tuple(RECIPES), command
     # and the library's own defaults are the command line's (issue 32: lowpass_hz was None)
     from armid.identify.identification import IdentifyOptions
     from armid.identify.preprocess import PrepareOptions

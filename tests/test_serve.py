@@ -223,7 +223,13 @@ def test_three_processes_khosla_sequence_and_whole_arm_streamed_to_the_service(t
     assert all(d["experiment"]["missing"] == 0 and d["skipped"] == 0 for d in got)
     assert all(st["steps"] for st in [got[5]["single_link"]]) and all(s["later_links_known"] for s in got[5]["single_link"]["steps"])
     # the single-link table equals the sequence computed off-line from the recorded MCAPs
-    single = _check_tables(got[5]["single_link"]["table"], _offline_sequence(ex_dir, period_s))
+    offline = _offline_sequence(ex_dir, period_s)
+    single = _check_tables(got[5]["single_link"]["table"], offline)
+    # and so does `armid identify --single-link --recipe drives` on those recordings (issue 33)
+    recordings = [r["recording"] for r in json.loads((ex_dir / "runs.json").read_text()) if r["name"].startswith("link")]
+    out = tmp_path / "single_link.json"
+    assert main(["identify", *recordings, "--robot", str(ROBOT), "--single-link", "--recipe", "drives", "--json", str(out)]) == 0
+    _check_tables(json.loads(out.read_text())["single_link"]["table"], offline)
     # the whole-arm estimate equals `armid identify` on that run's recording
     whole = _check_whole(got[6], ex_dir / "whole" / "run.mcap", tmp_path)
     est = [s for s in status if s.get("component") == "estimator"]

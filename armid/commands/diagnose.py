@@ -11,8 +11,8 @@ from typing import Any
 
 from armid.schema.errors import PoorExcitationWarning
 
-from .arguments import ROBOT_HELP, _gap_factor, _lowpass, load_robot_argument
-from .identify import _feasible, _feasible_arguments, _recipe
+from .arguments import ROBOT_HELP, load_robot_argument
+from .identify import _feasible, _feasible_arguments, _recipe, preparation_arguments
 from .output import _inputs_read, _show, strict_json
 
 
@@ -88,9 +88,6 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--json", metavar="OUT", help="write the findings and the errors before and after as JSON")
     p.add_argument("--report", metavar="DIR", help="write diagnosis.md with residual plots per joint")
     p.add_argument("--predictions", metavar="CSV", help="write the final model's predicted validation torques (t, tau_hat1..n)")
-    p.add_argument("--lowpass", type=_lowpass, default="auto", metavar="HZ|auto|off",
-                   help="zero-phase low-pass of the kinematics, the regressor and the torque alike (default auto: chosen from each recording's spectrum)")
     _feasible_arguments(p)
-    p.add_argument("--torque-hold", action="store_true", help="torques were held over the period before each sample (drive currents between SYNCs)")
-    p.add_argument("--max-gap-factor", type=_gap_factor, default=20.0, help="split where a step exceeds this many median steps")
+    preparation_arguments(p)
     p.set_defaults(run=_diagnose)

@@ -18,10 +18,28 @@ from .output import _inputs_read, _show, strict_json
 
 
 def _recipe(args: argparse.Namespace, **extra: Any) -> Any:
-    """:data:`~armid.pipeline.USER_LOG` with the command's flags (whose defaults are its own)."""
-    from ..pipeline import USER_LOG
+    """The recipe ``--recipe`` names (:data:`~armid.pipeline.RECIPES`: ``identify``, a log the
+    user brings, unless told) with the flags the user gave; a flag left out keeps the recipe's
+    value, so that ``--recipe drives`` is exactly what the demo and the service do."""
+    from ..pipeline import RECIPES
 
-    return USER_LOG.with_options(max_gap_factor=args.max_gap_factor, lowpass_hz=args.lowpass, torque_hold=args.torque_hold, **extra)
+    flags = {"max_gap_factor": args.max_gap_factor, "lowpass_hz": args.lowpass, "torque_hold": args.torque_hold, **extra}
+    return RECIPES[args.recipe].with_options(**{k: v for k, v in flags.items() if v is not None})
+
+
+def preparation_arguments(p: argparse.ArgumentParser) -> None:
+    """How the recordings are prepared: a named recipe, and the flags that change it
+    (``identify`` and ``diagnose`` alike)."""
+    p.add_argument("--recipe", choices=("identify", "drives"), default="identify",
+                   help="identify (default): a log you bring (the low-pass chosen from its spectrum, the torque as sampled); "
+                        "drives: a recording of armid excite as the demo and the service take it (no low-pass, currents held "
+                        "over the period, the samples beside a velocity reversal left out); the flags below change either")
+    p.add_argument("--lowpass", type=_lowpass, default=None, metavar="HZ|auto|off",
+                   help="zero-phase low-pass of the kinematics, the regressor and the torque alike (default: the recipe's; "
+                        "identify: auto, chosen from each recording's spectrum; drives: off)")
+    p.add_argument("--torque-hold", action="store_true", default=None,
+                   help="torques were held over the period before each sample (drive currents between SYNCs; drives: always)")
+    p.add_argument("--max-gap-factor", type=_gap_factor, default=None, help="split where a step exceeds this many median steps (default 20)")
 
 
 def _identify(args: argparse.Namespace) -> int:
@@ -197,14 +215,11 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--json", metavar="OUT", help="write the result as JSON (docs/reference/interfaces.md)")
     p.add_argument("--report", metavar="DIR", help="write a markdown report with PNG plots")
     p.add_argument("--predictions", metavar="CSV", help="write predicted validation torques (t, tau_hat1..n)")
-    p.add_argument("--weighting", choices=("wls", "ols"), default="wls", help="per-joint weighted (default) or ordinary LS")
-    p.add_argument("--prior", choices=("modeled", "none"), default="modeled",
+    p.add_argument("--weighting", choices=("wls", "ols"), default=None, help="per-joint weighted (default) or ordinary LS")
+    p.add_argument("--prior", choices=("modeled", "none"), default=None,
                    help="the robot file's modeled values as a prior for what the data do not excite (default), or least squares alone")
     _feasible_arguments(p)
-    p.add_argument("--lowpass", type=_lowpass, default="auto", metavar="HZ|auto|off",
-                   help="zero-phase low-pass of the kinematics, the regressor and the torque alike (default auto: chosen from each recording's spectrum)")
-    p.add_argument("--torque-hold", action="store_true", help="torques were held over the period before each sample (drive currents between SYNCs)")
-    p.add_argument("--max-gap-factor", type=_gap_factor, default=20.0, help="split where a step exceeds this many median steps")
+    preparation_arguments(p)
     p.add_argument("--single-link", action="store_true",
                    help="Khosla's off-line sequence: each recording moves one joint alone; identified last link first, its "
                         "combinations with their std; each --validate run predicted on the joint that moved")
