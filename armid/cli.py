@@ -1175,6 +1175,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--log", metavar="NPZ", help="on exit, write the simulated state per SYNC")
     p.add_argument("--ready", metavar="FILE", help="write this file once the drives are on the bus (a serial chain: its port)")
     p.set_defaults(run=_sim)
+
+    from .fleet.command import add_parser as add_fleet_parser  # issue 37: the command lives in armid/fleet/
+
+    add_fleet_parser(sub)
     return parser
 
 
