@@ -93,15 +93,16 @@ def run(args: argparse.Namespace) -> int:
     detection = detect(ordered)
     write_changes(out / "changes.json", detection)
     failed = sum(not r.ok for r in results)
-    summary = (f"{len(arms)} arms, {len(results)} recordings ({len(results) - failed} identified, {failed} failed) "
-               f"on {where} in {seconds:.1f} s")
+    summary = (f"{len(arms)} arm{'s' * (len(arms) != 1)}, {len(results)} recordings ({len(results) - failed} identified, "
+               f"{failed} failed) on {where} in {seconds:.1f} s")
     write_report(out, ordered, detection, [f"`{root}`: {summary}."])
     print(f"fleet: {summary}")
     for arm, info in detection.arms.items():
-        print(f"{arm}: {info['recordings']} recordings identified{scatter_sentence(info)}")
+        print(f"{arm}: {info['recordings']} recordings identified{scatter_sentence(info, brief=True)}")
     for c in detection.changes:
         joint = f" joint {c.joint}" if c.joint is not None else ""
-        print(f"{c.arm}:{joint} {c.parameter}: {c.kind} {c.before:.5g} -> {c.after:.5g} {c.unit} from {c.recording} "
+        unit = f" {c.unit}" if c.unit not in ("", "1") else ""
+        print(f"{c.arm}:{joint} {c.parameter}: {c.kind} {c.before:.5g} -> {c.after:.5g}{unit} from {c.recording} "
               f"({when(c.start_time)}), significance {c.significance:.2g}")
     print(f"{len(detection.changes)} change(s) at a family-wise false-alarm rate of {detection.alpha:g}; "
           f"wrote {out / 'parameters.csv'}, {out / 'changes.json'}, {out / 'report.md'}")

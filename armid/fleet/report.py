@@ -113,14 +113,16 @@ def _last_link_notes(detection: Detection) -> list[str]:
     return out
 
 
-def scatter_sentence(info: dict[str, Any] | None) -> str:
-    """What an arm's quantities showed from run to run (and why no change could be tested)."""
+def scatter_sentence(info: dict[str, Any] | None, brief: bool = False) -> str:
+    """What an arm's quantities showed from run to run (and why no change could be tested);
+    ``brief``: without the prior's degrees of freedom and the most scattered quantities."""
     if not info:
         return "."
-    worst = ", ".join(f"`{p}`" + (f" (joint {j})" if j is not None else "") + f" {v:.3g}" for p, j, v in info["most_scattered"])
+    worst = ", ".join(f"`{p}`" + (f" (joint {j})" if j is not None else "") + f" {np.sqrt(v):.3g}x" for p, j, v in info["most_scattered"])
     text = (f"; {int(info['quantities'])} quantities, whose estimates scatter from run to run by typically "
-            f"{np.sqrt(info['prior_variance']):.3g} times their std (prior degrees of freedom {info['prior_df']:.3g}); "
-            f"the most, in variance: {worst}")
+            f"{np.sqrt(info['prior_variance']):.3g} times their std")
+    if not brief:
+        text += f" (prior degrees of freedom {info['prior_df']:.3g}); the most: {worst}"
     if not info["candidates"]:
         text += f"; too few recordings to test a change ({2 * MIN_SEGMENT} needed)"
     return text + "."
