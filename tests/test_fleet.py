@@ -12,6 +12,7 @@ from __future__ import annotations
 import csv
 import json
 import signal
+import socket
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -170,6 +171,16 @@ def test_bad_options_are_one_line(fleet: fleetgen.Fleet, tmp_path: Path, capsys:
     assert code == 2 and not (tmp_path / "x").exists()
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and says in err
+
+
+def test_an_address_where_no_cluster_answers_is_one_line(fleet: fleetgen.Fleet, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("ray", reason="Ray is not installed: pip install -e '.[fleet]' runs this test")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # closed again: nothing listens there
+    assert main(["fleet", str(fleet.root), "--out", str(tmp_path / "x"), "--address", f"127.0.0.1:{port}"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "no Ray cluster answers at" in err and not (tmp_path / "x").exists()
 
 
 def test_a_root_without_arms_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -15,7 +15,7 @@ import os
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from armid.schema.errors import UsageError
+from armid.schema.errors import OptionError, UsageError
 
 from .task import Job, Result, identify_recording, one_line
 
@@ -93,6 +93,24 @@ def check(engine: str, workers: int | None, address: str | None) -> None:
                          f"(more workers run on Ray: --engine ray; {EXTRA})")
     if engine == "ray":
         import_ray()
+        if address:
+            _reachable(address)
+
+
+def _reachable(address: str, timeout_s: float = 5.0) -> None:
+    """A ``host:port`` (or ``ray://host:port``) address must accept a connection: Ray itself
+    retries an absent cluster for minutes before it gives up."""
+    import socket
+
+    hostport = address.split("://", 1)[-1]
+    host, _, port = hostport.rpartition(":")
+    if not host or not port.isdigit():
+        return  # "auto" and the like: Ray finds the cluster itself
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
+            pass
+    except OSError as err:
+        raise OptionError("--address", f"no Ray cluster answers at {address} ({err.strerror or err})") from None
 
 
 def run(engine: str, jobs: Sequence[Job], on_result: Callable[[Result], None], workers: int | None, address: str | None) -> str:
