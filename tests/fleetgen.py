@@ -12,7 +12,7 @@ file names say nothing of their order (a random token in a sub-folder)::
     from fleetgen import make_fleet
     fleet = make_fleet(tmp_path / "fleet")
     # armid fleet tmp_path/fleet --out out --workers 1 --engine local
-    fleet.changes  # what was planted: arm, joint, kind, first recording (relative path), sign
+    fleet.changes  # what was planted: arm, kind, joint, index (1-based, in time), first recording
 
 The changes (``CHANGES``), each from its recording ``k`` on (1-based, in time order):
 
@@ -59,7 +59,7 @@ DECLARED = [{"effect": "viscous_friction", "joint": None}, {"effect": "coulomb_f
 class Fleet:
     root: Path
     arms: list[str]
-    changes: list[dict[str, Any]]  # one per planted change: arm, kind, joint, first (relative path), index (1-based), sign
+    changes: list[dict[str, Any]]  # one per planted change: arm, kind, joint, index (1-based), first (its relative path)
     recordings: dict[str, list[str]]  # per arm, the recordings' paths relative to root, in time order
     bad: dict[str, str] = field(default_factory=dict)  # with_bad_recordings: kind -> path relative to root
 
@@ -164,7 +164,7 @@ def make_fleet(root: str | Path, seed: int = 0, arms: tuple[str, ...] = ARMS, n_
         if name not in recordings or change["first"] > n_recordings:
             continue
         changes.append({"arm": name, "kind": change["kind"], "joint": change["joint"], "index": change["first"],
-                        "first": recordings[name][change["first"] - 1], "sign": 1.0})
+                        "first": recordings[name][change["first"] - 1]})
     return Fleet(root, list(arms), changes, recordings)
 
 

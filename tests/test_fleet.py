@@ -87,7 +87,7 @@ def test_a_bad_recording_is_a_row_with_its_error_and_the_rest_completes(fleet: f
     assert all(f"`{path}`" in local["report"] for path in bad.values())
 
 
-def test_the_tables_say_what_the_interfaces_page_says(fleet: fleetgen.Fleet, local: dict[str, Any], tmp_path: Path) -> None:
+def test_the_tables_say_what_the_interfaces_page_says(fleet: fleetgen.Fleet, local: dict[str, Any]) -> None:
     """Start times are the recordings' first stamps (read here from the files); the JSON keys
     are the documented ones; the report shows a plot per change, and the plots exist."""
     for row in local["rows"][:: 97]:
@@ -97,6 +97,9 @@ def test_the_tables_say_what_the_interfaces_page_says(fleet: fleetgen.Fleet, loc
         if row["status"] == "ok":
             assert float(row["start_time"]) == pytest.approx(first, abs=1e-6)
             assert float(row["fit_error"]) < 0.05 and float(row["cv_error"]) < 0.08 and float(row["std"]) >= 0
+    for arm, paths in fleet.recordings.items():  # each arm's rows in the order of time, not of name
+        seen = [r["recording"] for r in local["rows"] if r["arm"] == arm and r["status"] == "ok"]
+        assert list(dict.fromkeys(seen)) == paths and paths != sorted(paths)
     keys = {"arm", "recording", "start_time", "joint", "parameter", "before", "after", "significance"}
     assert all(keys <= set(c) and c["significance"] < ALPHA for c in local["changes"])
     report = local["report"]

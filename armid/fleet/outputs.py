@@ -32,7 +32,10 @@ def in_order(results: list[Result]) -> dict[str, list[Result]]:
     arms: dict[str, list[Result]] = {}
     for r in results:
         arms.setdefault(r.arm, []).append(r)
-    key = lambda r: (r.start_time is None, r.start_time if r.start_time is not None else 0.0, r.recording)  # noqa: E731
+
+    def key(r: Result) -> tuple[bool, float, str]:
+        return r.start_time is None, r.start_time if r.start_time is not None else 0.0, r.recording
+
     return {arm: sorted(rows, key=key) for arm, rows in sorted(arms.items())}
 
 
