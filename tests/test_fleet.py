@@ -191,3 +191,12 @@ def test_a_root_without_arms_is_one_line(tmp_path: Path, capsys: pytest.CaptureF
     assert main(["fleet", str(tmp_path / "empty"), "--out", str(tmp_path / "out"), "--engine", "local"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no arm in it" in err[0]
+
+
+@pytest.mark.slow
+def test_a_fleet_where_nothing_changed_reports_nothing(tmp_path: Path) -> None:
+    """Eight more arms (another seed, none of them among fleetgen.CHANGES), ten days each."""
+    quiet = fleetgen.make_fleet(tmp_path / "quiet", seed=1, arms=tuple(f"quiet{k}" for k in range(1, 9)))
+    assert not quiet.changes
+    out = _run(quiet, tmp_path / "out", "--engine", "local")
+    assert sum(r["status"] == "ok" for r in out["rows"]) > 0 and out["changes"] == []

@@ -14,7 +14,7 @@ from typing import Any
 from . import engine
 from .discover import find_arms, jobs_of
 from .outputs import detect, in_order, write_changes, write_parameters
-from .report import scatter_sentence, when, write_report
+from .report import scatter_sentence, significance, when, write_report
 from .task import Result
 
 
@@ -103,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
         joint = f" joint {c.joint}" if c.joint is not None else ""
         unit = f" {c.unit}" if c.unit not in ("", "1") else ""
         print(f"{c.arm}:{joint} {c.parameter}: {c.kind} {c.before:.5g} -> {c.after:.5g}{unit} from {c.recording} "
-              f"({when(c.start_time)}), significance {c.significance:.2g}")
+              f"({when(c.start_time)}), significance {significance(c.significance)}")
     print(f"{len(detection.changes)} change(s) at a family-wise false-alarm rate of {detection.alpha:g}; "
           f"wrote {out / 'parameters.csv'}, {out / 'changes.json'}, {out / 'report.md'}")
     return 0

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import os
+from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -65,10 +66,10 @@ def run_ray(jobs: Sequence[Job], on_result: Callable[[Result], None], workers: i
         cpus = int(ray.cluster_resources().get("CPU", 1))
         limit = max(1, workers or cpus)
         task = ray.remote(num_cpus=1, runtime_env=ONE_THREAD)(identify_recording)
-        queue, pending = list(jobs), dict[Any, Job]()
+        queue, pending = deque(jobs), dict[Any, Job]()
         while queue or pending:
             while queue and len(pending) < limit:
-                job = queue.pop(0)
+                job = queue.popleft()
                 pending[task.remote(job)] = job
             done, _ = ray.wait(list(pending), num_returns=1)
             for ref in done:

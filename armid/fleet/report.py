@@ -28,6 +28,11 @@ def when(t: float | None) -> str:
     return f"{t:.6g} s"
 
 
+def significance(p: float) -> str:
+    """A p-value as text; one that underflowed is below the smallest double, not 0."""
+    return f"{p:.2g}" if p > 0 else "< 1e-300"
+
+
 def _pct(x: float | None) -> str:
     return "—" if x is None else f"{100 * x:.3g} %"
 
@@ -86,7 +91,7 @@ def _change_lines(detection: Detection, out_dir: Path) -> list[str]:
               "|---|---|---|---|---|---|---|---|---|---|"]
     for c in detection.changes:
         lines.append(f"| {c.arm} | `{c.recording}` | {when(c.start_time)} | {c.joint if c.joint is not None else '—'} | `{c.parameter}` | "
-                     f"{c.kind} | {c.before:.5g} | {c.after:.5g} | {c.unit} | {c.significance:.2g} |")
+                     f"{c.kind} | {c.before:.5g} | {c.after:.5g} | {c.unit} | {significance(c.significance)} |")
     lines.append("")
     counts: dict[str, int] = {}
     for c in detection.changes:
