@@ -106,6 +106,24 @@ def test_the_tables_say_what_the_interfaces_page_says(fleet: fleetgen.Fleet, loc
     assert report.count("![") == len(local["changes"]) and "designed family-wise false-alarm rate 0.01" in report
 
 
+def test_a_recording_gives_what_armid_identify_gives(fleet: fleetgen.Fleet, local: dict[str, Any], tmp_path: Path) -> None:
+    """The fleet's row of a recording is ``armid identify RECORDING --robot ARM/robot.yaml --json``'s
+    base parameters, declared effects and drive gain, and its fit error."""
+    arm = "cell3_right"
+    recording = fleet.recordings[arm][6]
+    assert main(["identify", str(fleet.root / recording), "--robot", str(fleet.root / arm / "robot.yaml"), "--json", str(tmp_path / "i.json")]) == 0
+    doc = json.loads((tmp_path / "i.json").read_text())
+    mine = {(r["parameter"], r["joint"]): float(r["value"]) for r in local["rows"] if r["recording"] == recording}
+    theirs = {(b["expression"], str(int(b["expression"].split()[0].lstrip("mIsxyz")))): b["value"]
+              for b in doc["base_parameters"] if b["expression"][0] in "mI"}
+    theirs |= {(f"{e['effect']}.{k}", str(e["joint"])): v for e in doc["effects"] for k, v in e["parameters"].items()}
+    theirs[("torque_gain", "2")] = doc["torque_scale"][1]
+    assert mine.keys() == theirs.keys()
+    assert all(mine[k] == pytest.approx(theirs[k], rel=1e-10, abs=1e-14) for k in mine)
+    row = next(r for r in local["rows"] if r["recording"] == recording)
+    assert float(row["fit_error"]) == pytest.approx(doc["fit"]["relative_error"], rel=1e-10)
+
+
 def test_unchanged_arms_shuffled_in_time_raise_few_false_alarms(local: dict[str, Any]) -> None:
     """The unchanged arms' real estimates in 400 random orders (exchangeable when nothing
     changed): how often the family of them reports a change, against the designed rate."""
