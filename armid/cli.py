@@ -16,11 +16,12 @@ from .commands.arguments import ROBOT_HELP, load_robot_argument
 from .commands.excite import load_trajectory
 from .commands.output import _WARNINGS, _one_line, strict_json
 from .commands.session import open_zenoh
+from .fleet import command as fleet
 
 __all__ = ["ROBOT_HELP", "build_parser", "load_robot_argument", "load_trajectory", "main", "open_zenoh", "strict_json"]
 """The command line's names; each command lives in ``armid/commands/`` (its options and what it runs)."""
 
-COMMANDS = (identify, diagnose, record, excite, serve, watch, estimate, demo, sim)
+COMMANDS = (identify, diagnose, record, excite, serve, watch, estimate, demo, sim, fleet)
 """The commands in the order ``armid --help`` lists them."""
 
 

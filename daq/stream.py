@@ -19,11 +19,14 @@ from armid.schema.joint_state import ENCODING, JointStateRecord
 
 
 def session_config(listen: list[str] | None = None, connect: list[str] | None = None, config_file: str | None = None):  # type: ignore[no-untyped-def]
-    """A peer-mode ``zenoh.Config``: explicit endpoints, multicast scouting off."""
+    """A peer-mode ``zenoh.Config``: explicit endpoints, multicast scouting off. A configuration
+    file that asks for client mode keeps it: a station of a lab's router (config/zenoh/arm.json5),
+    whose every message then passes the router's access control."""
     import zenoh
 
     config = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
-    config.insert_json5("mode", '"peer"')
+    if json.loads(config.get_json("mode")) != "client":
+        config.insert_json5("mode", '"peer"')
     config.insert_json5("scouting/multicast/enabled", "false")
     if listen is not None:
         config.insert_json5("listen/endpoints", json.dumps(listen))
