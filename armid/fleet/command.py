@@ -11,22 +11,12 @@ import time
 from pathlib import Path
 from typing import Any
 
+from ..commands.arguments import _count
 from . import engine
 from .discover import find_arms, jobs_of
 from .outputs import detect, in_order, write_changes, write_parameters
 from .report import scatter_sentence, significance, when, write_report
 from .task import Result
-
-
-def _workers(text: str) -> int:
-    """A whole number of at least 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {text}")
-    return value
 
 
 def add_parser(sub: Any) -> argparse.ArgumentParser:
@@ -35,7 +25,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         "fleet", help="a lab's arms: every recording identified (Ray tasks), parameters tracked over time, changes found")
     p.add_argument("root", metavar="ROOT", help="one folder per arm: ROOT/<arm>/robot.yaml and the arm's recordings (CSV, MCAP, NPZ; any sub-folder)")
     p.add_argument("--out", required=True, metavar="DIR", help="where parameters.csv, changes.json and report.md (with its PNGs) go")
-    p.add_argument("--workers", type=_workers, metavar="N",
+    p.add_argument("--workers", type=_count, metavar="N",
                    help="recordings identified at once (default: this machine's CPUs, or the cluster's with --address)")
     p.add_argument("--address", metavar="RAY_ADDRESS", help="join this Ray cluster (ROOT at the same path on every node) instead of starting one here")
     p.add_argument("--engine", choices=engine.ENGINES, default="ray",
