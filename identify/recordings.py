@@ -29,6 +29,7 @@ class Recording:
     notes: list[str] = field(default_factory=list)
     torque_held: bool = False  # torque held over the period before each stamp (drive currents)
     cycle: Array | None = None  # each sample's cycle counter (a drive recording), else None
+    period_s: float | None = None  # the cycle's nominal period, where the recording says it (its metadata), else None
 
     @property
     def n_samples(self) -> int:

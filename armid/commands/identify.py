@@ -169,7 +169,10 @@ def _excitation_window(path: Path, rec: Any) -> Any:
             if not isinstance(r, dict) or Path(str(r.get("recording", ""))).name != path.name or r.get("name") != path.parent.name:
                 continue
             w0, w1 = (float(x) for x in r["window_s"])
-            return cut_to_window(rec, Window(int(r["first_cycle"]), (w0, w1), float(np.median(np.diff(rec.t)))))
+            # the plan's time is cycles times the rig's period (as the demo and the service cut it),
+            # not the stamps' median step: on a bus timed by this host's clock they differ
+            period = rec.period_s if rec.period_s is not None else float(np.median(np.diff(rec.t)))
+            return cut_to_window(rec, Window(int(r["first_cycle"]), (w0, w1), period))
     return rec
 
 

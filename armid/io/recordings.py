@@ -93,7 +93,16 @@ def _read_mcap(path: Path, robot: Robot) -> Recording:
         kt = np.array([j.torque_constant for j in robot.joints])
         tau, how = arrays["measured_current"][keep] * kt, "torque = measured current x torque_constant"
     return Recording(str(path), t, arrays["position"][keep], tau, velocity, None, None, notes + [how], torque_held=True,
-                     cycle=arrays["cycle"][keep])
+                     cycle=arrays["cycle"][keep], period_s=_period(metadata))
+
+
+def _period(metadata: dict[str, str]) -> float | None:
+    """The rig's SYNC period the run's metadata gives (``armid excite`` writes it), else None."""
+    try:
+        value = float(metadata["period_s"])
+    except (KeyError, TypeError, ValueError):
+        return None
+    return value if np.isfinite(value) and value > 0 else None
 
 
 def _drive_velocity(t: Array, velocity: Array, fresh: Array, notes: list[str]) -> Array | None:
