@@ -8,7 +8,7 @@ import os
 import sys
 import warnings
 
-from armid import __version__
+from armid import __version__, extras
 from armid.schema.errors import ArmidError, InputError
 
 from .commands import demo, diagnose, estimate, excite, identify, record, serve, sim, watch
@@ -42,12 +42,13 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _exit_code(err: BaseException) -> tuple[int, str]:
+def _exit_code(err: BaseException, command: str = "") -> tuple[int, str]:
     """(exit code, message) for an error that reached the command line, by type: 2 for bad
     input (an :class:`InputError`: files, recordings, options, data that cannot give an
     estimate, refused plans), 1 for a runtime fault (any other :class:`ArmidError`: a drive,
     the bus, the simulated hardware) or a bug. A ``ValueError`` from elsewhere is a bug, not
-    bad input. The tree is drawn in :mod:`armid.schema.errors`."""
+    bad input. A third-party module that cannot be imported names the extra that installs it
+    (:mod:`armid.extras`). The tree is drawn in :mod:`armid.schema.errors`."""
     if isinstance(err, ArmidError):
         return (2 if isinstance(err, InputError) else 1), str(err)
     if isinstance(err, OSError):
@@ -58,6 +59,8 @@ def _exit_code(err: BaseException) -> tuple[int, str]:
         return 1, f"{type(err).__name__}: {err}"
     if isinstance(err, RecursionError):
         return 2, "an input is nested too deeply to be read"
+    if isinstance(err, ModuleNotFoundError) and (lacking := extras.missing_module(command, err)) is not None:
+        return 2, str(lacking)
     return 1, f"internal error ({type(err).__name__}: {err}); ARMID_DEBUG=1 shows where"
 
 
@@ -69,6 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with warnings.catch_warnings():
             warnings.showwarning = _WARNINGS.show
+            extras.require(args.command)  # one line naming the extra before anything starts
             code = int(args.run(args))
         _WARNINGS.release()
         return code
@@ -80,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
             import traceback
 
             traceback.print_exc()
-        code, message = _exit_code(err)
+        code, message = _exit_code(err, args.command)
         print(f"armid {args.command}: error: {_one_line(message)}", file=sys.stderr)
         return code
 

@@ -133,7 +133,7 @@ def test_the_readme_is_undated() -> None:
 
 def test_the_readme_keeps_its_two_setup_commands() -> None:
     text = (ROOT / "README.md").read_text()
-    assert 'python3 -m venv .venv && . .venv/bin/activate && pip install -e ".[dev]" && armid demo --out report\n' in text
+    assert 'python3 -m venv .venv && . .venv/bin/activate && pip install -e ".[all,dev]" && armid demo --out report\n' in text
     assert "\npython -m pytest tests\n" in text
 
 

@@ -16,7 +16,8 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from armid.schema.errors import OptionError, UsageError
+from armid.extras import EXTRAS, install_command
+from armid.schema.errors import MissingExtraError, OptionError, UsageError
 
 from .task import Job, Result, identify_recording, one_line
 
@@ -25,7 +26,7 @@ ENGINES = ("ray", "local")
 ONE_THREAD = {"env_vars": {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}}
 """Each worker computes on one thread (Ray runs one task per CPU): the regressor's threads and
 BLAS's would otherwise share out the cores twice over."""
-EXTRA = 'pip install "armid[fleet]"'
+EXTRA = install_command("fleet")
 
 
 def import_ray() -> Any:
@@ -33,7 +34,8 @@ def import_ray() -> Any:
     try:
         import ray
     except ImportError as err:
-        raise UsageError(f"--engine ray: Ray is not installed ({err.msg}); {EXTRA} installs it, or run with --engine local --workers 1") from None
+        raise MissingExtraError(f"--engine ray needs the {EXTRAS['fleet'].purpose}, not installed ({err.msg}): {EXTRA}, "
+                                "or run with --engine local --workers 1") from None
     return ray
 
 

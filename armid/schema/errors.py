@@ -17,6 +17,7 @@ Errors that were ``ValueError`` stay catchable as ``ValueError`` (python-can's
      |    |    +-- RobotFileError                       malformed robot description
      |    |    +-- RigFileError                         malformed rig file
      |    +-- BusBudgetError(ValueError)                the rig's PDO plan does not fit the bus
+     |    +-- MissingExtraError(ImportError)            the command needs an extra this install lacks
      +-- RecordFormatError(ValueError)                  bytes that are not a joint-state record
      +-- DriverError                                    runtime: the driver cannot go on
      |    +-- DriveConfigError(InputError, ValueError)  a drive refuses the rig's configuration
@@ -107,6 +108,12 @@ class RigFileError(InputFileError):
 
 class BusBudgetError(InputError, ValueError):
     """The PDO plan does not fit the bus: the message has the numbers and the options."""
+
+
+class MissingExtraError(InputError, ImportError):
+    """The command needs an extra this install lacks (``armid.extras``): names the extra and
+    what installs it. Exit 2, as bad usage: nothing failed at run time, and the same command
+    fails the same way until the user installs the extra (``armid fleet``'s Ray did so first)."""
 
 
 class RecordFormatError(ArmidError, ValueError):
