@@ -127,12 +127,19 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
 
     Findings are ranked on held-out blocks of the identification data (every other tenth of
     it, fitted on the rest); ``validation`` can only veto one (gate f) and measures the errors
-    before and after, so the figures reported are not the ones the search optimised."""
-    search = _Search(robot, experiments, validation, options or DiagnoseOptions())
-    for _ in range(search.opts.max_findings):
-        if not search.add_one():
-            break
-    return search.report()
+    before and after, so the figures reported are not the ones the search optimised.
+
+    On one BLAS thread: its products are small (a candidate's few columns against the
+    model's), and OpenBLAS's threads on them cost several times the work on a 2-core machine
+    (22.8x the plain pipeline, issue 34; ``benchmarks/bench_diagnose.py``)."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1, "blas"):
+        search = _Search(robot, experiments, validation, options or DiagnoseOptions())
+        for _ in range(search.opts.max_findings):
+            if not search.add_one():
+                break
+        return search.report()
 
 
 @dataclass(eq=False)

@@ -19,6 +19,7 @@ what lies above the cut-off.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -94,12 +95,12 @@ def lowpass(x: Array, period_s: float, cutoff_hz: float, order: int = 4, axis: i
     would force the curvature to zero there, which differentiation turns into large
     acceleration errors); short signals are returned unfiltered.
     """
-    from scipy.signal import butter, sosfiltfilt
+    from scipy.signal import sosfiltfilt
 
     nyquist = 0.5 / period_s
     if not 0.0 < cutoff_hz < nyquist:
         raise ValueError(f"low-pass cut-off {cutoff_hz:g} Hz must lie in (0, {nyquist:g}) Hz, the Nyquist frequency of this recording")
-    sos = butter(order, cutoff_hz / nyquist, output="sos")
+    sos = _butter_sos(order, cutoff_hz / nyquist).copy()  # scipy's filter wants it writable
     x = np.moveaxis(np.asarray(x, dtype=float), axis, 0)
     n = x.shape[0]
     if n <= 3 * (2 * len(sos) + 1):
@@ -112,6 +113,18 @@ def lowpass(x: Array, period_s: float, cutoff_hz: float, order: int = 4, axis: i
     tail = _extrapolate(flat[n - fit :], pad)
     y = sosfiltfilt(sos, np.concatenate([head, flat, tail]), axis=0, padtype="odd", padlen=min(pad, 3 * (2 * len(sos) + 1)))
     return np.moveaxis(y[pad : pad + n].reshape(x.shape), 0, axis)
+
+
+@functools.lru_cache(maxsize=64)
+def _butter_sos(order: int, wn: float) -> Array:
+    """The Butterworth design (second-order sections), once per order and cut-off: the
+    diagnosis filters thousands of candidate columns through the same filter, and designing it
+    cost more than filtering a column. Read-only: every caller shares it, and copies it."""
+    from scipy.signal import butter
+
+    sos = np.asarray(butter(order, wn, output="sos"), dtype=float)
+    sos.flags.writeable = False
+    return sos
 
 
 def _extrapolate(x: Array, count: int, degree: int = 5) -> Array:
