@@ -33,7 +33,7 @@ from armid.schema import Array
 from armid.schema.errors import NotOperational
 
 from ..resources import config_file
-from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverError, HeartbeatLost, ProcessSettings, Sample
+from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverError, HeartbeatLost, ProcessSettings, Sample, bus_time
 from .pdo_plan import PLANS, PdoSpec, check_bus_budget
 from .realtime import stall_sentence
 from .rig import Rig, current_of, open_bus, permille_of
@@ -165,6 +165,7 @@ class CanopenDriver(Driver):
         self._heartbeat = np.zeros(self.n_joints)
         self._last_watch = time.monotonic()
         self.last_stall: tuple[float, float] = (0.0, 0.0)  # (monotonic time, s) of the newest cycle this process ran late
+        self.unscheduled_s = 0.0  # s this process was not scheduled (stalls over STALL_S), excused from heartbeat supervision
         self.last_sync_sent = time.monotonic()  # when the SYNC thread last sent one
         self.longest_sync_gap = 0.0  # s between two SYNCs the thread sent, the longest since start
         self._silent = np.zeros(self.n_joints, bool)  # no heartbeat: lost
@@ -397,12 +398,15 @@ class CanopenDriver(Driver):
             clock.wait()
             if self.paced_by_consumer and self._cycle:
                 # the arm is simulated in this process: its next step waits for the control
-                # law to have acted on the last one (never longer than PACE_WAIT_S, inside the
-                # drives' SYNC timeout: the master's heartbeat goes on meanwhile), so a busy process slows the
-                # simulation down instead of stretching the control loop's delay
+                # law to have acted on the last one, so a busy process slows the simulation
+                # down instead of stretching the control loop's delay. The wait never makes the
+                # gap since the last SYNC longer than PACE_WAIT_S, inside the drives' SYNC
+                # timeout (the master's heartbeat goes on meanwhile): after a stall, which
+                # spent that budget already, the SYNC goes out at once
                 waited_from = time.monotonic()
+                budget = PACE_WAIT_S - (waited_from - self.last_sync_sent)
                 with self._ack:
-                    if not self._ack.wait_for(lambda: self._acknowledged >= self._cycle or self._stop.is_set(), PACE_WAIT_S):
+                    if not self._ack.wait_for(lambda: self._acknowledged >= self._cycle or self._stop.is_set(), max(budget, 0.0)):
                         self.consumer_late += 1
                 self._paced_s += time.monotonic() - waited_from
                 clock.not_before_now()
@@ -554,6 +558,7 @@ class CanopenDriver(Driver):
         if stall > STALL_S:
             # this process did not run: heartbeats sent meanwhile wait unread in the socket
             self._heartbeat += stall
+            self.unscheduled_s += stall
         for d in self.rig.drives:
             j = d.joint
             if not self._silent[j] and now - self._heartbeat[j] > limit:
@@ -567,7 +572,11 @@ class CanopenDriver(Driver):
     def _on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
         node = can_id - 0x700
         j = self._node_ids[node]
-        self._heartbeat[j] = time.monotonic()
+        # when it came, by its stamp: read late (this thread waited for the interpreter), it
+        # is as old as its stamp says, up to a stall's worth (a stall is excused in _watchdog;
+        # a step of the wall clock must not age it more)
+        age = min(max(time.time() - bus_time(timestamp), 0.0), STALL_S)
+        self._heartbeat[j] = max(self._heartbeat[j], time.monotonic() - age)
         if self._silent[j]:
             self._silent[j] = False
             self._event("heartbeat_back", f"joint {j + 1} (node {node}) is back (NMT state 0x{data[0]:02X})" if data else

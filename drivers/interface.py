@@ -123,6 +123,11 @@ class ProcessSettings:
                     cls._rt = None
 
 
+def bus_time(stamp: float) -> float:
+    """A frame's stamp (its sender's or the kernel's time), or now on a bus that stamps none."""
+    return stamp if stamp > 0 else time.time()
+
+
 class CycleClock:
     """The absolute schedule of a driver's cycle thread: :meth:`wait` sleeps to the next
     period boundary; a cycle more than a period late restarts the schedule (and counts in

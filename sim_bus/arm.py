@@ -89,7 +89,6 @@ class SimulatedArm:
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         start = time.perf_counter()
         counter = data[0] if len(data) >= 1 else None
-        now = time.monotonic()
         for d in self.drives:
             d.latch()
         p, v = self.physics.position, self.physics.velocity
@@ -99,7 +98,7 @@ class SimulatedArm:
         self.syncs += 1
         self.log.append(self.syncs, counter, m)
         for d in self.drives:
-            d.on_sync(counter, m, now)
+            d.on_sync(counter, m, timestamp)
         self.step_seconds.append(time.perf_counter() - start)
 
     def _on_master_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:

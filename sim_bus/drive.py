@@ -23,6 +23,7 @@ import canopen
 import numpy as np
 from canopen.objectdictionary import ODVariable
 
+from armid.drivers.interface import bus_time
 from armid.drivers.rig import DriveUnits, current_of, permille_of
 from armid.resources import config_file
 
@@ -116,10 +117,10 @@ class SimulatedDrive:
         self.tpdos: list[_Pdo] = []
         self.rpdos: list[_Pdo] = []
         self.sync_count = 0
-        self.last_sync = 0.0
+        self.last_sync_stamp = 0.0  # the bus's stamp of the last SYNC (its sender's time)
         self.master_heartbeat: float | None = None
         # co-simulation: each watch needs the other stream as its witness that the master runs
-        self.heartbeat_since_sync: float | None = None  # when the first master heartbeat after the last SYNC came
+        self.heartbeat_since_sync: float | None = None  # the stamp of the first master heartbeat after the last SYNC
         self.syncs_since_heartbeat = 0
         self.not_following = False
         self.silent = False
@@ -265,29 +266,46 @@ class SimulatedDrive:
 
     def on_master_heartbeat(self, node_id: int, timestamp: float) -> None:
         consumer = self.raw(0x1016, 1)
-        if consumer >> 16 & 0x7F == node_id:
-            self.master_heartbeat = time.monotonic()
-            if self.heartbeat_since_sync is None:
-                self.heartbeat_since_sync = self.master_heartbeat
-            self.syncs_since_heartbeat = 0
+        if consumer >> 16 & 0x7F != node_id:
+            return
+        self.master_heartbeat = time.monotonic()
+        self.syncs_since_heartbeat = 0
+        stamp = bus_time(timestamp)
+        if self.heartbeat_since_sync is None:
+            self.heartbeat_since_sync = stamp
+        elif self._sync_lost(stamp, (consumer & 0xFFFF) / 3000.0):
+            self.fault(EMCY_SYNC_LOST, b"SYNC")
+
+    def _sync_lost(self, heartbeat_stamp: float, heartbeat_period_s: float) -> bool:
+        """SYNC supervision on the bus's own time, co-simulated: SYNC is lost when the master
+        sent heartbeats for at least a heartbeat period, and this one more than the SYNC timeout
+        after the last SYNC, without a SYNC between them. The senders' stamps, not the time this
+        thread reads the frames: a reader that falls behind reads them late but in order; a
+        master that was not scheduled sends the heartbeats it owes at once when it resumes
+        (python-can's periodic task catching up), then its SYNC."""
+        period_s = self.raw(0x1006) / 1e6
+        if not (period_s and self.sync_count and self.state in POWERED and self.operational and not self.silent):
+            return False
+        assert self.heartbeat_since_sync is not None
+        timeout = max(3 * period_s, self.sync_timeout_s)
+        return (heartbeat_stamp - self.last_sync_stamp > timeout
+                and heartbeat_stamp - self.heartbeat_since_sync >= heartbeat_period_s)
 
     def _apply_controlword(self, controlword: int) -> None:
         self._previous_controlword, self.controlword = self.controlword, controlword
         self.state = next_state(self.state, controlword, self._previous_controlword)
 
     def watchdog(self, now: float) -> None:
-        """Heartbeat consumer and SYNC supervision, co-simulated; called every few ms by the arm.
+        """Heartbeat consumer, co-simulated; called every few ms by the arm.
 
         The simulated drive stands in for firmware in a process (and on a host) that may not be
         scheduled: a master that is not running pauses the arm, as a co-simulation's step waits
         for its input, instead of faulting it. So each watch has a witness that the master is
-        running: SYNC is lost when it stays away for its timeout while the master's heartbeat
-        goes on (one came after the last SYNC, at least a heartbeat period ago: a master that
-        resumes from a stall sends the heartbeats it owes at once, python-can's periodic task
-        catching up, before its next SYNC); the heartbeat is lost when it stays away for its
-        consumer time on both clocks, the wall's and the arm's (SYNCs times the period), while
-        SYNC goes on. A master that stops either (a dead SYNC thread, a hung heartbeat task)
-        faults the drive as firmware does."""
+        running: the heartbeat is lost when it stays away for its consumer time on both clocks,
+        the wall's and the arm's (SYNCs times the period), while SYNC goes on; SYNC is lost when
+        it stays away while the heartbeat goes on (:meth:`_sync_lost`, as each heartbeat comes).
+        A master that stops either (a dead SYNC thread, a hung heartbeat task) faults the drive
+        as firmware does."""
         if self.silent or not self.operational:
             return
         consumer = self.raw(0x1016, 1)
@@ -297,11 +315,6 @@ class SimulatedDrive:
                 and self.syncs_since_heartbeat * period_s > limit_s):
             self.master_heartbeat = None
             self.fault(EMCY_HEARTBEAT, b"HB")
-        timeout = max(3 * period_s, self.sync_timeout_s)
-        witness = self.heartbeat_since_sync
-        if (period_s and self.sync_count and self.state in POWERED and now - self.last_sync > timeout
-                and witness is not None and now - witness >= limit_s / 3):
-            self.fault(EMCY_SYNC_LOST, b"SYNC")
 
     def fault(self, code: int, data: bytes = b"") -> None:
         if self.state == State.FAULT:
@@ -354,12 +367,12 @@ class SimulatedDrive:
             if key == (0x6040, 0):
                 self._apply_controlword(value)
 
-    def on_sync(self, counter: int | None, m: Measurement, now: float) -> None:
+    def on_sync(self, counter: int | None, m: Measurement, stamp: float) -> None:
         """Update the actual values, check the limits, send the TPDOs due at this SYNC."""
         if self.silent:
             return
         self.sync_count += 1
-        self.last_sync = now
+        self.last_sync_stamp = bus_time(stamp)
         self.heartbeat_since_sync = None
         self.syncs_since_heartbeat += 1
         if not self.operational:

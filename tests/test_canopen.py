@@ -165,13 +165,20 @@ def test_silent_drive_detected_within_3_heartbeats_and_others_quick_stopped(benc
     bench.hold(20)
     bench.enable()
     bench.hold(50)
-    silent_at = time.monotonic()
+    bench.driver.events()
+    unscheduled_before = bench.driver.unscheduled_s
+    silent_at = time.time()
     bench.arm.drive(2).go_silent()
     with pytest.raises(HeartbeatLost) as caught:
         bench.hold(1000)
-    detected = time.monotonic() - silent_at
     assert caught.value.joint == 2 and caught.value.node_id == 3
-    assert detected <= 3 * bench.rig.heartbeat_ms / 1000.0 + 0.02
+    # the driver declares the drive lost and quick-stops the others in one step, stamped by
+    # its event: within 3 heartbeat periods of this process's running time (while it was not
+    # scheduled, heartbeats sent meanwhile wait unread, and the driver waits for them)
+    declared = [e.time_s for e in bench.driver.events() if e.kind == "heartbeat_lost"]
+    unscheduled = bench.driver.unscheduled_s - unscheduled_before
+    assert len(declared) == 1
+    assert declared[0] - silent_at <= 3 * bench.rig.heartbeat_ms / 1000.0 + 0.02 + unscheduled, (declared[0] - silent_at, unscheduled)
     bench.hold(10, raise_faults=False)
     states = [d.state for i, d in enumerate(bench.arm.drives) if i != 2]
     assert all(s in (State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED) for s in states), states
@@ -198,11 +205,36 @@ def test_lost_sync_faults_the_drives_with_emcy(bench: _Bench) -> None:
     bench.driver._stop.set()  # the SYNC producer dies; the master's heartbeat goes on
     assert bench.driver._thread is not None
     bench.driver._thread.join(1.0)
-    time.sleep(bench.arm.drives[0].sync_timeout_s + 0.1)
+    # the drives fault at the first heartbeat sent a heartbeat period after another and the
+    # SYNC timeout after the last SYNC (0.15 s here); read when this loaded process gets to it
+    deadline = time.monotonic() + 1.0
+    while time.monotonic() < deadline and not all(d.state == State.FAULT for d in bench.arm.drives):
+        time.sleep(0.01)
     assert all(d.state == State.FAULT for d in bench.arm.drives)
     with pytest.raises(DriveFault) as caught:
         bench.driver.read(0.5)
     assert caught.value.code == 0x8100 and "SYNC" in caught.value.meaning
+
+
+def test_simulated_drives_reading_frames_late_do_not_fault(bench: _Bench) -> None:
+    """The simulated drives' reader falls 0.3 s behind the bus (a callback on their network
+    blocks once, as a thread the interpreter does not schedule): the master sent its SYNCs
+    meanwhile, so no drive faults. SYNC loss is decided on the frames' stamps (issue 31); a
+    real loss still faults (the test above)."""
+    bench.hold(20)
+    bench.enable()
+    bench.hold(20)
+    blocked = threading.Event()
+
+    def slow_reader(can_id: int, data: bytearray, timestamp: float) -> None:
+        if not blocked.is_set():
+            blocked.set()
+            time.sleep(0.3)
+
+    bench.arm.network.subscribe(0x700 + bench.rig.master_node_id, slow_reader)
+    bench.hold(300, raise_faults=False)
+    assert blocked.is_set()
+    assert [d.state for d in bench.arm.drives] == [State.OPERATION_ENABLED] * len(bench.arm.drives)
 
 
 def test_master_heartbeat_loss_faults_the_drives(bench: _Bench) -> None:
