@@ -263,6 +263,10 @@ class Driver(abc.ABC):
         try:
             return self._samples.get(timeout=wait)
         except queue.Empty:
+            pass
+        try:  # a fault that came while waiting is why no cycle came
+            raise self._faults.get_nowait()
+        except queue.Empty:
             raise DriverError(f"no cycle within {wait} s: {stalled}") from None
 
     def __enter__(self) -> Driver:
