@@ -63,7 +63,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from .diagnosis_candidates import LOOKALIKES, SEPARATE, Candidate, _candidates, _parameters
+from .diagnosis_candidates import LOOKALIKES, SEPARATE, STRIBECK_VELOCITIES, Candidate, _candidates, _parameters
 from .diagnosis_data import _blocks, _Data, _noise_floor, _noise_levels, _rel, _stack
 from .diagnosis_refit import _refine_delays, _rotate, _settled, _sign_reversed, _trial_fit, _update_parameters, _widening, findings_model
 from .diagnosis_report import (
@@ -324,22 +324,29 @@ class _Search:
     def _pick(self, rnd: _Round, scored: list[_Scored]) -> _Pick | None:
         """The best-ranked candidate that clears its gates (the ranking still favours the larger
         effect); None when none of the first ``ranked`` does."""
-        for s in scored[: self.opts.ranked]:
-            s = self._friction_shape(rnd, scored, s)
-            if s.p_value > self.opts.alpha:
-                continue  # (c) the F-test on the identification data
-            pred_before = rnd.a_v @ rnd.beta
-            cv, pred_after = self._refit_prediction(rnd, s)
-            if not self._clears_held_out(rnd, s, pred_before, pred_after):
-                continue
-            if not self._clears_noise(s, pred_before, pred_after):
-                continue
-            if (s.candidate.effect, s.candidate.joint) in self.set_aside:
-                continue  # another setting of an effect already set aside
-            if not self._clears_exact_fits(s):
-                continue
-            return _Pick(s, cv, pred_before, pred_after)
+        for ranked in scored[: self.opts.ranked]:
+            shape = self._friction_shape(rnd, scored, ranked)
+            for s in [shape] + ([ranked] if shape is not ranked else []):  # the Stribeck term named, else the Coulomb itself
+                pick = self._gated(rnd, s)
+                if pick is not None:
+                    return pick
         return None
+
+    def _gated(self, rnd: _Round, s: _Scored) -> _Pick | None:
+        """``s`` as the round's pick if it clears gates (c), (a)-(b), (e), then (d) and (f)."""
+        if s.p_value > self.opts.alpha:
+            return None  # (c) the F-test on the identification data
+        pred_before = rnd.a_v @ rnd.beta
+        cv, pred_after = self._refit_prediction(rnd, s)
+        if not self._clears_held_out(rnd, s, pred_before, pred_after):
+            return None
+        if not self._clears_noise(s, pred_before, pred_after):
+            return None
+        if (s.candidate.effect, s.candidate.joint) in self.set_aside:
+            return None  # another setting of an effect already set aside
+        if not self._clears_exact_fits(s):
+            return None
+        return _Pick(s, cv, pred_before, pred_after)
 
     def _friction_shape(self, rnd: _Round, scored: list[_Scored], s: _Scored) -> _Scored:
         """A joint's Coulomb friction or its Stribeck friction, named by the held-out blocks:
@@ -353,8 +360,8 @@ class _Search:
             return s
         j = c.joint
         strib = next((x for x in scored if x.candidate.effect == "stribeck_friction" and x.candidate.joint == j), None)
-        if strib is None:
-            return s
+        if strib is None or dict(strib.candidate.setting)["velocity"] <= STRIBECK_VELOCITIES[0]:
+            return s  # at the grid's lowest velocity: a Coulomb step's smoothing, not a peak the data resolve
         rss_cv = s.rss_v
         if ("viscous_friction", j) not in self.present:
             both = Candidate("coulomb_friction", j, (), ("fc", "fv"), block=lambda d: np.column_stack([np.sign(d.qd[:, j]), d.qd[:, j]]))
