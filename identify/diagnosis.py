@@ -601,7 +601,9 @@ class _Search:
             if reversed_sign:
                 self.conflicting += [{"effect": f.effect, "joint": f.joint + 1, "parameters": dict(f.parameters), "reason": "sign"}
                                      for f in reversed_sign if f.joint is not None]
-                found = [f for f in found if f not in reversed_sign]
+                # a Stribeck or load term held at 0 leaves the Coulomb level it came with: that
+                # friction stays, in its place in the order found (the Coulomb itself)
+                found = [g for g in (_coulomb_level(f) if f in reversed_sign else f for f in found) if g is not None]
                 result1 = self._fit_findings(found)
             found, result1, negligible = self._material(found, result1)
         diagnosis = self._measured(found, result1)
@@ -668,6 +670,14 @@ class _Search:
                          (valid.tau, before_pred), (valid.tau, after_pred), (t_v, valid.q, valid.qd, valid.qdd), used_v,
                          (np.asarray(t_s), tau_s, after_stamps), noise, self.conflicting,
                          _extrapolated(found, self.ident_all.q, valid.q))
+
+
+def _coulomb_level(f: Finding) -> Finding | None:
+    """A Stribeck or load-dependent friction finding whose peak or load term the final fit holds
+    at 0, as the Coulomb friction it brings (its ``fc``); None for any other (or no Coulomb level)."""
+    if f.effect not in ("stribeck_friction", "load_dependent_coulomb") or f.parameters.get("fc", 0.0) <= 0.0:
+        return None
+    return Finding("coulomb_friction", f.joint, {"fc": f.parameters["fc"]}, f.explained, f.error_before, f.error_after)
 
 
 def _validation_error(result: IdentificationResult) -> float:
