@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from armid.identify.diagnosis import extrapolation_sentence, set_aside_sentence
+from armid.identify.diagnosis import extrapolation_sentence, negligible_sentence, set_aside_sentence
 from armid.identify.feasible import link_list
 from armid.identify.identification import IdentificationResult
 from armid.identify.preprocess import Segment
@@ -153,6 +153,10 @@ def write_diagnosis_report(diag: Any, robot_name: str, out_dir: Path, feasible: 
              + "against the raw measured torque.", ""]
     lines += ["## Findings", ""]
     lines += [f"- {f.sentence()}" for f in diag.found] or ["- nothing significant: the declared model explains the data to its noise"]
+    if diag.negligible:
+        lines += ["", "## Negligible (below the materiality; not findings)", ""]
+        lines += [f"- {negligible_sentence(x)}" for x in diag.negligible]
+    lines += [f"- {note}" for note in diag.notes]
     if diag.absorbed:
         lines += ["", "## Absorbed by the rigid-body model (not findings)", ""]
         lines += [f"- {x['effect'].replace('_', ' ')} on joint {x['joint']}: its columns lie in the model's span; it joins `{x['into']}`" for x in diag.absorbed]

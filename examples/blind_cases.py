@@ -51,7 +51,9 @@ _SENSORS = [
 ]
 _EFFECTS = ["viscous_friction", "coulomb_friction", "smooth_coulomb", "stribeck_friction", "torque_offset", "rotor_inertia",
             "torque_gain", "time_delay", "cogging", "spring", "gravity_tilt", "load_coulomb", "friction_all"]
-EFFECT_CASES = [(e, dict(effect=e, effect_size=0.15, noise="medium", **_SENSORS[k % len(_SENSORS)])) for k, e in enumerate(_EFFECTS)]
+# a drive gain is a torque constant's error: its case records currents whatever the rotation gives
+EFFECT_CASES = [(e, {"effect": e, "effect_size": 0.15, "noise": "medium", **_SENSORS[k % len(_SENSORS)],
+                     **({"currents": True} if e == "torque_gain" else {})}) for k, e in enumerate(_EFFECTS)]
 
 def _spec_name(o: dict) -> str:
     sig = "i" if o["currents"] else "tau"

@@ -63,10 +63,18 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from .diagnosis_candidates import LOOKALIKES, SEPARATE, Candidate, _candidates, _parameters
+from .diagnosis_candidates import LOOKALIKES, SEPARATE, STRIBECK_VELOCITIES, Candidate, _candidates, _parameters
 from .diagnosis_data import _blocks, _Data, _noise_floor, _noise_levels, _rel, _stack
 from .diagnosis_refit import _refine_delays, _rotate, _settled, _sign_reversed, _trial_fit, _update_parameters, _widening, findings_model
-from .diagnosis_report import Diagnosis, Finding, _extrapolated, extrapolation_sentence, set_aside_sentence
+from .diagnosis_report import (
+    MATERIALITY,
+    Diagnosis,
+    Finding,
+    _extrapolated,
+    extrapolation_sentence,
+    negligible_sentence,
+    set_aside_sentence,
+)
 from .diagnosis_scoring import _Absorbed, _fit_round, _phi_hat, _Round, _score, _Scored
 from .errors import PoorExcitationWarning
 from .identification import (
@@ -84,7 +92,8 @@ from .preprocess import Prepared
 from .robot import Robot
 from .spatial import Array
 
-__all__ = ["DiagnoseOptions", "Diagnosis", "Finding", "diagnose", "extrapolation_sentence", "findings_model", "set_aside_sentence"]
+__all__ = ["MATERIALITY", "DiagnoseOptions", "Diagnosis", "Finding", "diagnose", "extrapolation_sentence", "findings_model",
+           "negligible_sentence", "set_aside_sentence"]
 """The diagnosis's public names; the catalogue, the data, the scoring, the report and the refits
 live in ``identify/diagnosis_*.py``."""
 
@@ -177,6 +186,13 @@ class _Search:
         self.extra_i, self.extra_v = np.zeros((self.yi.size, 0)), np.zeros((self.yv.size, 0))
         self.present: set[tuple[str, int | None]] = ({(e.effect, e.joint) for e in self.effects}
                                                      | {("torque_gain", j) for j in declared_gains(robot)})
+        self.notes: list[str] = []
+        if any(p.torque_from_current is False for p in experiments):
+            # a drive gain is a torque constant's error: a joint torque sensor has none between it and the model
+            self.present |= {("torque_gain", j) for j in range(self.nj)}
+            self.notes.append("torque gain not tested: the recordings give joint torque, not current"
+                              if all(p.torque_from_current is False for p in experiments) else
+                              "torque gain not tested: some recordings give joint torque, not current (one gain cannot hold for both)")
         self.found: list[Finding] = []
         self.absorbed: list[dict[str, Any]] = []
         self.absorbed_keys: set[tuple[str, int | None]] = set()
@@ -308,21 +324,50 @@ class _Search:
     def _pick(self, rnd: _Round, scored: list[_Scored]) -> _Pick | None:
         """The best-ranked candidate that clears its gates (the ranking still favours the larger
         effect); None when none of the first ``ranked`` does."""
-        for s in scored[: self.opts.ranked]:
-            if s.p_value > self.opts.alpha:
-                continue  # (c) the F-test on the identification data
-            pred_before = rnd.a_v @ rnd.beta
-            cv, pred_after = self._refit_prediction(rnd, s)
-            if not self._clears_held_out(rnd, s, pred_before, pred_after):
-                continue
-            if not self._clears_noise(s, pred_before, pred_after):
-                continue
-            if (s.candidate.effect, s.candidate.joint) in self.set_aside:
-                continue  # another setting of an effect already set aside
-            if not self._clears_exact_fits(s):
-                continue
-            return _Pick(s, cv, pred_before, pred_after)
+        for ranked in scored[: self.opts.ranked]:
+            shape = self._friction_shape(rnd, scored, ranked)
+            for s in [shape] + ([ranked] if shape is not ranked else []):  # the Stribeck term named, else the Coulomb itself
+                pick = self._gated(rnd, s)
+                if pick is not None:
+                    return pick
         return None
+
+    def _gated(self, rnd: _Round, s: _Scored) -> _Pick | None:
+        """``s`` as the round's pick if it clears gates (c), (a)-(b), (e), then (d) and (f)."""
+        if s.p_value > self.opts.alpha:
+            return None  # (c) the F-test on the identification data
+        pred_before = rnd.a_v @ rnd.beta
+        cv, pred_after = self._refit_prediction(rnd, s)
+        if not self._clears_held_out(rnd, s, pred_before, pred_after):
+            return None
+        if not self._clears_noise(s, pred_before, pred_after):
+            return None
+        if (s.candidate.effect, s.candidate.joint) in self.set_aside:
+            return None  # another setting of an effect already set aside
+        if not self._clears_exact_fits(s):
+            return None
+        return _Pick(s, cv, pred_before, pred_after)
+
+    def _friction_shape(self, rnd: _Round, scored: list[_Scored], s: _Scored) -> _Scored:
+        """A joint's Coulomb friction or its Stribeck friction, named by the held-out blocks:
+        the best Stribeck term (its Coulomb level, its peak, its velocity) against Coulomb and
+        viscous friction together (both bounded at 0), two parameters each. Coulomb alone ranks
+        first where the Stribeck peak is small (one parameter fewer), and a viscous term found
+        next would bend to the rest; Stribeck is named where it fits the held-out blocks better
+        than Coulomb + viscous. Returns the candidate to judge."""
+        c = s.candidate
+        if c.effect != "coulomb_friction" or c.joint is None:
+            return s
+        j = c.joint
+        strib = next((x for x in scored if x.candidate.effect == "stribeck_friction" and x.candidate.joint == j), None)
+        if strib is None or dict(strib.candidate.setting)["velocity"] <= STRIBECK_VELOCITIES[0]:
+            return s  # at the grid's lowest velocity: a Coulomb step's smoothing, not a peak the data resolve
+        rss_cv = s.rss_v
+        if ("viscous_friction", j) not in self.present:
+            both = Candidate("coulomb_friction", j, (), ("fc", "fv"), block=lambda d: np.column_stack([np.sign(d.qd[:, j]), d.qd[:, j]]))
+            cv = _score(both, rnd, self.ident, self.held, self.wt_i, self.wt_v, self.n_used, self.sample_period)
+            rss_cv = min(rss_cv, cv.rss_v) if isinstance(cv, _Scored) else rss_cv
+        return strib if strib.rss_v < rss_cv else s
 
     def _refit_prediction(self, rnd: _Round, s: _Scored) -> tuple[Array | None, Array]:
         """The candidate's held-out columns (None for one fitted exactly) and the held-out
@@ -550,13 +595,47 @@ class _Search:
             result1 = self._fit_findings(found)
             # friction or inertia whose sign the whole fit turns (the search saw it positive on its
             # blocks): not physical, so not a finding; the rest refitted without it
+            # friction, inertia or a spring the whole fit holds at its bound (the search saw it
+            # positive on its blocks): it explains nothing, so it is not a finding; the rest refitted
             reversed_sign = _sign_reversed(found)
             if reversed_sign:
                 self.conflicting += [{"effect": f.effect, "joint": f.joint + 1, "parameters": dict(f.parameters), "reason": "sign"}
                                      for f in reversed_sign if f.joint is not None]
-                found = [f for f in found if f not in reversed_sign]
+                # a Stribeck or load term held at 0 leaves the Coulomb level it came with: that
+                # friction stays, in its place in the order found (the Coulomb itself)
+                found = [g for g in (_coulomb_level(f) if f in reversed_sign else f for f in found) if g is not None]
                 result1 = self._fit_findings(found)
-        return self._measured(found, result1)
+            found, result1, negligible = self._material(found, result1)
+        diagnosis = self._measured(found, result1)
+        diagnosis.negligible, diagnosis.notes = negligible, self.notes
+        return diagnosis
+
+    def _material(self, found: list[Finding], result1: IdentificationResult) -> tuple[list[Finding], IdentificationResult, list[dict[str, Any]]]:
+        """Each finding judged by the validation error it removes (MATERIALITY): added in the
+        order found to the declared model and the findings kept before it, fitted as `identify`
+        fits; one that lowers the error by less than MATERIALITY of itself is negligible,
+        reported with its torque's rms at the validation stamps and left out. The validation
+        only removes findings here, as in gate (f): it never ranks them."""
+        segments = self.validation_segments
+        kept: list[Finding] = []
+        fit_kept = self.result0
+        error, pred = _validation_error(fit_kept), fit_kept.predict_stamps(segments)[2]
+        negligible: list[dict[str, Any]] = []
+        floor = _noise_floor(self.validation)["relative_error"] or 0.0
+        for f in found:
+            fit = result1 if len(kept) == len(found) - 1 else self._fit_findings(kept + [f])
+            error_with, pred_with = _validation_error(fit), fit.predict_stamps(segments)[2]
+            change = np.sqrt(np.mean((pred_with - pred) ** 2, axis=0))
+            rms = float(change[f.joint] if f.joint is not None else change.max())
+            if error_with < error and error**2 - error_with**2 >= MATERIALITY * max(error**2 - floor**2, 0.0):
+                f.validation_before, f.validation_after, f.torque_rms = error, error_with, rms
+                kept.append(f)
+                fit_kept, error, pred = fit, error_with, pred_with
+            else:
+                negligible.append({"effect": f.effect, "joint": None if f.joint is None else f.joint + 1, "parameters": dict(f.parameters),
+                                   "torque_rms": rms, "validation_error_before": error, "validation_error_with": error_with})
+        _update_parameters(kept, fit_kept)  # the kept findings' parameters as their own fit gives them (the trials moved them)
+        return kept, fit_kept, negligible
 
     def _fit_findings(self, found: list[Finding]) -> IdentificationResult:
         """The declared model with ``found`` added, fitted on all the identification data."""
@@ -591,6 +670,20 @@ class _Search:
                          (valid.tau, before_pred), (valid.tau, after_pred), (t_v, valid.q, valid.qd, valid.qdd), used_v,
                          (np.asarray(t_s), tau_s, after_stamps), noise, self.conflicting,
                          _extrapolated(found, self.ident_all.q, valid.q))
+
+
+def _coulomb_level(f: Finding) -> Finding | None:
+    """A Stribeck or load-dependent friction finding whose peak or load term the final fit holds
+    at 0, as the Coulomb friction it brings (its ``fc``); None for any other (or no Coulomb level)."""
+    if f.effect not in ("stribeck_friction", "load_dependent_coulomb") or f.parameters.get("fc", 0.0) <= 0.0:
+        return None
+    return Finding("coulomb_friction", f.joint, {"fc": f.parameters["fc"]}, f.explained, f.error_before, f.error_after)
+
+
+def _validation_error(result: IdentificationResult) -> float:
+    """``result``'s relative_error on the validation data (INTERFACES.md 'Metrics')."""
+    assert result.validation is not None
+    return float(result.validation["relative_error"])
 
 
 VETO_BLOCKS = 10

@@ -51,12 +51,32 @@ SEPARATE = {
 }
 
 
-DISSIPATIVE = ("viscous_friction", "coulomb_friction", "stribeck_friction", "rotor_inertia", "load_dependent_coulomb")  # last parameter > 0
-
-
 DISSIPATIVE_PARAMETER = {"viscous_friction": "fv", "coulomb_friction": "fc", "stribeck_friction": "fs", "rotor_inertia": "ia",
-                         "load_dependent_coulomb": "fl"}
-"""... the parameter of each that must be > 0, by its name in a finding."""
+                         "load_dependent_coulomb": "fl", "spring": "stiffness"}
+"""The parameter that defines each bounded effect, by its name in a finding: friction is
+dissipative, an inertia positive, and the spring a passive one (a gravity-compensation
+spring pulls the joint back to its rest position: ``stiffness >= 0``). A candidate whose best
+admissible fit holds it at 0 explains nothing the model without it does not."""
+
+DISSIPATIVE = tuple(DISSIPATIVE_PARAMETER)
+
+NONNEGATIVE = ("fv", "fc", "fs", "fl", "ia", "stiffness")
+"""Every candidate parameter physics bounds below by 0 (a Stribeck or load-dependent term's
+Coulomb level ``fc`` too; the arm-wide friction's ``fc<j>``, ``fv<j>`` on each joint)."""
+
+
+def lower_bounds(c: Candidate) -> Array:
+    """(k,) each of ``c``'s parameters' lower bound: 0 for :data:`NONNEGATIVE`, else ``-inf``."""
+    return np.array([0.0 if label.rstrip("0123456789") in NONNEGATIVE else -np.inf for label in c.labels])
+
+
+def defining(c: Candidate) -> list[int]:
+    """The indices of ``c``'s defining parameters: the one :data:`DISSIPATIVE_PARAMETER` names
+    on a joint; every ``fc<j>``, ``fv<j>`` of the arm-wide friction (empty: an unbounded effect)."""
+    if c.joint is None:
+        return [k for k, label in enumerate(c.labels) if label.rstrip("0123456789") in ("fc", "fv")] if c.effect == "coulomb_friction" else []
+    name = DISSIPATIVE_PARAMETER.get(c.effect)
+    return [c.labels.index(name)] if name in c.labels else []
 
 
 # the Stribeck velocity on a log grid 0.01-1 rad/s, a factor 1.33 apart (a coarser grid left

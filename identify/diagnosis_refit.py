@@ -38,7 +38,9 @@ def findings_model(robot: Robot, found: list[Finding]) -> tuple[Robot, IdentifyO
     delay = np.zeros(nj)
     motion_delay = np.zeros(nj)
     have = {(e.effect, j) for e in robot.effects for j in (range(1, nj + 1) if e.joint is None else [e.joint])}
+    nonnegative: list[str] = []
     for f in found:
+        nonnegative += _bounded_columns(f, have)
         if f.effect == "coulomb_friction" and f.joint is None:  # friction on every joint it covers
             joints = sorted({int(k[2:]) for k in f.parameters if k.startswith("fc")})
             declared += [DeclaredEffect(e, j) for j in joints for e in ("coulomb_friction", "viscous_friction", "torque_offset")]
@@ -62,7 +64,25 @@ def findings_model(robot: Robot, found: list[Finding]) -> tuple[Robot, IdentifyO
     model = replace(robot, gravity=gravity, effects=tuple(robot.effects) + tuple(declared))
     return model, IdentifyOptions(torque_scale=tuple(scale) if np.any(scale != 1.0) else None,
                                   delay_s=tuple(delay) if np.any(delay != 0.0) else None,
-                                  motion_delay_s=tuple(motion_delay) if np.any(motion_delay != 0.0) else None)
+                                  motion_delay_s=tuple(motion_delay) if np.any(motion_delay != 0.0) else None,
+                                  nonnegative=tuple(nonnegative))
+
+
+def _bounded_columns(f: Finding, have: set[tuple[str, int]]) -> list[str]:
+    """The identify columns of finding ``f`` physics bounds at 0 (diagnosis_candidates.NONNEGATIVE):
+    its friction, rotor inertia or spring stiffness, and the Coulomb level it brings with it;
+    not a column the robot file declares (that one is fitted as declared)."""
+    if f.joint is None:
+        if f.effect != "coulomb_friction":
+            return []
+        joints = sorted({int(k[2:]) for k in f.parameters if k.startswith("fc")})
+        return [f"{p}{j}" for j in joints for p, e in (("fc", "coulomb_friction"), ("fv", "viscous_friction")) if (e, j) not in have]
+    j = f.joint + 1
+    column = {"spring": "ks"}.get(f.effect, DISSIPATIVE_PARAMETER.get(f.effect))
+    out = [f"{column}{j}"] if column is not None and (f.effect, j) not in have else []
+    if f.effect in ("stribeck_friction", "load_dependent_coulomb") and "fc" in f.parameters and ("coulomb_friction", j) not in have:
+        out.append(f"fc{j}")
+    return out
 
 
 def _sign_reversed(found: list[Finding]) -> list[Finding]:

@@ -16,8 +16,9 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from .diagnosis_candidates import DISSIPATIVE, Candidate
+from .diagnosis_candidates import Candidate, defining, lower_bounds
 from .diagnosis_data import _Data
+from .estimation import bounded_quadratic
 from .robot import Robot
 from .spatial import Array
 
@@ -187,8 +188,9 @@ class _Absorbed:
 def _score(c: Candidate, rnd: _Round, ident: _Data, held: _Data, wt_i: Array, wt_v: Array, n_used: int,
            sample_period: float) -> _Scored | _Absorbed | None:
     """The refit with ``c`` scored by Frisch-Waugh (:func:`_fit_round`), or None when it cannot
-    be a finding: columns that are not finite or all zero, a singular refit, friction that
-    pushes the joint along or a negative inertia, a delay within half a sample period."""
+    be a finding: columns that are not finite or all zero, a singular refit, an effect whose
+    best admissible fit (friction, inertia and spring bounded at 0) holds its defining
+    parameter at the bound, a delay within half a sample period."""
     if c.effect == "torque_gain":
         return _score_gain(c, rnd, n_used)
     proj, ctc, ctr, gv, cv_res, cvcv, cv_full = _moments(c, rnd, ident, held, wt_i, wt_v)
@@ -198,16 +200,21 @@ def _score(c: Candidate, rnd: _Round, ident: _Data, held: _Data, wt_i: Array, wt
     if np.trace(schur) <= 1e-12 * np.trace(ctc):
         return _Absorbed(proj)
     try:
-        gamma = np.linalg.solve(schur, ctr)
-    except np.linalg.LinAlgError:
+        # the best admissible fit (bounded least squares on the candidate's columns, the model's
+        # profiled out by Frisch-Waugh: the joint fit, not a filter afterwards)
+        gamma = bounded_quadratic(schur, ctr, lower_bounds(c))
+    except (np.linalg.LinAlgError, ValueError):
         return None
-    if c.effect in DISSIPATIVE and (bool(np.any(gamma <= 0.0)) if c.joint is not None else float(np.median(gamma[0::3])) <= 0.0):
-        return None  # friction that pushes the joint along, or a negative inertia: not physical
+    if not np.all(np.isfinite(gamma)):
+        return None
+    bound = defining(c)
+    if bound and bool(np.all(gamma[bound] <= 0.0)):
+        return None  # held at its bound: friction, an inertia or a spring that adds nothing physical
     if c.effect == "time_delay" and abs(float(gamma[0])) < 0.5 * sample_period:
         # shorter than half a sample period: within the timing uncertainty of the
         # samples themselves (zero-order hold of the current, current loop, filters)
         return None
-    rss1 = rnd.rss - float(ctr @ gamma)
+    rss1 = rnd.rss - float(2.0 * ctr @ gamma - gamma @ schur @ gamma)
     u = proj @ gamma
     rss_v1 = float(rnd.rss_v + 2 * rnd.h_vec @ u + u @ rnd.h_mat @ u - 2 * cv_res @ gamma - 2 * u @ gv @ gamma + gamma @ cvcv @ gamma)
     k = len(gamma)

@@ -232,3 +232,37 @@ def batch_means_covariance(bread: Array, scores: Array, block: int) -> Array:
     sums = np.vstack([head, tail]) if n % block else head
     meat = sums.T @ sums
     return bread @ meat @ bread.T
+
+
+def bounded_quadratic(h: Array, g: Array, lower: Array) -> Array:
+    """``argmin x^T H x - 2 g^T x`` subject to ``x >= lower`` (``-inf``: free), ``H`` symmetric
+    positive (semi)definite: least squares with bounds, its normal equations given.
+
+    The unbounded solution when it is admissible (one solve); otherwise bounded least squares
+    (``scipy.optimize.lsq_linear``, trust-region reflective) on ``A x ~ b`` with
+    ``A = diag(sqrt w) V^T``, ``b = diag(1/sqrt w) V^T g`` (``H = V diag(w) V^T``), whose
+    residual is the quadratic up to a constant. Friction is dissipative and an inertia
+    positive: bounding them in the fit, not after it, lets the other parameters take up
+    what the bounded ones cannot (issue 33)."""
+    from scipy.optimize import lsq_linear
+
+    h = 0.5 * (np.asarray(h, float) + np.asarray(h, float).T)
+    g, lower = np.asarray(g, float), np.asarray(lower, float)
+    try:
+        x = np.linalg.solve(h, g)
+    except np.linalg.LinAlgError:
+        x = np.linalg.lstsq(h, g, rcond=None)[0]
+    if np.all(x >= lower):
+        return x
+    w, v = np.linalg.eigh(h)
+    keep = w > 1e-12 * max(float(w.max()), 1e-300)
+    a = np.sqrt(w[keep])[:, None] * v[:, keep].T
+    b = (v[:, keep].T @ g) / np.sqrt(w[keep])
+    upper = np.full_like(lower, np.inf)
+    start = np.where(np.isfinite(lower), np.maximum(x, lower), x)
+    res = lsq_linear(a, b, bounds=(lower, upper), method="trf", tol=1e-12, lsmr_tol="auto", max_iter=500)
+    out = np.asarray(res.x, float)
+    # exactly on the bound where the solver stopped within its tolerance of it
+    near = np.isfinite(lower) & (out - lower <= 1e-9 * max(1.0, float(np.max(np.abs(start)))))
+    out[near] = lower[near]
+    return out

@@ -25,6 +25,7 @@ from .estimation import (
     JointFactors,
     LeastSquares,
     batch_means_covariance,
+    bounded_quadratic,
     correlation_length,
     factor_columns,
     solve_factors,
@@ -65,6 +66,11 @@ class IdentifyOptions:
     # a load-dependent friction's load parameters (10 per link) fixed: one fit with that load
     # instead of the fixed-point passes (a refit close to a fit already made: the diagnosis)
     load_parameters: tuple[float, ...] | None = None
+    # effect parameters held >= 0 in the fit itself (bounded least squares, the prior's penalty
+    # included), by column name ("fv3", "ks2"): the diagnosis's findings, whose physics bounds
+    # them (friction dissipative, inertia and a passive spring's stiffness positive). Empty for
+    # `armid identify`: a declared effect is fitted as declared
+    nonnegative: tuple[str, ...] = ()
 
 
 PRIORS = ("modeled", "none")
@@ -697,7 +703,31 @@ def _fit_with_prior(robot: Robot, names: list[str], effects: list[LinearEffect],
             notes.append("prior: the data contradict the modeled values beyond any width; least squares alone")
     elif options.prior == "modeled":
         notes.append("prior: none (the robot file models no link's inertial values); least squares alone")
+    if options.nonnegative:
+        est, tau_hat = _bounded(system, names, base, factors, est, penalty, None if prior is None else prior.mean, options.nonnegative, notes)
     return est, tau_hat, penalty, prior_doc
+
+
+def _bounded(system: Array, names: list[str], base: BaseParameters, factors: JointFactors, est: LeastSquares, penalty: Array | None,
+             mean: Array | None, nonnegative: tuple[str, ...], notes: list[str]) -> tuple[LeastSquares, Array]:
+    """``est`` refitted with the parameters named in ``nonnegative`` held >= 0: the same
+    weighted least squares (and prior penalty) with bounds (estimation.bounded_quadratic);
+    the covariance stays the unbounded fit's. A bounded parameter that is not a base column
+    of its own (absorbed into a combination) is left free."""
+    lower = np.array([0.0 if names[c] in nonnegative else -np.inf for c in base.independent])
+    if not np.isfinite(lower).any() or np.all(est.beta[np.isfinite(lower)] >= 0.0):
+        return est, _system_torque(system, names, base.independent, est.beta)
+    weights = 1.0 / np.maximum(est.joint_sigma, 1e-300) if est.weighting == "wls" else np.ones(system.shape[0])
+    r = factors.combined(weights)
+    rr, z = r[:-1, :-1], r[:-1, -1]
+    h, g = rr.T @ rr, rr.T @ z
+    if penalty is not None and mean is not None:
+        h, g = h + penalty, g + penalty @ mean
+    beta = bounded_quadratic(h, g, lower)
+    held = [names[c] for c, b, lo in zip(base.independent, beta, lower) if np.isfinite(lo) and b <= lo]
+    notes.append("bounded least squares: " + (", ".join(held) + " held at 0" if held else "no bound active")
+                 + " (friction dissipative, inertia and stiffness positive); standard deviations of the unbounded fit")
+    return replace(est, beta=beta), _system_torque(system, names, base.independent, beta)
 
 
 def _measure_errors(result: IdentificationResult, segments: list[Segment], validation: list[Prepared] | None, equations: int) -> None:

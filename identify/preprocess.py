@@ -121,6 +121,7 @@ class Prepared:
     dropped_rows: int = 0
     rows: int = 0  # rows in the recording
     band: Band | None = None
+    torque_from_current: bool | None = None  # the recording's (Recording.torque_from_current)
 
     @property
     def n_samples(self) -> int:
@@ -263,7 +264,7 @@ def prepare(rec: Recording, robot: Robot, options: PrepareOptions | None = None)
         derived.append("acceleration from velocity")
     if derived:
         notes.append(f"{' and '.join(derived)} by the 5-point least-squares filter (Khosla 5.1), sharpened")
-    prepared = Prepared(segments, notes, int(bad.sum()), rec.n_samples, band)
+    prepared = Prepared(segments, notes, int(bad.sum()), rec.n_samples, band, rec.torque_from_current)
     if left_out:
         notes.append(f"{left_out} of {rec.n_samples} input samples are not predicted (garbage rows, segments too short)")
     return prepared

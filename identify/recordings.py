@@ -30,6 +30,10 @@ class Recording:
     torque_held: bool = False  # torque held over the period before each stamp (drive currents)
     cycle: Array | None = None  # each sample's cycle counter (a drive recording), else None
     period_s: float | None = None  # the cycle's nominal period, where the recording says it (its metadata), else None
+    # where the torque comes from: True, a measured current times a torque constant (a drive's
+    # gain is in question); False, joint torque given directly (a torque sensor: no drive gain
+    # between it and the model); None, not said (arrays made in memory, a simulated drive's)
+    torque_from_current: bool | None = None
 
     @property
     def n_samples(self) -> int:

@@ -841,7 +841,8 @@ def blind_specs(kind: str, count: int, seed0: int = 0, effects: list[str] | None
     velocity or not, torque or current, jitter or not, all rotating at co-prime periods.
     ``effects``: each effect (all of EFFECTS by default) on ``count`` seeds, on a random joint,
     at sizes from barely above the noise floor to large (``snrs``: whole-arm effect / noise,
-    rotating), sensors rotating as for clean. Effect case k uses seed0 + k like clean case k:
+    rotating), sensors rotating as for clean, except that a torque gain's cases record currents
+    (a gain is a torque constant's error: a joint torque sensor has none). Effect case k uses seed0 + k like clean case k:
     the same arm and sensor draws (a paired design), only the effect differs.
     """
     rates, levels = (100.0, 200.0, 500.0, 1000.0), ("low", "medium", "high")
@@ -857,7 +858,10 @@ def blind_specs(kind: str, count: int, seed0: int = 0, effects: list[str] | None
         for e_index, name in enumerate(effects or list(EFFECTS)):
             for k in range(count):
                 m = e_index * count + k
-                out.append({"seed": seed0 + m, "effect": name, "effect_snr": snrs[m % len(snrs)], **sensor(m)})
+                spec = {"seed": seed0 + m, "effect": name, "effect_snr": snrs[m % len(snrs)], **sensor(m)}
+                if name == "torque_gain":  # a drive gain is a torque constant's error: it is in a recording of currents
+                    spec["currents"] = True
+                out.append(spec)
         return out
     raise ValueError(f"kind must be clean or effects, got {kind!r}")
 

@@ -180,8 +180,10 @@ def test_a_finding_whose_final_fit_turns_its_sign_is_set_aside() -> None:
     grid's edge (v_s 1 rad/s) positive on the search's blocks came out fs -0.69 in the final
     fit with the other findings; it is set aside with the reason, the others refitted."""
     stribeck = Finding("stribeck_friction", 5, {"fs": -0.6926, "velocity": 1.0}, 0.05, 0.02, 0.019)
-    kept = [Finding("rotor_inertia", 3, {"ia": 0.94}, 0.2, 0.05, 0.03), Finding("spring", 2, {"stiffness": -3.0}, 0.1, 0.03, 0.02),
+    kept = [Finding("rotor_inertia", 3, {"ia": 0.94}, 0.2, 0.05, 0.03), Finding("spring", 2, {"stiffness": 3.0}, 0.1, 0.03, 0.02),
             Finding("load_dependent_coulomb", 1, {"fc": -0.1, "fl": 0.05}, 0.1, 0.03, 0.02)]
-    assert _sign_reversed([*kept, stribeck]) == [stribeck]
+    pushing = Finding("spring", 4, {"stiffness": -3.0}, 0.1, 0.03, 0.02)  # pushes away from its rest: no passive spring (issue 33)
+    held = Finding("viscous_friction", 0, {"fv": 0.0}, 0.1, 0.03, 0.02)  # held at its bound by the bounded fit: explains nothing
+    assert _sign_reversed([*kept, stribeck, pushing, held]) == [stribeck, pushing, held]
     text = set_aside_sentence({"effect": "stribeck_friction", "joint": 6, "parameters": stribeck.parameters, "reason": "sign"})
     assert "fs came out -0.6926" in text and "not physical" in text

@@ -17,7 +17,7 @@ from .output import _inputs_read, _show, strict_json
 
 
 def _diagnose(args: argparse.Namespace) -> int:
-    from armid.identify.diagnosis import extrapolation_sentence, set_aside_sentence
+    from armid.identify.diagnosis import extrapolation_sentence, negligible_sentence, set_aside_sentence
     from armid.io.recordings import write_csv
 
     from .. import pipeline
@@ -51,6 +51,10 @@ def _diagnose(args: argparse.Namespace) -> int:
         print(f.sentence())
     if not diag.found:
         print("nothing significant found: the declared model explains the data to its noise")
+    for x in diag.negligible:
+        print(f"not a finding: {negligible_sentence(x)}")
+    for note in diag.notes:
+        print(note)
     for a in diag.absorbed:
         print(f"absorbed (not a finding): {a['effect']} on joint {a['joint']} joins {a['into']}")
     for c in diag.conflicting:

@@ -93,7 +93,7 @@ def _read_mcap(path: Path, robot: Robot) -> Recording:
         kt = np.array([j.torque_constant for j in robot.joints])
         tau, how = arrays["measured_current"][keep] * kt, "torque = measured current x torque_constant"
     return Recording(str(path), t, arrays["position"][keep], tau, velocity, None, None, notes + [how], torque_held=True,
-                     cycle=arrays["cycle"][keep], period_s=_period(metadata))
+                     cycle=arrays["cycle"][keep], period_s=_period(metadata), torque_from_current=True)
 
 
 def _period(metadata: dict[str, str]) -> float | None:
@@ -203,7 +203,7 @@ def _read_csv(path: Path, robot: Robot) -> Recording:
         kt = np.array([j.torque_constant for j in robot.joints])
         tau = tau * kt
         notes.append("torque from currents i1..in times each joint's torque_constant")
-    return Recording(str(path), data[:, 0], q, tau, qd, qdd, lines, notes)
+    return Recording(str(path), data[:, 0], q, tau, qd, qdd, lines, notes, torque_from_current=not use_tau)
 
 
 def _read_npz(path: Path, robot: Robot) -> Recording:
@@ -241,6 +241,7 @@ def _read_npz(path: Path, robot: Robot) -> Recording:
         arrays.get("accelerations"),
         np.arange(t.shape[0]),
         [],
+        torque_from_current=False,  # 'torques': joint torque as measured (the KUKA LWR4+'s joint torque sensors)
     )
 
 
