@@ -593,8 +593,6 @@ class _Search:
             warnings.simplefilter("ignore", PoorExcitationWarning)
             _refine_delays(self.settled, found, self.experiments, self.load0)  # the declared settings as chosen: a delay's fit per try
             result1 = self._fit_findings(found)
-            # friction or inertia whose sign the whole fit turns (the search saw it positive on its
-            # blocks): not physical, so not a finding; the rest refitted without it
             # friction, inertia or a spring the whole fit holds at its bound (the search saw it
             # positive on its blocks): it explains nothing, so it is not a finding; the rest refitted
             reversed_sign = _sign_reversed(found)
@@ -613,7 +611,8 @@ class _Search:
     def _material(self, found: list[Finding], result1: IdentificationResult) -> tuple[list[Finding], IdentificationResult, list[dict[str, Any]]]:
         """Each finding judged by the validation error it removes (MATERIALITY): added in the
         order found to the declared model and the findings kept before it, fitted as `identify`
-        fits; one that lowers the error by less than MATERIALITY of itself is negligible,
+        fits; one that removes less than MATERIALITY of the error's power above the validation's
+        noise floor (or raises the error) is negligible,
         reported with its torque's rms at the validation stamps and left out. The validation
         only removes findings here, as in gate (f): it never ranks them."""
         segments = self.validation_segments
