@@ -75,7 +75,8 @@ from .diagnosis_report import (
     negligible_sentence,
     set_aside_sentence,
 )
-from .diagnosis_scoring import _Absorbed, _fit_round, _phi_hat, _Round, _score, _Scored
+from .diagnosis_scoring import _Absorbed, _fit_round, _phi_hat, _Round, _score, _Scored, joint_moments
+from .equations import reused_equations
 from .errors import PoorExcitationWarning
 from .identification import (
     IdentificationResult,
@@ -140,10 +141,11 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
 
     On one BLAS thread: its products are small (a candidate's few columns against the
     model's), and OpenBLAS's threads on them cost several times the work on a 2-core machine
-    (22.8x the plain pipeline, issue 34; ``benchmarks/bench_diagnose.py``)."""
+    (22.8x the plain pipeline, issue 34; ``benchmarks/bench_diagnose.py``). Its fits share
+    each recording's filtered equations (:func:`~identify.equations.reused_equations`)."""
     from threadpoolctl import threadpool_limits
 
-    with threadpool_limits(1, "blas"):
+    with threadpool_limits(1, "blas"), reused_equations():
         search = _Search(robot, experiments, validation, options or DiagnoseOptions())
         for _ in range(search.opts.max_findings):
             if not search.add_one():
@@ -288,8 +290,10 @@ class _Search:
         """Every candidate not present scored against the round (:func:`_score`); one whose columns
         lie in the model's span is reported as absorbed."""
         scored: list[_Scored] = []
-        for c in _candidates(self.robot, self.ident, self.present | self.absorbed_keys, self.ctx, self.opts.max_cogging_per_turn):
-            s = _score(c, rnd, self.ident, self.held, self.wt_i, self.wt_v, self.n_used, self.sample_period)
+        candidates = _candidates(self.robot, self.ident, self.present | self.absorbed_keys, self.ctx, self.opts.max_cogging_per_turn)
+        moments = joint_moments(candidates, rnd, self.ident, self.held, self.wt_i, self.wt_v)
+        for c in candidates:
+            s = _score(c, rnd, self.ident, self.held, self.wt_i, self.wt_v, self.n_used, self.sample_period, moments.get(id(c)))
             if isinstance(s, _Absorbed):
                 self._absorb(c, s.projection, rnd)
             elif s is not None:

@@ -186,14 +186,15 @@ class _Absorbed:
 
 
 def _score(c: Candidate, rnd: _Round, ident: _Data, held: _Data, wt_i: Array, wt_v: Array, n_used: int,
-           sample_period: float) -> _Scored | _Absorbed | None:
+           sample_period: float, moments: Moments | None = None) -> _Scored | _Absorbed | None:
     """The refit with ``c`` scored by Frisch-Waugh (:func:`_fit_round`), or None when it cannot
     be a finding: columns that are not finite or all zero, a singular refit, an effect whose
     best admissible fit (friction, inertia and spring bounded at 0) holds its defining
-    parameter at the bound, a delay within half a sample period."""
+    parameter at the bound, a delay within half a sample period. ``moments``: its products,
+    when :func:`joint_moments` computed them with its joint's other candidates'."""
     if c.effect == "torque_gain":
         return _score_gain(c, rnd, n_used)
-    proj, ctc, ctr, gv, cv_res, cvcv, cv_full = _moments(c, rnd, ident, held, wt_i, wt_v)
+    proj, ctc, ctr, gv, cv_res, cvcv, cv_full = moments if moments is not None else _moments(c, rnd, ident, held, wt_i, wt_v)
     if not np.isfinite(ctc).all() or not np.any(np.diag(ctc) > 0):
         return None
     schur = ctc - proj.T @ proj
@@ -242,8 +243,36 @@ def _score_gain(c: Candidate, rnd: _Round, n_used: int) -> _Scored | None:
     return _Scored(rss_v1, float(stats.f.sf(f_stat, 1, dof)), c, np.array([scale - 1.0]), None, pred_exact, None)
 
 
+Moments = tuple[Array, Array, Array, Array, Array, Array, Array | None]
+"""What :func:`_moments` gives: ``P, C^T C, C^T r, G^T Cv, Cv^T res_v, Cv^T Cv`` and the held-out columns of an arm-wide candidate."""
+
+
+def joint_moments(candidates: list[Candidate], rnd: _Round, ident: _Data, held: _Data, wt_i: Array, wt_v: Array) -> dict[int, Moments]:
+    """:func:`_moments` of every one-joint candidate (by ``id``), joint by joint in one matrix
+    product over all of the joint's candidates' columns: the round's rows are read once a
+    joint instead of once a candidate (hundreds a round, most of them cogging periods)."""
+    nj = rnd.n_joints
+    out: dict[int, Moments] = {}
+    for j in range(nj):
+        mine = [(c, c.block) for c in candidates if c.block is not None and c.joint == j and c.effect != "torque_gain"]
+        if not mine:
+            continue
+        bis = [block(ident) * wt_i[j::nj, None] for _, block in mine]
+        bvs = [block(held) * wt_v[j::nj, None] for _, block in mine]
+        bi, bv = np.hstack(bis), np.hstack(bvs)
+        rows = rnd.rows_of_joint[j]
+        proj, gv = rows.q_t @ bi, rows.g_t @ bv
+        ctr, cv_res = bi.T @ rnd.r[j::nj], bv.T @ rnd.res_v[j::nj]
+        k = 0
+        for (c, _), a, v in zip(mine, bis, bvs):
+            cols = slice(k, k + a.shape[1])
+            k += a.shape[1]
+            out[id(c)] = (proj[:, cols], a.T @ a, ctr[cols], gv[:, cols], cv_res[cols], v.T @ v, None)
+    return out
+
+
 def _moments(c: Candidate, rnd: _Round, ident: _Data, held: _Data, wt_i: Array,
-             wt_v: Array) -> tuple[Array, Array, Array, Array, Array, Array, Array | None]:
+             wt_v: Array) -> Moments:
     """The products of a candidate's whitened columns Frisch-Waugh needs: ``P = Q^T C``,
     ``C^T C``, ``C^T r``, ``G^T Cv``, ``Cv^T res_v``, ``Cv^T Cv``, and the held-out columns
     themselves for an arm-wide candidate (None for one that lives in its joint's rows: only

@@ -11,12 +11,18 @@ before anything is filtered.
 
 from __future__ import annotations
 
-from dataclasses import replace
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
+from dataclasses import dataclass, field, replace
+from functools import partial
+from typing import Any
 
 import numpy as np
 
 from .dynamics import regressor
 from .effects import LinearEffect, LoadFriction, effect_columns
+from .filtering import ParallelFilter
 from .preprocess import Segment
 from .robot import Robot
 from .spatial import Array
@@ -61,11 +67,12 @@ def _advanced(x: Array, t: Array, delay: Array | None) -> Array:
 
 
 def equations(robot: Robot, effects: list[LinearEffect], seg: Segment, scale: Array | None = None, delay: Array | None = None,
-              motion_delay: Array | None = None) -> Array:
+              motion_delay: Array | None = None, rigid: bool = True) -> Array:
     """(n, N, p+1): the regressor's columns and the torque of one segment, at its samples (at
     the kept ones only when it has no low-pass); :func:`_into_system` puts them through the
     segment's parallel filter (low-pass, edges, decimation): eq. (18) as least squares sees it.
-    ``scale``/``delay`` (per joint) undo a found drive gain and sensor delay on the torque."""
+    ``scale``/``delay`` (per joint) undo a found drive gain and sensor delay on the torque.
+    ``rigid=False`` leaves the rigid-body columns unset (their equations are reused)."""
     nj = robot.n_joints
     n_cols = column_count(robot, effects)
     filt = seg.parallel
@@ -77,25 +84,98 @@ def equations(robot: Robot, effects: list[LinearEffect], seg: Segment, scale: Ar
     else:
         tau = tau_all
     m = np.empty((q.shape[0], nj, n_cols + 1))
-    regressor(robot, q, qd, qdd, out=m[:, :, : 10 * nj])
+    if rigid:
+        regressor(robot, q, qd, qdd, out=m[:, :, : 10 * nj])
     if effects:
-        m[:, :, 10 * nj : n_cols] = effect_columns(effects, q, qd, qdd, rigid=m[:, :, : 10 * nj])
+        m[:, :, 10 * nj : n_cols] = effect_columns(effects, q, qd, qdd, rigid=m[:, :, : 10 * nj] if rigid else None)
     m[:, :, n_cols] = tau
     return m
 
 
-def _into_system(system: Array, start: int, m: Array, seg: Segment) -> int:
+def _through(filt: ParallelFilter, x: Array, keep: bool = True) -> Array:
+    """Columns ``x`` (n, k) through the parallel filter (``keep=False``: the low-pass alone,
+    every sample); a column of zeros (eq. 18 is block upper triangular: joint j's row has none
+    of links i < j, nor other joints' effects) stays zero without being filtered, which is
+    half the filtering of a 6-joint arm."""
+    if filt.cutoff_hz is None:
+        return x
+    run = filt.apply if keep else filt.smooth
+    live = np.flatnonzero(np.any(x != 0.0, axis=0))
+    if live.size == x.shape[1]:
+        return run(x)
+    out = np.zeros((filt.kept(x.shape[0]).size if keep else x.shape[0], x.shape[1]))
+    if live.size:
+        out[:, live] = run(x[:, live])
+    return out
+
+
+def _into_system(system: Array, start: int, m: Array, seg: Segment, n_rigid: int, rigid: list[Array] | None = None) -> tuple[int, list[Array]]:
     """Joint by joint, the segment's equations ``m`` (n, N, p+1) through its parallel filter
     into ``system[j, :, start:]`` (no intermediate copy of all joints), transposed in blocks of
-    512 samples that stay in cache. Returns the equations written."""
+    512 samples that stay in cache. The first ``n_rigid`` columns (the rigid body's) are
+    filtered apart from the others, or taken from ``rigid`` (each joint's, filtered before).
+    Returns the equations written and each joint's filtered rigid-body rows."""
     filt = seg.parallel
     n = 0
+    done = []
     for j in range(m.shape[1]):
-        rows = m[:, j, :] if filt.cutoff_hz is None else filt.apply(m[:, j, :])
-        n = rows.shape[0]
-        for b in range(0, n, 512):
-            system[j, :, start + b : start + min(b + 512, n)] = rows[b : b + 512].T
-    return n
+        rows_rigid = _through(filt, m[:, j, :n_rigid]) if rigid is None else rigid[j]
+        rows_rest = _through(filt, m[:, j, n_rigid:])
+        done.append(rows_rigid)
+        n = rows_rest.shape[0]
+        for first, rows in ((0, rows_rigid), (n_rigid, rows_rest)):
+            for b in range(0, n, 512):
+                system[j, first : first + rows.shape[1], start + b : start + min(b + 512, n)] = rows[b : b + 512].T
+    return n, done
+
+
+@dataclass
+class _Reused:
+    """What :func:`reused_equations` keeps: each segment's filtered rigid-body rows per joint
+    and filtered effect columns, by segment (held here, so that its ``id`` stays its own) and
+    by what they depend on (the robot's kinematics, a late position report, the effect)."""
+
+    rigid: dict[tuple[Any, ...], list[Array]] = field(default_factory=dict)
+    columns: dict[tuple[Any, ...], Array] = field(default_factory=dict)
+    segments: dict[int, Segment] = field(default_factory=dict)
+    bytes: int = 0
+
+    def key(self, seg: Segment, *parts: Any) -> tuple[Any, ...]:
+        self.segments[id(seg)] = seg
+        return (id(seg), *parts)
+
+    def keep(self, store: dict[tuple[Any, ...], Any], key: tuple[Any, ...], value: Any, size: int) -> None:
+        if self.bytes + size <= REUSED_BYTES:
+            store[key] = value
+            self.bytes += size
+
+
+REUSED_BYTES = 1024 * 2**20
+"""At most this much of filtered equations is kept by :func:`reused_equations` (a 6-joint
+arm's 40,000 equations take 115 MB); beyond, equations are computed as without it."""
+
+_REUSED: ContextVar[_Reused | None] = ContextVar("armid_reused_equations", default=None)
+
+
+@contextmanager
+def reused_equations() -> Iterator[None]:
+    """Within it, every fit on the same segments filters their rigid-body equations and each
+    effect's column once: the diagnosis fits the same recordings with a dozen models that
+    differ only in their effects, and filtering the regressor again for each took half its
+    time. The equations are the same as without it."""
+    token = _REUSED.set(_Reused())
+    try:
+        yield
+    finally:
+        _REUSED.reset(token)
+
+
+def _kinematics_key(robot: Robot, motion_delay: Array | None) -> tuple[Any, ...]:
+    """What a segment's rigid-body equations depend on besides the segment: the robot's
+    joints and gravity (not its inertial values: a tilted gravity is another key) and a late
+    position report."""
+    key = tuple(np.asarray(x, float).tobytes() for j in robot.joints for x in (j.pre, j.axis, j.post))
+    return (*key, bytes(j.revolute for j in robot.joints), np.asarray(robot.gravity, float).tobytes(), _motion_delay_key(motion_delay))
 
 
 EQUATION_BYTES = 256 * 2**20
@@ -116,7 +196,14 @@ def _segment_into_system(system: Array, start: int, robot: Robot, effects: list[
     n_cols = column_count(robot, effects)
     block = max(1, EQUATION_BYTES // (8 * robot.n_joints * (n_cols + 1)))
     if filt.cutoff_hz is None or n <= block + 2 * filt.settling:
-        return _into_system(system, start, equations(robot, effects, seg, scale, delay, motion_delay), seg)
+        reused = _REUSED.get()
+        key = None if reused is None else reused.key(seg, _kinematics_key(robot, motion_delay))
+        rigid = None if reused is None else reused.rigid.get(key)  # type: ignore[arg-type]
+        m = equations(robot, effects, seg, scale, delay, motion_delay, rigid=rigid is None)
+        written, rows = _into_system(system, start, m, seg, robot.n_parameters, rigid)
+        if reused is not None and rigid is None:
+            reused.keep(reused.rigid, key, rows, sum(r.nbytes for r in rows))  # type: ignore[arg-type]
+        return written
     kept = filt.kept(n)
     written = 0
     for a in range(0, n, block):
@@ -126,7 +213,7 @@ def _segment_into_system(system: Array, start: int, robot: Robot, effects: list[
         m = equations(robot, effects, part, scale, delay, motion_delay)
         mine = kept[(kept >= a) & (kept < b)] - lo
         for j in range(robot.n_joints):
-            system[j, :, start + written : start + written + mine.size] = filt.smooth(m[:, j, :])[mine].T
+            system[j, :, start + written : start + written + mine.size] = _through(filt, m[:, j, :], keep=False)[mine].T
         written += mine.size
     return written
 
@@ -154,7 +241,12 @@ def _equation_column(segments: list[Segment], effect: LinearEffect, motion_delay
     """An effect's one column through each segment's parallel filter, concatenated
     (``loads``: each segment's load torque for a load-dependent friction, computed once)."""
     out = []
+    reused = _REUSED.get()
     for k, seg in enumerate(segments):
+        key = None if reused is None or isinstance(effect, LoadFriction) else reused.key(seg, _effect_key(effect), _motion_delay_key(motion_delay))
+        if key is not None and key in reused.columns:  # type: ignore[union-attr]
+            out.append(reused.columns[key])  # type: ignore[union-attr]
+            continue
         filt = seg.parallel
         q, qd, qdd = (_advanced(x, seg.t, motion_delay) for x in (seg.q, seg.qd, seg.qdd))
         # a column is one joint's function of the samples: taken at every sample, then the
@@ -164,7 +256,21 @@ def _equation_column(segments: list[Segment], effect: LinearEffect, motion_delay
         else:
             col = effect.columns(q, qd, qdd)[:, 0]
         out.append(col[filt.kept(seg.n_samples)] if filt.cutoff_hz is None else filt.apply(col))
+        if key is not None:
+            reused.keep(reused.columns, key, out[-1], out[-1].nbytes)  # type: ignore[union-attr]
     return np.concatenate(out)
+
+
+def _effect_key(effect: LinearEffect) -> tuple[Any, ...]:
+    """What an effect's column is a function of: its joint and its column function (a
+    partial by its function and arguments, as :func:`~identify.effects.linear_effect` makes it anew each time)."""
+    fn = effect.column_function
+    what = (fn.func, fn.args, tuple(sorted(fn.keywords.items()))) if isinstance(fn, partial) else fn
+    return (type(effect), effect.joint, effect.parameter_names, what)
+
+
+def _motion_delay_key(motion_delay: Array | None) -> bytes | None:
+    return None if motion_delay is None else np.asarray(motion_delay, float).tobytes()
 
 
 def _segment_loads(segments: list[Segment], effect: LoadFriction, motion_delay: Array | None = None) -> list[Array]:
