@@ -154,14 +154,19 @@ def extrapolation_sentence(x: dict[str, Any]) -> str:
 
 
 def set_aside_sentence(c: dict[str, Any]) -> str:
-    """What the text and the report say of a candidate set aside: by gate (d) or (f), or because
-    the final fit turned the sign of its friction or inertia."""
+    """What the text and the report say of a candidate set aside: by gate (d) or (f), because
+    the final fit turned the sign of its friction or inertia, or because it raised the
+    validation error in the final fit."""
     where = "the arm" if c["joint"] is None else f"joint {c['joint']}"
-    if c.get("reason") == "validation":
+    if c.get("reason") == "validation" and "t" in c:  # gate (f): the search's fit, its joint's error
         return (f"{c['effect'].replace('_', ' ')} on {where}: it cleared the held-out tests on the identification data, but on the "
                 f"validation data it takes {where}'s error from {100 * c['validation_error_before']:.3g} % to "
                 f"{100 * c['validation_error_with']:.3g} %, over most of its tenths (t = {c['t']:.2g}): it does not hold beyond "
                 "the run it was found on")
+    if c.get("reason") == "validation":  # the materiality test: the final fit, the arm's error
+        return (f"{c['effect'].replace('_', ' ')} on {where}: it cleared the held-out tests on the identification data, but fitted "
+                f"with the findings before it on all of them it takes the validation error from {100 * c['validation_error_before']:.3g} % "
+                f"to {100 * c['validation_error_with']:.3g} %: it does not hold beyond the run it was found on")
     if c.get("reason") == "sign":
         name = DISSIPATIVE_PARAMETER[c["effect"]]
         value = c["parameters"][name]
