@@ -41,11 +41,9 @@ class _Data:
     def filtered(self, fn: ColumnFunction) -> Array:
         """``fn(q, qd, qdd)`` -> (n, k) as the equations see it (see ``full_rate``); the same
         function (a partial: the same function and arguments) is computed once per data set."""
-        if self.full_rate is None:
-            return fn(self.q, self.qd, self.qdd)
         key = (fn.func, fn.args, tuple(sorted(fn.keywords.items()))) if isinstance(fn, functools.partial) else fn
-        if key not in self._cache:
-            self._cache[key] = self.full_rate(fn)
+        if key not in self._cache:  # without a full rate too: a joint's cogging periods are one array, read period by period
+            self._cache[key] = fn(self.q, self.qd, self.qdd) if self.full_rate is None else self.full_rate(fn)
         return self._cache[key]
 
     @property

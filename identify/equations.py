@@ -133,7 +133,7 @@ def _into_system(system: Array, start: int, m: Array, seg: Segment, n_rigid: int
 class _Reused:
     """What :func:`reused_equations` keeps: each segment's filtered rigid-body rows per joint
     and filtered effect columns, by segment (held here, so that its ``id`` stays its own) and
-    by what they depend on (the robot's kinematics, a late position report, the effect)."""
+    by what they depend on (the robot's kinematics, the effect); none with a late position report."""
 
     rigid: dict[tuple[Any, ...], list[Array]] = field(default_factory=dict)
     columns: dict[tuple[Any, ...], Array] = field(default_factory=dict)
@@ -150,9 +150,9 @@ class _Reused:
             self.bytes += size
 
 
-REUSED_BYTES = 1024 * 2**20
+REUSED_BYTES = 512 * 2**20
 """At most this much of filtered equations is kept by :func:`reused_equations` (a 6-joint
-arm's 40,000 equations take 115 MB); beyond, equations are computed as without it."""
+arm's 40,000 equations take 110 MB); beyond, equations are computed as without it."""
 
 _REUSED: ContextVar[_Reused | None] = ContextVar("armid_reused_equations", default=None)
 
@@ -170,12 +170,11 @@ def reused_equations() -> Iterator[None]:
         _REUSED.reset(token)
 
 
-def _kinematics_key(robot: Robot, motion_delay: Array | None) -> tuple[Any, ...]:
+def _kinematics_key(robot: Robot) -> tuple[Any, ...]:
     """What a segment's rigid-body equations depend on besides the segment: the robot's
-    joints and gravity (not its inertial values: a tilted gravity is another key) and a late
-    position report."""
+    joints and gravity (not its inertial values: a tilted gravity is another key)."""
     key = tuple(np.asarray(x, float).tobytes() for j in robot.joints for x in (j.pre, j.axis, j.post))
-    return (*key, bytes(j.revolute for j in robot.joints), np.asarray(robot.gravity, float).tobytes(), _motion_delay_key(motion_delay))
+    return (*key, bytes(j.revolute for j in robot.joints), np.asarray(robot.gravity, float).tobytes())
 
 
 EQUATION_BYTES = 256 * 2**20
@@ -196,8 +195,8 @@ def _segment_into_system(system: Array, start: int, robot: Robot, effects: list[
     n_cols = column_count(robot, effects)
     block = max(1, EQUATION_BYTES // (8 * robot.n_joints * (n_cols + 1)))
     if filt.cutoff_hz is None or n <= block + 2 * filt.settling:
-        reused = _REUSED.get()
-        key = None if reused is None else reused.key(seg, _kinematics_key(robot, motion_delay))
+        reused = _REUSED.get() if motion_delay is None else None  # a late report's equations: one delay's try each
+        key = None if reused is None else reused.key(seg, _kinematics_key(robot))
         rigid = None if reused is None else reused.rigid.get(key)  # type: ignore[arg-type]
         m = equations(robot, effects, seg, scale, delay, motion_delay, rigid=rigid is None)
         written, rows = _into_system(system, start, m, seg, robot.n_parameters, rigid)
@@ -243,7 +242,7 @@ def _equation_column(segments: list[Segment], effect: LinearEffect, motion_delay
     out = []
     reused = _REUSED.get()
     for k, seg in enumerate(segments):
-        key = None if reused is None or isinstance(effect, LoadFriction) else reused.key(seg, _effect_key(effect), _motion_delay_key(motion_delay))
+        key = None if reused is None or motion_delay is not None or isinstance(effect, LoadFriction) else reused.key(seg, _effect_key(effect))
         if key is not None and key in reused.columns:  # type: ignore[union-attr]
             out.append(reused.columns[key])  # type: ignore[union-attr]
             continue
@@ -268,9 +267,6 @@ def _effect_key(effect: LinearEffect) -> tuple[Any, ...]:
     what = (fn.func, fn.args, tuple(sorted(fn.keywords.items()))) if isinstance(fn, partial) else fn
     return (type(effect), effect.joint, effect.parameter_names, what)
 
-
-def _motion_delay_key(motion_delay: Array | None) -> bytes | None:
-    return None if motion_delay is None else np.asarray(motion_delay, float).tobytes()
 
 
 def _segment_loads(segments: list[Segment], effect: LoadFriction, motion_delay: Array | None = None) -> list[Array]:
