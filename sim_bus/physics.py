@@ -189,6 +189,7 @@ class ArmPhysics:
         ry = np.array([[np.cos(ay), 0, np.sin(ay)], [0, 1, 0], [-np.sin(ay), 0, np.cos(ay)]])
         self.model.gravity = pin.Motion(ry @ rx @ np.asarray(robot.gravity, float), np.zeros(3))
         self._data = self.model.createData()
+        self._upper = np.triu(np.ones((self.model.nv, self.model.nv), bool))  # crba fills the upper triangle
         self._last_inertia = self.model.inertias[self.n].copy()
         self.kt = np.array([j.torque_constant for j in robot.joints], float)
         self.gain = np.array([config.effects(j).torque_gain for j in range(self.n)])
@@ -267,11 +268,14 @@ class ArmPhysics:
         Euler for friction, stable however stiff); braked joints have ``a = 0``."""
         pin = self._pin
         free = np.ones(self.n, bool) if braked is None else ~np.asarray(braked, bool)
-        qd = np.where(free, qd, 0.0)
+        every = bool(free.all())
+        qd = qd if every else np.where(free, qd, 0.0)
         mass = pin.crba(self.model, self._data, q)
-        mass = np.triu(mass) + np.triu(mass, 1).T
+        mass = np.where(self._upper, mass, mass.T)
         bias = pin.rnea(self.model, self._data, q, qd, np.zeros(self.n))
         slope = self.friction_slope(qd) + extra_slope
+        if every:  # the common case, without the index arrays (this runs every sub-step)
+            return np.linalg.solve(mass + self.dt * np.diag(slope), tau - bias)
         acc = np.zeros(self.n)
         if free.any():
             lhs = mass[np.ix_(free, free)] + self.dt * np.diag(slope[free])
