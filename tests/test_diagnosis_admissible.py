@@ -208,6 +208,32 @@ def test_a_finding_that_raises_the_validation_error_is_set_aside_not_negligible(
     assert "cogging on joint 2" in text and "from 1.8 % to 1.9 %" in text and "negligible" not in text
 
 
+def test_a_stribeck_peak_below_the_materiality_leaves_its_coulomb_friction() -> None:
+    """A Stribeck finding is judged twice: as a whole against the model before it, and its
+    peak against its own Coulomb level. On the nearly noise-free PUMA 560 example a Coulomb
+    friction's best Stribeck term (a peak 0.06 % of the Coulomb level) fitted the held-out
+    blocks better and was named; here a peak that takes 1.800 % to 1.799 % after its Coulomb
+    level is negligible, with its size, and the finding is the Coulomb friction; a peak that
+    takes 1.80 % to 1.70 % stays Stribeck."""
+    n = 1000
+    base = np.zeros((n, 2))
+    for with_peak, expect in ((0.01799, "coulomb_friction"), (0.0170, "stribeck_friction")):
+        stribeck = Finding("stribeck_friction", 1, {"fc": 2.0, "fs": 0.5, "velocity": 0.1}, 0.1, 0.02, 0.01)
+        fits = {(): _Fit(0.0200, base), ("stribeck_friction",): _Fit(with_peak, base + [0.0, 0.6]),
+                ("coulomb_friction",): _Fit(0.0180, base + [0.0, 0.5])}
+        search = SimpleNamespace(validation_segments=[], validation=[], result0=fits[()], conflicting=[],
+                                 _fit_findings=lambda found, fits=fits: fits[tuple(f.effect for f in found)])
+        kept, fit, negligible = _Search._material(search, [stribeck], fits[("stribeck_friction",)])  # type: ignore[arg-type]
+        assert [f.effect for f in kept] == [expect]
+        if expect == "coulomb_friction":
+            assert kept[0].parameters == {"fc": 2.0} and fit is fits[("coulomb_friction",)]
+            (x,) = negligible
+            assert (x["effect"], x["joint"], x["kept"]) == ("stribeck_friction", 2, "coulomb_friction")
+            assert x["torque_rms"] == pytest.approx(0.1) and (x["validation_error_before"], x["validation_error_with"]) == (0.0180, with_peak)
+        else:
+            assert negligible == [] and fit is fits[("stribeck_friction",)]
+
+
 @pytest.mark.parametrize("index", [1, 3])  # jittered clean blind cases: 200 Hz medium noise, 1 kHz low noise
 def test_the_noise_floor_of_a_jittered_recording_is_the_raw_torques(index: int, tmp_path: Path) -> None:
     """The materiality is judged above the noise floor: a floor read low counts noise as error
