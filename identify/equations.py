@@ -268,7 +268,6 @@ def _effect_key(effect: LinearEffect) -> tuple[Any, ...]:
     return (type(effect), effect.joint, effect.parameter_names, what)
 
 
-
 def _segment_loads(segments: list[Segment], effect: LoadFriction, motion_delay: Array | None = None) -> list[Array]:
     """Each segment's load torque (n, N) for a load-dependent friction, at its samples."""
     return [effect.load(*(_advanced(x, seg.t, motion_delay) for x in (seg.q, seg.qd, seg.qdd))) for seg in segments]
