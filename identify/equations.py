@@ -201,6 +201,7 @@ def _segment_into_system(system: Array, start: int, robot: Robot, effects: list[
         m = equations(robot, effects, seg, scale, delay, motion_delay, rigid=rigid is None)
         written, rows = _into_system(system, start, m, seg, robot.n_parameters, rigid)
         if reused is not None and rigid is None:
+            rows = [r if r.base is None else r.copy() for r in rows]  # unfiltered rows are views of all of ``m``: keep only them
             reused.keep(reused.rigid, key, rows, sum(r.nbytes for r in rows))  # type: ignore[arg-type]
         return written
     kept = filt.kept(n)
