@@ -6,12 +6,18 @@ PDO mapping of the rig's plan (:mod:`drivers.pdo_plan`), written and then read b
 compared, and the motor data (encoder 0x608F, gear 0x6091, rated current 0x6075) read
 back and compared with the rig. Then NMT start, the master's heartbeat, and SYNC with a
 counter: a sequence of 240 frames that the kernel's broadcast manager cycles on socketcan
-(each echoed SYNC opens its cycle at its kernel time stamp), a thread otherwise.
+(each echoed SYNC opens its cycle at its kernel time stamp), a thread otherwise. The master's
+heartbeat goes out the same way: from the kernel on socketcan, else from the SYNC thread every
+few cycles, so that a loaded process cannot starve one of the two and not the other.
 
 Each cycle's record is keyed by the SYNC counter: a TPDO belongs to the oldest open cycle
 that still waits for it and whose SYNC went out before the frame (a drive answers SYNCs in
 order, and cannot answer one not yet sent). A record goes out as soon as every expected
 frame is in, or three periods after its SYNC with the missing joints marked invalid.
+
+A drive's heartbeat is lost when frames read from the bus are stamped more than three
+heartbeat periods after its last one: judged on bus time, up to what this process has read,
+so a reader thread that runs late (a loaded machine) is not mistaken for a silent drive.
 """
 
 from __future__ import annotations
@@ -45,6 +51,7 @@ SYNC_COB_ID = 0x80
 CONTROLWORD_REFRESH = 25
 PACE_WAIT_S = 0.05
 STALL_S = 0.05  # a watchdog call this late means this process (not the bus) was stalled
+BUS_SILENT_S = 1.0  # nothing at all read from the bus for this long: every drive is lost (or this process's reader is)
 TARGET_POSITION = (0x607A, 0, 32)
 NMT_OPERATIONAL = 0x05
 NMT_STATES = {0x00: "reset: its boot-up message came (an NMT reset or a power cycle); it is unconfigured until the recording restarts",
@@ -162,17 +169,19 @@ class CanopenDriver(Driver):
         self._sent_controlword = np.full(self.n_joints, -1, np.int64)
         self._commanded = np.zeros(self.n_joints)
         self._in_force = np.zeros(self.n_joints)
-        self._heartbeat = np.zeros(self.n_joints)
+        self._heartbeat = np.zeros(self.n_joints)  # bus stamp of each drive's last heartbeat
+        self._newest_stamp = 0.0  # bus stamp of the newest frame read, from any node
+        self._last_read = time.monotonic()  # when the reader last read a frame
         self._last_watch = time.monotonic()
         self.last_stall: tuple[float, float] = (0.0, 0.0)  # (monotonic time, s) of the newest cycle this process ran late
-        self.unscheduled_s = 0.0  # s this process was not scheduled (stalls over STALL_S), excused from heartbeat supervision
+        self.unscheduled_s = 0.0  # s this process was not scheduled (stalls over STALL_S)
         self.last_sync_sent = time.monotonic()  # when the SYNC thread last sent one
         self.longest_sync_gap = 0.0  # s between two SYNCs the thread sent, the longest since start
         self._silent = np.zeros(self.n_joints, bool)  # no heartbeat: lost
         self._nmt = np.full(self.n_joints, -1, np.int64)  # each drive's NMT state as its heartbeat says
         self._not_operational = np.zeros(self.n_joints, bool)  # was operational, reports another state
         self._nmt_supervised = False  # from NMT start all on: before, the drives are sent to pre-operational on purpose
-        self._hb_task: can.broadcastmanager.CyclicSendTaskABC | None = None
+        self._hb_task: can.broadcastmanager.CyclicSendTaskABC | _CycleHeartbeat | None = None
         self._bcm_task: can.broadcastmanager.CyclicSendTaskABC | None = None
         self.late_frames = np.zeros(self.n_joints, np.int64)
         self.lost_cycles = np.zeros(self.n_joints, np.int64)
@@ -245,11 +254,14 @@ class CanopenDriver(Driver):
         # for 100-170 ms in a large process (measured in the test process), more than the
         # drives' heartbeat consumer time allows once they are started
         self._settings.freeze()
-        self._heartbeat[:] = time.monotonic()
-        self._last_watch = time.monotonic()
-        self._hb_task = self._bus.send_periodic(
-            can.Message(arbitration_id=0x700 + r.master_node_id, data=[0x05], is_extended_id=False), r.master_heartbeat_ms / 1000.0
-        )
+        # as if each drive's heartbeat came with the newest frame read (an SDO answer)
+        self._heartbeat[:] = self._newest_stamp
+        self._last_watch = self._last_read = time.monotonic()
+        heartbeat = can.Message(arbitration_id=0x700 + r.master_node_id, data=[0x05], is_extended_id=False)
+        if r.bus.interface == "socketcan":
+            self._hb_task = self._bus.send_periodic(heartbeat, r.master_heartbeat_ms / 1000.0)
+        else:
+            self._hb_task = _CycleHeartbeat(heartbeat, round(r.master_heartbeat_ms / 1000.0 / self.period_s))
         # a drive is supervised from its first operational heartbeat after this start: one that
         # was operational before (a previous run) and went pre-operational above is not lost
         self._nmt[:] = -1
@@ -421,6 +433,8 @@ class CanopenDriver(Driver):
                 self.longest_sync_gap = max(self.longest_sync_gap, sent - self.last_sync_sent)
                 self.last_sync_sent = sent
                 self._send_commands()
+                if isinstance(self._hb_task, _CycleHeartbeat) and self._hb_task.due(self._cycle):
+                    self._bus.send(self._hb_task.frame)
             except can.CanError as err:
                 self._event("bus", f"cannot send SYNC {counter}: {err}")
             self._watchdog()
@@ -556,25 +570,35 @@ class CanopenDriver(Driver):
         if stall > 2 * self.period_s:
             self.last_stall = (now, stall + 2 * self.period_s)
         if stall > STALL_S:
-            # this process did not run: heartbeats sent meanwhile wait unread in the socket
-            self._heartbeat += stall
+            # this process did not run: frames sent meanwhile wait unread in the socket
+            self._last_read += stall
             self.unscheduled_s += stall
+        newest = self._newest_stamp  # read before the heartbeats: one read meanwhile only makes them younger
+        bus_silent = now - self._last_read > BUS_SILENT_S
         for d in self.rig.drives:
             j = d.joint
-            if not self._silent[j] and now - self._heartbeat[j] > limit:
-                self._silent[j] = True
-                others = [k for k in range(self.n_joints) if k != j]
-                self.quick_stop(others)
-                fault = HeartbeatLost(j, d.node_id, 0x8130, f"no heartbeat for {now - self._heartbeat[j]:.3f} s (3 periods: {limit:.3f} s); the other drives were quick-stopped")
-                self._faults.put(fault)
-                self._event("heartbeat_lost", str(fault), j)
+            age = newest - self._heartbeat[j]
+            if self._silent[j] or not (age > limit or bus_silent):
+                continue
+            self._silent[j] = True
+            self.quick_stop([k for k in range(self.n_joints) if k != j])
+            silent = age if age > limit else now - self._last_read
+            why = (f"no heartbeat for {age:.3f} s of bus time (3 periods: {limit:.3f} s)" if age > limit
+                   else f"nothing read from the bus for {silent:.3f} s")
+            fault = HeartbeatLost(j, d.node_id, 0x8130, f"{why}; the other drives were quick-stopped", silent_s=silent)
+            self._faults.put(fault)
+            self._event("heartbeat_lost", str(fault), j)
+
+    def _on_frame_read(self, stamp: float) -> None:
+        """Bus time as far as this process has read it: every frame, after the network's
+        handlers (the notifier calls them first), so a heartbeat is in before what follows it."""
+        self._newest_stamp = max(self._newest_stamp, stamp)
+        self._last_read = time.monotonic()
 
     def _on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
         node = can_id - 0x700
         j = self._node_ids[node]
-        # dated when read, not by its stamp: a heartbeat read late ages no faster (a drive
-        # simulated in this process sends late as often as this thread reads late)
-        self._heartbeat[j] = time.monotonic()
+        self._heartbeat[j] = max(self._heartbeat[j], timestamp or time.time())
         if self._silent[j]:
             self._silent[j] = False
             self._event("heartbeat_back", f"joint {j + 1} (node {node}) is back (NMT state 0x{data[0]:02X})" if data else
@@ -720,6 +744,23 @@ class CanopenDriver(Driver):
         self.network = None
 
 
+class _CycleHeartbeat:
+    """The master's heartbeat, sent by the SYNC thread every ``every`` cycles (the first
+    cycle included): where no kernel times it, a thread of its own waits for the interpreter
+    lock as any other, and a drive that saw SYNCs for 0.15 s without a heartbeat between
+    them faulted the arm on a loaded machine. :meth:`stop` stops it (a hung master)."""
+
+    def __init__(self, frame: can.Message, every: int) -> None:
+        self.frame, self.every = frame, max(1, every)
+        self.stopped = False
+
+    def due(self, cycle: int) -> bool:
+        return not self.stopped and (cycle - 1) % self.every == 0
+
+    def stop(self) -> None:
+        self.stopped = True
+
+
 class _Watcher(can.Listener):
     """Sees every frame: error frames and frames from nodes the rig does not have."""
 
@@ -730,6 +771,7 @@ class _Watcher(can.Listener):
 
     def on_message_received(self, msg: can.Message) -> None:
         d = self.driver
+        d._on_frame_read(msg.timestamp or time.time())
         if msg.is_error_frame:
             d.error_frames += 1
             now = time.monotonic()

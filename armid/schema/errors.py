@@ -142,7 +142,12 @@ class DriveFault(DriverError):
 
 
 class HeartbeatLost(DriveFault):
-    """No heartbeat from a drive within 3 of its periods."""
+    """No heartbeat from a drive within 3 of its periods; ``silent_s``, where known, is how
+    long it had been silent in bus time when the loss was declared."""
+
+    def __init__(self, joint: int, node_id: int, code: int, meaning: str, silent_s: float | None = None) -> None:
+        super().__init__(joint, node_id, code, meaning)
+        self.silent_s = silent_s
 
 
 class ServoLost(HeartbeatLost):
