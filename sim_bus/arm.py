@@ -97,7 +97,9 @@ class SimulatedArm:
         m = self.physics.step(demand, braked)
         self.syncs += 1
         self.log.append(self.syncs, counter, m)
+        now = time.monotonic()
         for d in self.drives:
+            d.heartbeat(now)
             d.on_sync(counter, m, timestamp)
         self.step_seconds.append(time.perf_counter() - start)
 
@@ -109,6 +111,7 @@ class SimulatedArm:
         while not self._stop.wait(0.002):
             now = time.monotonic()
             for d in self.drives:
+                d.heartbeat(now)
                 d.watchdog(now)
 
     def drive(self, joint: int) -> SimulatedDrive:

@@ -1,7 +1,8 @@
 """One simulated CiA 402 servo drive on ``canopen.LocalNode`` (CiA 301 + CiA 402).
 
 What a master sees is what a real drive shows: NMT with boot-up, an SDO server over the
-shipped EDS (``config/drives/armid_cia402.eds``), a heartbeat producer (0x1017), a
+shipped EDS (``config/drives/armid_cia402.eds``), a heartbeat producer (0x1017, sent by the
+thread that answers SYNC, and between SYNCs by the arm's watch thread: see :meth:`heartbeat`), a
 heartbeat consumer of the master (0x1016), TPDOs sent on SYNC with the mapping the master
 wrote (0x1800/0x1A00, transmission types 1-240), synchronous RPDOs applied at the next SYNC
 (0x1400/0x1600), the CiA 402 state machine driven by the controlword, cyclic synchronous
@@ -38,6 +39,7 @@ MODE_CST = 10
 # EMCY codes the simulated drive raises (CiA 301 / CiA 402)
 EMCY_HEARTBEAT = 0x8130  # life guard or heartbeat error
 EMCY_SYNC_LOST = 0x8100  # communication, generic (manufacturer data: b"SYNC")
+NMT_STATE_CODES = {name: code for code, name in canopen.nmt.NMT_STATES.items()}  # what a heartbeat carries
 EMCY_PDO_LENGTH = 0x8210  # PDO not processed due to length error
 EMCY_POSITION_LIMIT = 0x8612  # reference limit
 EMCY_VELOCITY_LIMIT = 0x8400  # velocity speed controller
@@ -132,6 +134,13 @@ class SimulatedDrive:
         self._raw_cache: dict[tuple[int, int], int] = {}
         self.node.add_read_callback(self._on_read)
         self.node.add_write_callback(self._on_write)
+        self.heartbeat_s = 0.0  # the producer time (0x1017); 0: off
+        self._heartbeat_sent = -np.inf  # time.monotonic() of the last heartbeat sent
+        # canopen's producer is a periodic-send thread of its own; this drive's is :meth:`heartbeat`
+        nmt = self.node.nmt
+        nmt.start_heartbeat = self._start_heartbeat  # type: ignore[method-assign]
+        nmt.stop_heartbeat = self._stop_heartbeat  # type: ignore[method-assign]
+        nmt.update_heartbeat = lambda: None  # type: ignore[method-assign]  # each heartbeat carries the state it is sent in
         self._configure_defaults()
         self.node.associate_network(network)
         network.subscribe(0, self._on_nmt)
@@ -208,6 +217,25 @@ class SimulatedDrive:
         self.master_heartbeat = None
         self.node.nmt.send_command(0)  # boot-up message
         self.node.nmt.state = "PRE-OPERATIONAL"
+
+    def _start_heartbeat(self, heartbeat_time_ms: int) -> None:
+        self.heartbeat_s = heartbeat_time_ms / 1000.0
+        self._heartbeat_sent = -np.inf
+
+    def _stop_heartbeat(self) -> None:
+        self.heartbeat_s = 0.0
+
+    def heartbeat(self, now: float) -> None:
+        """Send the heartbeat once a producer time has passed since the last one. Called with
+        each SYNC by the thread that answers it (before the TPDOs), and between SYNCs by the
+        arm's watch thread: a loaded process cannot send TPDOs and starve the heartbeat, as
+        canopen's producer (a periodic-send thread per drive) did, and the master lost drives
+        that were answering (0.30 s of bus time without a heartbeat, issue 31). Both threads may
+        find it due at once and send two: harmless."""
+        if self.silent or not self.heartbeat_s or now - self._heartbeat_sent < self.heartbeat_s:
+            return
+        self._heartbeat_sent = now
+        self.network.send_message(0x700 + self.id, bytes([NMT_STATE_CODES[self.node.nmt.state]]))
 
     def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if self.silent or len(data) < 2 or data[1] not in (0, self.id):

@@ -29,10 +29,16 @@ REALTIME_MODULES = ("test_canopen", "test_daq", "test_dynamixel", "test_excitati
 CI runs them a second time with two busy processes beside them (``.ci/run``)."""
 
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    # under pytest-xdist (``-n 2 --dist loadgroup``) the timing-sensitive tests run one after
+    # another on one worker, beside the other worker's arithmetic: a loaded machine, never
+    # two simulated arms at once
+    grouped = config.pluginmanager.hasplugin("xdist")
     for item in items:
         if item.module is not None and item.module.__name__.rsplit(".", 1)[-1] in REALTIME_MODULES:
             item.add_marker(pytest.mark.realtime)
+            if grouped:
+                item.add_marker(pytest.mark.xdist_group("realtime"))
 
 
 def random_robot(n: int, convention: str, prismatic_at: int | None, seed: int) -> Robot:
