@@ -27,6 +27,8 @@ from armid.drivers.rig import Rig, open_bus
 from .drive import SimulatedDrive
 from .physics import ArmPhysics, Measurement, simulation_config
 
+WATCH_S = 0.01  # the drives' heartbeat consumer (150 ms by default) and, between SYNCs, producer: checked this often
+
 
 class StateLog:
     """The physics' state per SYNC in a ring of arrays (no Python object per entry, so the
@@ -108,7 +110,7 @@ class SimulatedArm:
             d.on_master_heartbeat(can_id - 0x700, timestamp)
 
     def _watch(self) -> None:
-        while not self._stop.wait(0.002):
+        while not self._stop.wait(WATCH_S):
             now = time.monotonic()
             for d in self.drives:
                 d.heartbeat(now)

@@ -377,7 +377,7 @@ class SimulatedDrive:
         limit = current_of(self.raw(0x6072), u.rated_current_a)
         if abs(demand) > limit:
             self.internal_limit = True
-            demand = float(np.clip(demand, -limit, limit))
+            demand = min(max(demand, -limit), limit)
         return float(demand)
 
     @property
