@@ -24,9 +24,10 @@ ROOT = Path(__file__).resolve().parent.parent
 ROBOTS = ROOT / "config" / "robots"
 SHARED = ROOT.parent / "shared"
 
-REALTIME_MODULES = ("test_canopen", "test_daq", "test_dynamixel", "test_excitation", "test_excitation_dynamixel", "test_serve")
-"""The timing-sensitive tests (a bus, a pty, a simulated arm, a live stream): marked ``realtime``;
-CI runs them a second time with two busy processes beside them (``.ci/run``)."""
+REALTIME_MODULES = ("test_canopen", "test_daq", "test_dynamixel", "test_excitation", "test_excitation_dynamixel", "test_serve", "test_supervision")
+"""The timing-sensitive tests (a bus, a pty, a simulated arm, a live stream): marked ``realtime``
+(a test elsewhere is marked so itself); the README's command runs them after the arithmetic,
+alone, and CI runs them a second time with two busy processes beside them (``.ci/run``)."""
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
@@ -37,8 +38,8 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if item.module is not None and item.module.__name__.rsplit(".", 1)[-1] in REALTIME_MODULES:
             item.add_marker(pytest.mark.realtime)
-            if grouped:
-                item.add_marker(pytest.mark.xdist_group("realtime"))
+        if grouped and item.get_closest_marker("realtime") is not None:
+            item.add_marker(pytest.mark.xdist_group("realtime"))
 
 
 def random_robot(n: int, convention: str, prismatic_at: int | None, seed: int) -> Robot:

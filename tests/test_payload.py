@@ -212,6 +212,7 @@ def _free_port() -> int:
 
 
 @pytest.mark.slow
+@pytest.mark.realtime  # a simulated arm on a bus, and a live stream that must skip nothing
 def test_live_estimates_over_zenoh_reach_another_process_and_agree_with_replay(tmp_path: Path) -> None:
     import zenoh
 
@@ -639,6 +640,7 @@ def test_the_users_command_line_on_100_hz_logs_with_jittered_stamps(tmp_path: Pa
 
 
 @pytest.mark.slow
+@pytest.mark.realtime  # an estimator process that must keep up with the live stream (beside a second test worker it skipped records)
 def test_the_demo_payload_phase_from_a_cold_start(tmp_path: Path) -> None:
     """Issue 19: the demo's payload phase in a fresh process with an empty numba cache; the
     estimator is ``armid estimate live`` in a process of its own (issue 31). Events on the
