@@ -223,8 +223,12 @@ def test_lost_sync_faults_the_drives_with_emcy(bench: _Bench) -> None:
         heartbeat.stop()
         other.shutdown()
     assert all(d.state == State.FAULT for d in bench.arm.drives)
+    # a cycle that closed after the last hold may still wait in the queue, and comes first when
+    # this process reads the drives' EMCY late (under load); then the fault (no cycle in 0.5 s
+    # and no fault: DriverError, which fails the test)
     with pytest.raises(DriveFault) as caught:
-        bench.driver.read(0.5)
+        for _ in range(3):
+            bench.driver.read(0.5)
     assert caught.value.code == 0x8100 and "SYNC" in caught.value.meaning
 
 
