@@ -39,10 +39,11 @@ MODE_CST = 10
 # EMCY codes the simulated drive raises (CiA 301 / CiA 402)
 EMCY_HEARTBEAT = 0x8130  # life guard or heartbeat error
 EMCY_SYNC_LOST = 0x8100  # communication, generic (manufacturer data: b"SYNC")
-NMT_STATE_CODES = {name: code for code, name in canopen.nmt.NMT_STATES.items()}  # what a heartbeat carries
 EMCY_PDO_LENGTH = 0x8210  # PDO not processed due to length error
 EMCY_POSITION_LIMIT = 0x8612  # reference limit
 EMCY_VELOCITY_LIMIT = 0x8400  # velocity speed controller
+
+NMT_STATE_CODES = {name: code for code, name in canopen.nmt.NMT_STATES.items()}  # what a heartbeat carries
 
 
 class State(Enum):
