@@ -39,7 +39,7 @@ from armid.schema import Array
 from armid.schema.errors import NotOperational
 
 from ..resources import config_file
-from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverError, HeartbeatLost, ProcessSettings, Sample
+from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverError, HeartbeatLost, ProcessSettings, Sample, bus_time
 from .pdo_plan import PLANS, PdoSpec, check_bus_budget
 from .realtime import stall_sentence
 from .rig import Rig, current_of, open_bus, permille_of
@@ -598,7 +598,7 @@ class CanopenDriver(Driver):
     def _on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
         node = can_id - 0x700
         j = self._node_ids[node]
-        self._heartbeat[j] = max(self._heartbeat[j], timestamp or time.time())
+        self._heartbeat[j] = max(self._heartbeat[j], bus_time(timestamp))
         if self._silent[j]:
             self._silent[j] = False
             self._event("heartbeat_back", f"joint {j + 1} (node {node}) is back (NMT state 0x{data[0]:02X})" if data else
@@ -771,7 +771,7 @@ class _Watcher(can.Listener):
 
     def on_message_received(self, msg: can.Message) -> None:
         d = self.driver
-        d._on_frame_read(msg.timestamp or time.time())
+        d._on_frame_read(bus_time(msg.timestamp))
         if msg.is_error_frame:
             d.error_frames += 1
             now = time.monotonic()
