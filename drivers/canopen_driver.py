@@ -169,8 +169,8 @@ class CanopenDriver(Driver):
         self._sent_controlword = np.full(self.n_joints, -1, np.int64)
         self._commanded = np.zeros(self.n_joints)
         self._in_force = np.zeros(self.n_joints)
-        self._heartbeat = np.zeros(self.n_joints)  # bus stamp of each drive's last heartbeat
-        self._newest_stamp = 0.0  # bus stamp of the newest frame read, from any node
+        self._heartbeat = np.zeros(self.n_joints)  # bus time (drivers.interface.bus_time) of each drive's last heartbeat
+        self._newest_stamp = 0.0  # bus time of the newest frame read, from any node
         self._last_read = time.monotonic()  # when the reader last read a frame
         self._last_watch = time.monotonic()
         self.last_stall: tuple[float, float] = (0.0, 0.0)  # (monotonic time, s) of the newest cycle this process ran late

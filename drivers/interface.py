@@ -124,8 +124,16 @@ class ProcessSettings:
 
 
 def bus_time(stamp: float) -> float:
-    """A frame's stamp (its sender's or the kernel's time), or now on a bus that stamps none."""
-    return stamp if stamp > 0 else time.time()
+    """A frame's stamp (its sender's or the kernel's wall-clock time) on this process's
+    monotonic clock, or now on a bus that stamps none. The wall clock can step (NTP, a
+    hypervisor resyncing a paused guest: 0.7 s and 13.8 s in one CI run, issue 31), and a
+    step read as bus time loses every drive's heartbeat at once. A frame stamped before a step
+    and read after it is off by the step for that frame only: too old after a forward step
+    (harmless: a newer heartbeat follows), and after a backward one never later than its read."""
+    now = time.monotonic()
+    if stamp <= 0:
+        return now
+    return min(now, stamp - (time.time() - now))
 
 
 class CycleClock:

@@ -120,7 +120,7 @@ class SimulatedDrive:
         self.tpdos: list[_Pdo] = []
         self.rpdos: list[_Pdo] = []
         self.sync_count = 0
-        self.last_sync_stamp = 0.0  # the bus's stamp of the last SYNC (its sender's time)
+        self.last_sync_stamp = 0.0  # the last SYNC's stamp, as bus_time puts it (its sender's time, on this process's clock)
         self.master_heartbeat: float | None = None
         # co-simulation: each watch needs the other stream as its witness that the master runs
         self.heartbeat_since_sync: float | None = None  # the stamp of the first master heartbeat after the last SYNC
