@@ -99,6 +99,11 @@ class EstimateStream:
         return self.feed_arrays(np.array(seq, np.int64), np.array(t, float), np.array(valid, bool), np.array(q, float),
                                 np.array(torque, float))
 
+    def final(self) -> dict[str, Any]:
+        """The run's one answer (:meth:`PayloadRLS.final_estimate`) with what the stream did not
+        use; a replay writes it last."""
+        return {**self.estimator.final_estimate(), "sequence": self.last_sequence, "record_time": self.last_time, **self.counts()}
+
     def counts(self) -> dict[str, Any]:
         """What the stream did not use so far, as every document and the status carry it."""
         return {"skipped": self.skipped, "lost": self.lost, "invalid": self.invalid, "time_faults": self.time_faults,

@@ -67,6 +67,7 @@ from typing import Any
 import numpy as np
 
 from .payload_arm import ArmModel, ReferenceRun, arm_model_from_identification, identification_document
+from .payload_band import MIN_BATCHES, Batches, batch_means_covariance, torque_constant_covariance
 from .payload_filter import HALF_WINDOW_S, _Filter, derivatives_on_times, local_polynomial
 from .payload_projection import _phi_of_pseudo as _phi_of_pseudo  # re-exported for tests/test_payload.py
 from .payload_projection import project_feasible, project_feasible_many, pseudo_inertia
@@ -170,6 +171,11 @@ class PayloadRLS:
         self._anchor = np.zeros(10)  # the estimate at the last (re)start: the prior's centre
         self._joint_info = np.zeros((nj, 10, 10))  # per joint, the equations since, before 1/r (scaled parameters)
         self._joint_score = np.zeros((nj, 10))
+        self._all_info = np.zeros((nj, 10, 10))  # the same sums, never faded: the run's final answer
+        self._all_score = np.zeros((nj, 10))
+        self._batches = Batches(nj)
+        self.excited_s_ = 0.0  # moving time folded in since the last (re)start
+        self.torque_constant_std_ = np.array([j.torque_constant_std for j in self.arm.robot.joints])
         self.filter_ = _Filter()
         self.noise_var_ = np.maximum(np.asarray(self.arm.joint_sigma, float), 1e-6) ** 2
         self.correlation_time_ = np.full(nj, INITIAL_CORRELATION_S)
@@ -381,6 +387,10 @@ class PayloadRLS:
         self._anchor = self.theta_.copy()
         self._joint_info[:] = 0.0
         self._joint_score[:] = 0.0
+        self._all_info[:] = 0.0
+        self._all_score[:] = 0.0
+        self._batches.clear()
+        self.excited_s_ = 0.0
 
     def _fold_information(self, h: Array, y: Array, use: Array, dts: Array, moving_s: float, r: Array) -> tuple[Array, Array]:
         """Exponentially weighted least squares in information form: the estimate and its
@@ -409,14 +419,31 @@ class PayloadRLS:
             self._joint_info *= fade
             self._joint_score *= fade
         e0 = (y - h @ self._anchor) * use
-        self._joint_info += np.einsum("mjk,mjl,mj->jkl", hs, hs, w)
-        self._joint_score += np.einsum("mjk,mj->jk", hs, w * e0)
-        per_joint = 1.0 / (r * float(np.mean(self.correlation_time_)))
-        info = np.eye(10) + np.einsum("jkl,j->kl", self._joint_info, per_joint)
-        ps = np.linalg.inv(info)
+        info, score = np.einsum("mjk,mjl,mj->jkl", hs, hs, w), np.einsum("mjk,mj->jk", hs, w * e0)
+        self._joint_info += info
+        self._joint_score += score
+        self._all_info += info
+        self._all_score += score
+        self._batches.add(info, score, moving_s)
+        self.excited_s_ += moving_s
+        return self._solve(self._joint_info, self._joint_score, r)
+
+    def _solve(self, joint_info: Array, joint_score: Array, r: Array) -> tuple[Array, Array]:
+        """The estimate and its covariance from the prior and per-joint sums (scaled
+        parameters), each joint weighed by its noise ``r`` and the correlation time."""
+        d = self.prior_std
+        ps = np.linalg.inv(np.eye(10) + np.einsum("jkl,j->kl", joint_info, self._joint_weights(r)))
         ps = 0.5 * (ps + ps.T)
-        theta = self._anchor + d * (ps @ np.einsum("jk,j->k", self._joint_score, per_joint))
+        theta = self._anchor + d * (ps @ np.einsum("jk,j->k", joint_score, self._joint_weights(r)))
         return theta, ps * np.outer(d, d)
+
+    def _joint_weights(self, r: Array) -> Array:
+        return np.asarray(1.0 / (r * float(np.mean(self.correlation_time_))))
+
+    def _information(self, joint_info: Array) -> Array:
+        """Each joint's information on the parameters themselves (its weighted sums unscaled)."""
+        d = self.prior_std
+        return np.asarray(joint_info * self._joint_weights(self.noise_var_)[:, None, None] / np.outer(d, d))
 
     def _update_correlation_time(self, now: float) -> None:
         """Each joint's integrated autocorrelation time of the innovations over the last
@@ -501,8 +528,33 @@ class PayloadRLS:
         """What :meth:`document` needs of the estimator's state now (copies)."""
         if not hasattr(self, "theta_"):
             self._start()
-        return {"theta": self.theta_.copy(), "P": self.P_.copy(), "time": self.time_s_, "consistency": self.consistency(),
+        p_sys = torque_constant_covariance(self.P_, self._information(self._joint_info), self.theta_, self.torque_constant_std_)
+        return {"theta": self.theta_.copy(), "P": self.P_.copy(), "P_sys": p_sys, "time": self.time_s_, "consistency": self.consistency(),
                 "updates": self.n_updates_, "resets": self.resets_, "rejected": self.rejected_, "rate_changes": self.rate_changes_}
+
+    def final_estimate(self) -> dict[str, Any]:
+        """The run's one answer (a replay's last document, ``"final": true``): least squares on
+        every equation since the last restart (the attach, or the start), none forgotten, so
+        the estimate over the whole excited part rather than the last second's. Its
+        covariance is the batch means' of :func:`batch_means_covariance` (seconds of motion
+        apart: the model error that moves the estimate with the trajectory counts) once there
+        are ``MIN_BATCHES`` and it gives the mass more variance than the model does, else the
+        model's; the torque constants' term is added as for every estimate."""
+        if not hasattr(self, "theta_"):
+            self._start()
+        r = self.noise_var_
+        theta, p_model = self._solve(self._all_info, self._all_score, r)
+        scores = self._batches.scores_at((theta - self._anchor) / self.prior_std, self._joint_weights(r))
+        d = self.prior_std
+        p_batches = batch_means_covariance(p_model / np.outer(d, d), scores) * np.outer(d, d) if scores.shape[0] >= MIN_BATCHES else None
+        batched = p_batches is not None and p_batches[0, 0] > p_model[0, 0]  # the larger of the two on the mass
+        p = p_batches if batched and p_batches is not None else p_model
+        p_sys = torque_constant_covariance(p_model, self._information(self._all_info), theta, self.torque_constant_std_)
+        snap = {"theta": theta, "P": p, "P_sys": p_sys, "time": self.time_s_, "consistency": self.consistency(), "updates": self.n_updates_,
+                "resets": self.resets_, "rejected": self.rejected_, "rate_changes": self.rate_changes_}
+        doc = self.document(snap, project_feasible(theta, p + p_sys, atol=PUBLISH_ATOL))
+        doc.update(final=True, excited_s=self.excited_s_, covariance="batch means" if batched else "model", batches=int(scores.shape[0]))
+        return doc
 
     def estimate(self) -> dict[str, Any]:
         """Mass (kg), centre of mass (m) and inertia about it (kg m^2, xx xy xz yy yz zz) in
@@ -531,23 +583,28 @@ class PayloadRLS:
 
     def document(self, snap: dict[str, Any], th: Array) -> dict[str, Any]:
         """The published document of a :meth:`snapshot` whose physically possible parameters are ``th``."""
-        th_u, p = snap["theta"], snap["P"]
+        th_u, p_stat = snap["theta"], snap["P"]
+        p = p_stat + snap["P_sys"]  # the band: the noise's and the torque constants'
+        std_stat = np.sqrt(np.maximum(np.diag(p_stat), 0.0))
         std = np.sqrt(np.maximum(np.diag(p), 0.0))
-        excited = std < 0.5 * self.prior_std
+        excited = std_stat < 0.5 * self.prior_std
         m = float(th[0])
         mass_known = bool(excited[0])
-        com = com_std = inertia = None
+        com = com_std = inertia = com_stat = None
         if mass_known and m >= MIN_MASS_FOR_COM_KG:
             c = th[1:4] / m
             jac = np.zeros((3, 10))
             jac[:, 0] = -th[1:4] / m**2
             jac[:, 1:4] = np.eye(3) / m
             cs = np.sqrt(np.maximum(np.diag(jac @ p @ jac.T), 0.0))
+            com_stat = np.sqrt(np.maximum(np.diag(jac @ p_stat @ jac.T), 0.0))
             com, com_std = c.tolist(), cs.tolist()
             inertia = list(inertial_from_parameters(th).inertia_kgm2)
         cons = snap["consistency"]
-        mass_ok = mass_known and std[0] <= MASS_STD_KG + MASS_STD_REL * m
-        com_ok = m < MIN_MASS_FOR_COM_KG or (com_std is not None and bool(excited[1:4].all()) and max(com_std) <= COM_STD_M)
+        # converged: the estimate has stopped moving (the data's part of the band is small);
+        # the torque constants' part stays whatever the data
+        mass_ok = mass_known and std_stat[0] <= MASS_STD_KG + MASS_STD_REL * m
+        com_ok = m < MIN_MASS_FOR_COM_KG or (com_stat is not None and bool(excited[1:4].all()) and float(com_stat.max()) <= COM_STD_M)
         converged = bool(mass_ok and com_ok and cons["consistent"])
         if not mass_known:
             status = "not excited"
@@ -557,7 +614,9 @@ class PayloadRLS:
             status = "inconsistent"
         else:
             status = "converging"
-        doc = {"time": snap["time"], "mass": m if mass_known else None, "mass_std": float(std[0]), "com": com, "com_std": com_std,
+        doc = {"time": snap["time"], "mass": m if mass_known else None, "mass_std": float(std[0]), "mass_std_data": float(std_stat[0]),
+               "mass_std_torque_constants": float(np.sqrt(max(snap["P_sys"][0, 0], 0.0))), "com": com, "com_std": com_std,
+               "com_std_data": None if com_stat is None else com_stat.tolist(),
                "inertia": inertia, "inertia_std": std[4:].tolist(), "parameters": th.tolist(), "parameters_std": std.tolist(),
                "excited": excited.tolist(), "excited_parameters": [n for n, e in zip(PARAMETER_NAMES, excited) if e],
                "converged": converged, "status": status, "consistency": cons,

@@ -66,6 +66,7 @@ class Joint:
     torque_constant: float = 1.0
     limits: JointLimits = field(default_factory=JointLimits)
     inertial: Inertial | None = None
+    torque_constant_std: float = 0.0  # relative standard uncertainty of torque_constant (a datasheet's)
 
     @property
     def revolute(self) -> bool:

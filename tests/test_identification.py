@@ -97,6 +97,7 @@ def test_noisy_estimates_within_three_sigma(tmp_path, seed):  # type: ignore[no-
         ("name: x\njoints:\n  - {a: 0, alpha: 0, d: 0, theta: 0}\neffects: [{effect: coulomb_friction, joint: 4}]\n", "effects[0].joint"),
         ("name: x\njoints:\n  - {a: 0, alpha: 0, d: 0, theta: 0}\neffects: [{effect: cogging, joint: 1}]\n", "effects[0].period_rad"),
         ("name: x\njoints:\n  - {a: 0, alpha: 0, d: 0, theta: 0}\neffects: [{effect: cogging, joint: 1, period_rad: -1}]\n", "effects[0].period_rad"),
+        ("name: x\njoints:\n  - {a: 0, alpha: 0, d: 0, theta: 0, torque_constant: 2, torque_constant_std: 5}\n", "joints[0].torque_constant_std"),
         ("name: x\njoints: [\n", "line"),
         ("name: x\nurdf: nothere.urdf\njoints: [{name: a}]\n", "urdf"),
     ],
@@ -107,6 +108,14 @@ def test_malformed_robot_file_names_file_and_field(tmp_path, text, field):  # ty
     with pytest.raises(RobotFileError) as err:
         load_robot(path)
     assert str(err.value).startswith(f"{path}: {field}")
+
+
+def test_a_torque_constant_is_known_to_5_percent_unless_the_file_says_and_a_sensor_exactly(tmp_path):  # type: ignore[no-untyped-def]
+    path = tmp_path / "r.yaml"
+    path.write_text("name: x\njoints:\n  - {a: 0, alpha: 0, d: 0, theta: 0, torque_constant: 2}\n"
+                    "  - {a: 1, alpha: 0, d: 0, theta: 0, torque_constant: 2, torque_constant_std: 0.01}\n"
+                    "  - {a: 1, alpha: 0, d: 0, theta: 0}\n")
+    assert [j.torque_constant_std for j in load_robot(path).joints] == [0.05, 0.01, 0.0]
 
 
 def test_unknown_urdf_joint_lists_the_real_ones(tmp_path):  # type: ignore[no-untyped-def]

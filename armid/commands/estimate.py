@@ -77,8 +77,10 @@ def _estimate_summary(n: int, docs: list[dict[str, Any]], seconds: float, stream
         what = "mass not excited: the motion does not determine it (no estimate)"
     else:
         com = "" if last["com"] is None else ", centre of mass [" + ", ".join(f"{100 * c:.1f}" for c in last["com"]) + "] cm"
-        what = f"mass {last['mass']:.3f} +- {last['mass_std']:.3f} kg{com}, {last['status']}"
-    return head + f"; last: {what}" + (f" ({', '.join(extra)})" if extra else "")
+        what = (f"mass {last['mass']:.3f} +- {last['mass_std']:.3f} kg (1 sigma: data {last['mass_std_data']:.3f}, torque constants "
+                f"{last['mass_std_torque_constants']:.3f}){com}, {last['status']}")
+    label = f"final, over {last['excited_s']:.1f} s of motion since the last restart" if last.get("final") else "last"
+    return head + f"; {label}: {what}" + (f" ({', '.join(extra)})" if extra else "")
 
 
 def _replay_problem(n_records: int, docs: list[dict[str, Any]], stream: Any) -> str | None:
@@ -139,6 +141,8 @@ def _estimate(args: argparse.Namespace) -> int:
         if args.replay:
             start = time.perf_counter()
             docs = stream.feed_arrays(*records)
+            if docs:  # the run's one answer, over all it excited since the last restart
+                docs.append(stream.final())
             for d in docs:
                 out.write(json.dumps(d, allow_nan=False) + "\n")
             seconds = time.perf_counter() - start

@@ -44,7 +44,10 @@ from armid.identify.robot import (
 
 CONVENTIONS = ("dh", "mdh")
 TOP_LEVEL = {"name", "gravity", "convention", "urdf", "joints", "effects", "description"}
-JOINT_FIELDS = {"name", "type", "a", "alpha", "d", "theta", "torque_constant", "limits", "inertial"}
+JOINT_FIELDS = {"name", "type", "a", "alpha", "d", "theta", "torque_constant", "torque_constant_std", "limits", "inertial"}
+DEFAULT_TORQUE_CONSTANT_STD = 0.05
+"""A torque constant the file gives (N*m per A from a datasheet) is known to about 5 %, and a
+torque measured through it is off by as much; a joint without one reports its torque (a sensor)."""
 
 
 def load_robot(path: str | Path) -> Robot:
@@ -158,15 +161,20 @@ def _dh_joint(j: Any, k: int, convention: str, src: str) -> Joint:
     return Joint(name, kind, pre, axis, post, *_joint_extras(j, src, where, None, None))
 
 
-def _joint_extras(j: dict[str, Any], src: str, where: str, limits: JointLimits | None, inertial: Inertial | None) -> tuple[float, JointLimits, Inertial | None]:
+def _joint_extras(j: dict[str, Any], src: str, where: str, limits: JointLimits | None,
+                  inertial: Inertial | None) -> tuple[float, JointLimits, Inertial | None, float]:
     kt = _number(j.get("torque_constant", 1.0), src, _field(where, "torque_constant"))
     if kt <= 0:
         raise RobotFileError(src, _field(where, "torque_constant"), f"must be positive, got {kt}")
+    kt_std = _number(j.get("torque_constant_std", DEFAULT_TORQUE_CONSTANT_STD if "torque_constant" in j else 0.0), src,
+                     _field(where, "torque_constant_std"))
+    if not 0.0 <= kt_std < 1.0:
+        raise RobotFileError(src, _field(where, "torque_constant_std"), f"must be a fraction in [0, 1) (0.05: 5 %), got {kt_std}")
     if "limits" in j:
         limits = _limits(j["limits"], src, _field(where, "limits"))
     if "inertial" in j:
         inertial = _inertial(j["inertial"], src, _field(where, "inertial"))
-    return kt, limits or JointLimits(), inertial
+    return kt, limits or JointLimits(), inertial, kt_std
 
 
 def _limits(doc: Any, src: str, where: str) -> JointLimits:
@@ -356,7 +364,7 @@ def _urdf_joints(doc: dict[str, Any], joints_doc: list[Any], src: str, base_dir:
     previous = 0
     for k, j in enumerate(joints_doc):
         where = f"joints[{k}]"
-        extra = set(j) - {"name", "type", "torque_constant", "limits", "inertial"}
+        extra = set(j) - {"name", "type", "torque_constant", "torque_constant_std", "limits", "inertial"}
         if extra:
             raise RobotFileError(src, _field(where, sorted(extra)[0]), "not allowed with urdf (kinematics come from the URDF)")
         name = str(j["name"])
