@@ -156,11 +156,16 @@ about 20 frames a cycle, Linux's default 212 KB receive buffer overflows in abou
 
 
 def open_bus(**kwargs: Any) -> Any:
-    """``can.Bus(**kwargs)``, with a receive buffer that survives a stall on ``udp_multicast``."""
+    """``can.Bus(**kwargs)``, with a receive buffer that survives a stall on ``udp_multicast``,
+    and on ``virtual`` :class:`~drivers.virtual_bus.FieldCopyVirtualBus`."""
     import socket
 
     import can
 
+    if kwargs.get("interface") == "virtual":
+        from .virtual_bus import FieldCopyVirtualBus
+
+        return FieldCopyVirtualBus(**{k: v for k, v in kwargs.items() if k != "interface"})
     bus = can.Bus(**kwargs)
     sock = getattr(getattr(bus, "_multicast", None), "_socket", None)
     if sock is not None:

@@ -99,6 +99,35 @@ def test_bus_budget_numbers_and_refusal() -> None:
     assert check_bus_budget("full", 6, 0.004, 1_000_000).load < 0.5
 
 
+def test_the_virtual_bus_copies_each_frame_for_each_receiver_as_python_can_does() -> None:
+    """``open_bus`` on ``virtual`` copies frames by their fields (not python-can's deep copy):
+    every receiver gets its own frame, with the sender's fields, a fresh time stamp and its own
+    data (a receiver that changes its bytes changes no other's); the sender gets none unless
+    it asks for its own messages."""
+    from armid.drivers.rig import open_bus
+
+    channel = f"armid-copy-{uuid.uuid4().hex[:8]}"
+    sender, a, b = (open_bus(interface="virtual", channel=channel) for _ in range(3))
+    own = open_bus(interface="virtual", channel=channel, receive_own_messages=True)
+    try:
+        sent = can.Message(arbitration_id=0x181, data=[1, 2, 3, 4, 5, 6, 7, 8], is_extended_id=False, timestamp=0.0)
+        before = time.time()
+        sender.send(sent)
+        got = [bus.recv(1.0) for bus in (a, b, own)]
+        assert sender.recv(0.05) is None
+        for m in got:
+            assert m is not None and m is not sent and m.arbitration_id == 0x181 and m.dlc == 8 and not m.is_extended_id
+            assert m.data == sent.data and m.timestamp >= before and m.is_rx and m.channel == channel
+        got[0].data[0] = 99
+        assert got[1].data[0] == 1 and sent.data[0] == 1
+        own.send(can.Message(arbitration_id=0x701, data=[5], is_extended_id=False))
+        echo = own.recv(1.0)
+        assert echo is not None and echo.arbitration_id == 0x701 and not echo.is_rx
+    finally:
+        for bus in (sender, a, b, own):
+            bus.shutdown()
+
+
 def test_cia402_state_machine() -> None:
     s = State.SWITCH_ON_DISABLED
     for cw, expected in ((0x06, State.READY_TO_SWITCH_ON), (0x07, State.SWITCHED_ON), (0x0F, State.OPERATION_ENABLED),
