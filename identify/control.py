@@ -42,6 +42,7 @@ class ComputedTorque:
         self.kd = 2.0 * w * diag if kd is None else np.asarray(kd, float)
         self.decoupled = decoupled
         self.w = w
+        self._upper = np.triu(np.ones((n, n), bool))
 
     def feed_forward(self, q_ref: Array, qd_ref: Array, qdd_ref: Array) -> Array:
         return np.asarray(self._pin.rnea(self.model, self.data, q_ref, qd_ref, qdd_ref)).copy()
@@ -49,7 +50,7 @@ class ComputedTorque:
     def __call__(self, q: Array, qd: Array, q_ref: Array, qd_ref: Array, qdd_ref: Array) -> Array:
         if self.decoupled:
             mass = self._pin.crba(self.model, self.data, q)
-            mass = np.triu(mass) + np.triu(mass, 1).T
+            mass = np.where(self._upper, mass, mass.T)  # crba fills the upper triangle
             correction = self.w**2 * (q_ref - q) + 2.0 * self.w * (qd_ref - qd)
             return self.feed_forward(q_ref, qd_ref, qdd_ref) + mass @ correction
         return self.feed_forward(q_ref, qd_ref, qdd_ref) + self.kp * (q_ref - q) + self.kd * (qd_ref - qd)
