@@ -100,6 +100,7 @@ def replay_log(path: str | Path, rig: Any, timeout_s: float = 30.0) -> list[Samp
     listen_bus = can.Bus(interface="virtual", channel=channel)
     player = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
     driver = CanopenDriver(rig.with_bus(interface="virtual", channel=channel), bus=listen_bus)
+    driver.frame_time = lambda stamp: stamp  # the log's stamps are its bus time
     samples: list[Sample] = []
     marker = uuid.uuid4().bytes[:8]
     reached = threading.Event()

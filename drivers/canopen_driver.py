@@ -193,6 +193,10 @@ class CanopenDriver(Driver):
         # cycle's time) and each TPDO before it is decoded: frames written from it, in this
         # order, replay into the same records (daq.canlog)
         self.decoded_frames: Callable[[can.Message], None] | None = None
+        # a frame's stamp as bus time (:func:`bus_time`, on this process's clock); a replayed
+        # log's own stamps are its bus time (daq.canlog.replay_log: a log from a machine whose
+        # clock ran ahead of this one's would otherwise read as frames from now)
+        self.frame_time: Callable[[float], float] = bus_time
 
     @property
     def decoded_cob_ids(self) -> set[int]:
@@ -426,7 +430,7 @@ class CanopenDriver(Driver):
             self._cycle += 1
             now = time.time()
             with self._lock:
-                self._open_cycle(self._cycle, counter, now)
+                self._open_cycle(self._cycle, counter, now, bus_time(now))
             try:
                 self._bus.send(can.Message(arbitration_id=SYNC_COB_ID, data=[counter], is_extended_id=False))
                 sent = time.monotonic()
@@ -443,7 +447,7 @@ class CanopenDriver(Driver):
         """A SYNC the broadcast manager sent, seen on the bus: its cycle starts at its stamp."""
         self._cycle += 1
         with self._lock:
-            self._open_cycle(self._cycle, data[0] if data else 0, timestamp)
+            self._open_cycle(self._cycle, data[0] if data else 0, timestamp, self.frame_time(timestamp))
         if self._listen_only:
             return
         try:
@@ -452,13 +456,16 @@ class CanopenDriver(Driver):
             self._event("bus", f"cannot send commands after SYNC: {err}")
         self._watchdog()
 
-    def _open_cycle(self, cycle: int, counter: int, now: float) -> None:
+    def _open_cycle(self, cycle: int, counter: int, now: float, bus: float) -> None:
+        """Open a cycle at its SYNC: ``now`` on the wall clock (the records' stamps, the CAN
+        log's), ``bus`` on the bus time frames are matched by (:func:`bus_time`: a step of the
+        wall clock must not hold every later frame off the cycles opened before it)."""
         # Normally a cycle closes when its frames are in, or when a frame stamped after its
         # deadline shows that bus time has passed it (in _on_tpdo). Only when no frame comes
-        # at all does the wall clock close it, later, so that a stall of this process is not
+        # at all does the clock close it, later, so that a stall of this process is not
         # mistaken for frames lost on the bus.
         fallback = max(self.deadline_periods * self.period_s, 0.5)
-        while self._open and now - self._open[0].time_s >= fallback:
+        while self._open and bus - self._open[0].time_s >= fallback:
             self._emit(self._open.pop(0))
         if self._t0 is None:
             self._t0 = now - cycle * self.period_s
@@ -473,7 +480,7 @@ class CanopenDriver(Driver):
         self._in_force = self._commanded.copy()
         quiet = self._silent | self._not_operational  # a drive that sends no PDOs is not waited for
         expected = {(t.joint, t.number) for t in self._tpdo.values() if counter % t.every == 0 and not quiet[t.joint]}
-        c = _Cycle(cycle, counter, now, s, expected)
+        c = _Cycle(cycle, counter, bus, s, expected)
         self._open.append(c)
         self._last = s
         if self.decoded_frames is not None:
@@ -507,9 +514,9 @@ class CanopenDriver(Driver):
         with self._lock:
             if self.decoded_frames is not None:
                 self.decoded_frames(can.Message(timestamp=timestamp, arbitration_id=can_id, data=data, is_extended_id=False))
-            self._decode_tpdo(can_id, data, timestamp)
+            self._decode_tpdo(can_id, data, self.frame_time(timestamp))
 
-    def _decode_tpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
+    def _decode_tpdo(self, can_id: int, data: bytearray, bus: float) -> None:
         t = self._tpdo[can_id]
         if len(data) != t.unpack.size:
             self._event("frame_length", f"joint {t.joint + 1} (node {can_id & 0x7F}): TPDO{t.number} (COB-ID 0x{can_id:03X}) has {len(data)} bytes, "
@@ -519,7 +526,7 @@ class CanopenDriver(Driver):
         key = (t.joint, t.number)
         # the oldest open cycle that still waits for this frame and whose SYNC went out
         # before it: frames keep their order, and a frame cannot answer a later SYNC
-        target = next((c for c in self._open if key in c.expected and c.time_s <= timestamp + 1e-4), None)
+        target = next((c for c in self._open if key in c.expected and c.time_s <= bus + 1e-4), None)
         if target is None:
             self.late_frames[t.joint] += 1
             return
@@ -540,7 +547,7 @@ class CanopenDriver(Driver):
         if not any(j == t.joint for j, _ in target.expected):
             s.valid[t.joint] = True
         deadline = self.deadline_periods * self.period_s
-        while self._open and self._open[0] is not target and timestamp - self._open[0].time_s > deadline:
+        while self._open and self._open[0] is not target and bus - self._open[0].time_s > deadline:
             self._emit(self._open.pop(0))
         self._flush_complete()
 
@@ -598,7 +605,7 @@ class CanopenDriver(Driver):
     def _on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
         node = can_id - 0x700
         j = self._node_ids[node]
-        self._heartbeat[j] = max(self._heartbeat[j], bus_time(timestamp))
+        self._heartbeat[j] = max(self._heartbeat[j], self.frame_time(timestamp))
         if self._silent[j]:
             self._silent[j] = False
             self._event("heartbeat_back", f"joint {j + 1} (node {node}) is back (NMT state 0x{data[0]:02X})" if data else
@@ -771,7 +778,7 @@ class _Watcher(can.Listener):
 
     def on_message_received(self, msg: can.Message) -> None:
         d = self.driver
-        d._on_frame_read(bus_time(msg.timestamp))
+        d._on_frame_read(d.frame_time(msg.timestamp))
         if msg.is_error_frame:
             d.error_frames += 1
             now = time.monotonic()
