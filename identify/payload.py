@@ -552,7 +552,7 @@ class PayloadRLS:
         p_sys = torque_constant_covariance(p_model, self._information(self._all_info), theta, self.torque_constant_std_)
         snap = {"theta": theta, "P": p, "P_sys": p_sys, "time": self.time_s_, "consistency": self.consistency(), "updates": self.n_updates_,
                 "resets": self.resets_, "rejected": self.rejected_, "rate_changes": self.rate_changes_}
-        doc = self.document(snap, project_feasible(theta, p + p_sys, atol=PUBLISH_ATOL))
+        doc = self.document(snap, project_feasible(theta, p, atol=PUBLISH_ATOL))  # in the data's metric, as every estimate
         doc.update(final=True, excited_s=self.excited_s_, covariance="batch means" if batched else "model", batches=int(scores.shape[0]))
         return doc
 
