@@ -519,6 +519,7 @@ def _with_errors(cfg: object, gain: bool = True, offset: bool = True, load: bool
     return dataclasses.replace(cfg, joints=joints)  # type: ignore[type-var]
 
 
+@functools.cache  # two tests read the default case; neither changes what it returns
 def robustness_runs(gain: bool = True, offset: bool = True, load: bool = True, design_seed: int = 3, sim_seed: int = 9,
                     modes: tuple[str, ...] = ("alone", "reference")) -> dict[str, list[dict]]:
     """The arm identified (``identify``, declared friction) on an unloaded run of the simulated
