@@ -431,10 +431,10 @@ class PayloadRLS:
     def _solve(self, joint_info: Array, joint_score: Array, r: Array) -> tuple[Array, Array]:
         """The estimate and its covariance from the prior and per-joint sums (scaled
         parameters), each joint weighed by its noise ``r`` and the correlation time."""
-        d = self.prior_std
-        ps = np.linalg.inv(np.eye(10) + np.einsum("jkl,j->kl", joint_info, self._joint_weights(r)))
+        d, w = self.prior_std, self._joint_weights(r)
+        ps = np.linalg.inv(np.eye(10) + np.einsum("jkl,j->kl", joint_info, w))
         ps = 0.5 * (ps + ps.T)
-        theta = self._anchor + d * (ps @ np.einsum("jk,j->k", joint_score, self._joint_weights(r)))
+        theta = self._anchor + d * (ps @ np.einsum("jk,j->k", joint_score, w))
         return theta, ps * np.outer(d, d)
 
     def _joint_weights(self, r: Array) -> Array:
