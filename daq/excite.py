@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from armid.drivers.interface import DriveFault, Driver, DriverError
+from armid.drivers.realtime import Policy, calling_thread_at, calling_thread_policy, ordinary_policy, set_calling_thread
 from armid.identify.control import ComputedTorque
 from armid.identify.errors import UsageError
 from armid.identify.excitation import Limits, Plan
@@ -272,6 +273,7 @@ class ExcitationSession:
         self.acquisition: Acquisition | None = None
         self._sinks = sinks
         self.enabled = False
+        self._loop_policy: Policy | None = None  # what the drivers gave this process's threads
 
     def start(self) -> None:
         self.driver.start()
@@ -282,6 +284,10 @@ class ExcitationSession:
             time.sleep(0.01)
         if self.control.hold is None:
             raise DriverError("no sample from the drives within 2 s of starting")
+        # the loop's threads run now, at the drivers' policy; the caller's thread is ordinary
+        # until it runs a plan (it may compute meanwhile: drivers.realtime.calling_thread_at)
+        self._loop_policy = calling_thread_policy()
+        set_calling_thread(ordinary_policy())
 
     def _invalid_run_reset(self) -> None:
         self.control._invalid_run[:] = 0
@@ -299,8 +305,13 @@ class ExcitationSession:
 
     def run(self, plan: Plan, out_dir: str | Path, name: str, metadata: dict[str, Any] | None = None,
             progress: Callable[[float, ExcitationControl], None] | None = None) -> RunReport:
-        """Enable (first time), run ``plan`` from where the arm is, record it, hold the end pose."""
+        """Enable (first time), run ``plan`` from where the arm is, record it, hold the end pose.
+        The calling thread runs at the loop's policy meanwhile, and is ordinary again after."""
+        with calling_thread_at(self._loop_policy):
+            return self._run(plan, out_dir, name, metadata, progress)
 
+    def _run(self, plan: Plan, out_dir: str | Path, name: str, metadata: dict[str, Any] | None,
+             progress: Callable[[float, ExcitationControl], None] | None) -> RunReport:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         assert self.acquisition is not None

@@ -8,7 +8,8 @@ at ``SCHED_FIFO``: they share one interpreter lock, so a loop thread at real-tim
 waiting for the lock held by a normal-priority thread that the scheduler preempted would
 wait all the same (priority inversion). Threads that compute (:data:`ORDINARY_THREADS`) stay
 ordinary: analysis belongs in another process, and where a test keeps it in this one it must
-not take the cores from the cycle. Threads started later by these threads inherit the
+not take the cores from the cycle; so is the thread that opened an excitation session,
+between its runs (:func:`calling_thread_at`). Threads started later by these threads inherit the
 policy (``pthread_create``'s default). Memory is locked as it is touched
 (``mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT)``), so no page of the loop is swapped out.
 
@@ -22,6 +23,8 @@ import ctypes
 import ctypes.util
 import os
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 DEFAULT_PRIORITY = 50
@@ -156,6 +159,47 @@ def ordinary_priority() -> None:
                 os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
         except (OSError, AttributeError):
             pass
+
+
+Policy = tuple[int, int]
+"""A thread's scheduling policy and priority, as ``os.sched_getscheduler``/``sched_getparam`` say."""
+
+
+def calling_thread_policy() -> Policy | None:
+    """The calling thread's policy and priority; None where the system cannot say."""
+    return _policy(threading.get_native_id()) if hasattr(os, "sched_getscheduler") else None
+
+
+def set_calling_thread(policy: Policy) -> bool:
+    """The calling thread at ``policy``; False where the system refuses (it stays as it was)."""
+    try:
+        os.sched_setscheduler(threading.get_native_id(), policy[0], os.sched_param(policy[1]))
+    except (OSError, AttributeError):
+        return False
+    return True
+
+
+def ordinary_policy() -> Policy:
+    return (os.SCHED_OTHER, 0)
+
+
+@contextmanager
+def calling_thread_at(policy: Policy | None) -> Iterator[None]:
+    """The calling thread at ``policy`` for the block, then as it was before.
+
+    The thread that runs a plan is real-time while it runs it, and ordinary between runs,
+    where a script designs the next trajectory: a thread that computes at ``SCHED_FIFO``
+    keeps a core for seconds, and the kernel then serves the ordinary tasks that core
+    starved by pausing every real-time thread on it for up to 50 ms (RT throttling,
+    ``sched_rt_runtime_us``): the simulated drives' threads among them, which then answer
+    no SYNC or request for cycles."""
+    before = calling_thread_policy()
+    changed = policy is not None and before is not None and policy != before and set_calling_thread(policy)
+    try:
+        yield
+    finally:
+        if changed and before is not None:
+            set_calling_thread(before)
 
 
 def stall_sentence(seconds: float) -> str:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import os
+import threading
 import uuid
 from pathlib import Path
 
@@ -149,10 +151,17 @@ def _session(tmp_path: Path) -> ExcitationSession:
 
 def test_excitation_on_the_bus_runs_records_and_holds(tmp_path: Path) -> None:
     with _session(tmp_path) as s:
+        # the caller designs at the ordinary policy, runs at the loop's (SCHED_FIFO where allowed)
+        loop = next(t for t in threading.enumerate() if t.name == "armid-acquisition").native_id
+        between = [os.sched_getscheduler(0)]
         d = ex.design(s.robot, moving=(5,), q_hold=s.position, base_frequency_hz=0.5, seed=2)
         p = ex.plan(d, s.position, s.limits, periods=2)
         ex.check_plan(s.robot, p, s.rig.period_s)
-        report = s.run(p, tmp_path / "j6", "link6", {"design": d.to_json()})
+        during: list[int] = []
+        report = s.run(p, tmp_path / "j6", "link6", {"design": d.to_json()}, progress=lambda t, c: during.append(os.sched_getscheduler(0)))
+        between.append(os.sched_getscheduler(0))
+        loop_policy = os.sched_getscheduler(loop)
+    assert between == [os.SCHED_OTHER] * 2 and set(during) == {loop_policy}, (between, during, loop_policy)
     assert report.completed, report.stop_reason
     arrays, metadata, notes = read_mcap_arrays(report.recording)
     assert not notes and np.all(np.diff(arrays["sequence"]) == 1)  # session-wide numbers, no gap
@@ -167,8 +176,6 @@ def test_a_drive_that_stops_following_ends_in_a_quick_stop_within_3_cycles_and_n
         d = ex.design(s.robot, moving=(2,), q_hold=s.position, base_frequency_hz=0.5, seed=4)
         p = ex.plan(d, s.position, s.limits, periods=2)
         assert s.arm is not None
-        import threading
-
         threading.Timer(1.5, s.arm.drive(2).stop_following).start()
         report = s.run(p, tmp_path / "j3", "link3")
         states = [dr.state.name for dr in s.arm.drives]
