@@ -185,7 +185,6 @@ class PayloadRLS:
         self._window: deque[tuple[float, float, float, int, int]] = deque()  # per block: (time, nis, dof, rejected, rows), weighted
         self._innovations: deque[tuple[Array, Array]] = deque()  # per block: (times, whitened innovations, NaN if unused)
         self._next_correlation_t: float | None = None
-        self._last_row_t: float | None = None
         self.n_updates_ = 0
         self.resets_ = 0
         self.rejected_ = 0
@@ -206,7 +205,6 @@ class PayloadRLS:
         if not hasattr(self, "theta_"):
             self._start()
         self.filter_.reset()
-        self._last_row_t = None
         if self.reference is not None:
             self.reference.restart()
 
@@ -241,10 +239,10 @@ class PayloadRLS:
             k = int(bad[0]) + (0 if prev is None else -1) + 1
             before = t[k - 1] if k >= 1 else prev
             raise ValueError(f"time {t[k]:.6g} s is not after the previous record's {before:.6g} s")
-        ts, qs, qds, qdds, taus, done = self.filter_.push(t, q, tau)
+        ts, qs, qds, qdds, taus, done, steps = self.filter_.push(t, q, tau)
         base = 0 if self._pending is None else self._pending["t"].size  # rows before this batch's
         if ts.size:
-            self._add_rows(ts, qs, qds, qdds, taus)
+            self._add_rows(ts, qs, qds, qdds, taus, steps)
         wanted = set(checkpoints)
         for k in sorted(k for k in wanted if 0 <= k < n - 1) + [n - 1]:
             self._fold_complete_blocks(base + int(np.searchsorted(done, k, "right")))
@@ -255,8 +253,9 @@ class PayloadRLS:
             self._folded = 0
         return self
 
-    def _add_rows(self, ts: Array, qs: Array, qds: Array, qdds: Array, taus: Array) -> None:
-        """The equations of new rows, waiting for their block to be complete."""
+    def _add_rows(self, ts: Array, qs: Array, qds: Array, qdds: Array, taus: Array, dts: Array) -> None:
+        """The equations of new rows, waiting for their block to be complete; ``dts``, the time
+        each stands for (since the record before it)."""
         model, h_all = self.arm.torque_and_payload_columns(qs, qds, qdds)
         residual = taus - model
         # a joint's equation is left out while it is near rest or reversing: sign(qd) is
@@ -271,11 +270,6 @@ class PayloadRLS:
                     sliding[i] = False
         clear &= sliding
         moving = np.abs(qds).max(axis=1) > self.moving_rad_s
-        first = self._last_row_t
-        if first is None:  # the first row after a (re)start: the typical step of the records
-            first = ts[0] - (self.filter_.typical or 0.0)
-        dts = np.clip(np.diff(np.concatenate([[first], ts])), 0.0, 0.1)
-        self._last_row_t = float(ts[-1])
         rows = {"t": ts, "block": np.floor(ts / self.block_s), "h": h_all, "y": residual, "use": sliding, "clear": clear, "moving": moving, "dt": dts}
         if self._pending is None:
             self._pending = rows

@@ -178,9 +178,11 @@ class _Filter:
                 self.rate_changes += 1
                 self.typical = m
 
-    def push(self, t: Array, q: Array, tau: Array) -> tuple[Array, Array, Array, Array, Array, Array]:
-        """Returns ``(t, q, qd, qdd, tau, done_at)`` of the equations this batch completes,
-        ``done_at`` the index in the batch of the record that completed each."""
+    def push(self, t: Array, q: Array, tau: Array) -> tuple[Array, Array, Array, Array, Array, Array, Array]:
+        """Returns ``(t, q, qd, qdd, tau, done_at, step)`` of the equations this batch completes,
+        ``done_at`` the index in the batch of the record that completed each and ``step`` the
+        time since the record before it (the span each equation stands for: the records' own,
+        whatever came before the stream's start or a restart)."""
         nj = q.shape[1]
         x = np.hstack([q, tau])
         parts = []
@@ -196,11 +198,11 @@ class _Filter:
         parts = [p for p in parts if p[0].size]
         if not parts:
             z = np.zeros((0, nj))
-            return np.zeros(0), z, z, z, z, np.zeros(0, int)
-        tt, x0, x1, x2, done = (np.concatenate([p[i] for p in parts]) for i in range(5))
-        return tt, x0[:, :nj], x1[:, :nj], x2[:, :nj], x0[:, nj:], done
+            return np.zeros(0), z, z, z, z, np.zeros(0, int), np.zeros(0)
+        tt, x0, x1, x2, done, step = (np.concatenate([p[i] for p in parts]) for i in range(6))
+        return tt, x0[:, :nj], x1[:, :nj], x2[:, :nj], x0[:, nj:], done, step
 
-    def _segment(self, t: Array, x: Array, first: int) -> tuple[Array, Array, Array, Array, Array]:
+    def _segment(self, t: Array, x: Array, first: int) -> tuple[Array, Array, Array, Array, Array, Array]:
         if self.seg_start is None:
             self.seg_start = float(t[0])
         bt = np.concatenate([self.t, t])
@@ -209,7 +211,7 @@ class _Filter:
         # the next centres whose windows are complete: every record up to t_c + hw has come
         c0 = int(np.searchsorted(bt, self.last_centre, "right"))
         c1 = int(np.searchsorted(bt, bt[-1] - hw, "right"))
-        res = (np.zeros(0), np.zeros((0, bx.shape[1])), np.zeros((0, bx.shape[1])), np.zeros((0, bx.shape[1])), np.zeros(0, int))
+        res = (np.zeros(0), np.zeros((0, bx.shape[1])), np.zeros((0, bx.shape[1])), np.zeros((0, bx.shape[1])), np.zeros(0, int), np.zeros(0))
         if c1 > c0:
             centres = np.arange(c0, c1)
             self.last_centre = float(bt[c1 - 1])
@@ -218,7 +220,7 @@ class _Filter:
             if ok.any():
                 tc = bt[centres][ok]
                 done = first + np.minimum(np.searchsorted(t, tc + hw, "left"), t.size - 1)
-                res = (tc, x0[ok], x1[ok], x2[ok], done)
+                res = (tc, x0[ok], x1[ok], x2[ok], done, tc - bt[centres - 1][ok])  # ok: two records before each centre
         # keep what the windows of the centres still to come need
         nxt = int(np.searchsorted(bt, self.last_centre, "right"))
         t_next = bt[nxt] if nxt < bt.size else bt[-1]
