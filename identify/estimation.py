@@ -265,4 +265,28 @@ def bounded_quadratic(h: Array, g: Array, lower: Array) -> Array:
     # exactly on the bound where the solver stopped within its tolerance of it
     near = np.isfinite(lower) & (out - lower <= 1e-9 * max(1.0, float(np.max(np.abs(start)))))
     out[near] = lower[near]
-    return out
+    return _on_the_bounds(h, g, lower, out)
+
+
+def _on_the_bounds(h: Array, g: Array, lower: Array, x: Array) -> Array:
+    """``x`` (an iterative solver's answer) made exact where it can be: the parameters it left
+    at or near their bounds held there, the others solved for; kept when that answer is
+    admissible and optimal (each held parameter's gradient pushes it against its bound: the
+    KKT conditions), so a friction the data do not support is 0, not 1e-6 of its
+    scale."""
+    scale = max(1.0, float(np.max(np.abs(x))))
+    held = np.isfinite(lower) & (x - lower <= 1e-5 * scale)
+    if not held.any():
+        return x
+    free = ~held
+    out = np.where(held, lower, x)
+    if free.any():
+        try:
+            out[free] = np.linalg.solve(h[np.ix_(free, free)], g[free] - h[np.ix_(free, held)] @ out[held])
+        except np.linalg.LinAlgError:
+            return x
+    pushes = (h @ out - g)[held]  # half the gradient: >= 0 where the bound holds the parameter back
+    tol = 1e-9 * max(1.0, float(np.max(np.abs(h @ x))), float(np.max(np.abs(g))))
+    if np.all(out[free] >= lower[free]) and np.all(pushes >= -tol):
+        return out
+    return x

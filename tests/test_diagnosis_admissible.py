@@ -74,6 +74,19 @@ def test_bounded_least_squares_takes_up_what_the_bound_holds() -> None:
     assert np.allclose(bounded_quadratic(a.T @ a, a.T @ y, np.full(3, -np.inf)), unbounded)
 
 
+def test_a_parameter_the_data_do_not_support_is_exactly_at_its_bound() -> None:
+    """A Stribeck peak at 0.024 rad/s on a blind case (1 kHz currents, velocity from positions):
+    its column is 1e-6 of the Coulomb column's scale, and the iterative solver stopped at
+    fs = 9.1e-7, not at 0, so a peak the data do not support was scored, picked, and refitted
+    exactly to fs = 574 N*m. The answer is exact: fs held at 0, fc = g_0 / H_00 (the KKT
+    conditions hold: the bound pushes fs down)."""
+    h = np.array([[4.148540042832773, 2.502682719033772e-07], [2.502682719033772e-07, 1.829193993509231e-12]])
+    g = np.array([62.550763744375807, 2.6273040098758514e-06])
+    x = bounded_quadratic(h, g, np.zeros(2))
+    assert x[1] == 0.0 and x[0] == pytest.approx(g[0] / h[0, 0], rel=1e-12), x
+    assert np.linalg.solve(h, g)[1] < 0  # the unbounded answer is inadmissible
+
+
 def test_the_arm_wide_friction_holds_each_joints_fc_and_fv_at_0() -> None:
     """Friction on every joint: a joint whose viscous term least squares fits negative gets fv
     = 0 exactly, the others theirs."""
