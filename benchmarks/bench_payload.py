@@ -5,9 +5,10 @@ half way) through the same code ``armid estimate --replay`` and the Zenoh servic
 (:meth:`EstimateStream.feed_arrays`: derivatives of the whole batch at once, one 10 x 10
 update per 10 ms of the arm's time). Figures are ratios to a reference run in the same
 process (the arm model evaluated on every record in one batch) and the recording's duration
-over the time taken; the live service is timed fed 10 records at a time. The estimator is plain numpy (a cold numba compile took 40 s, which a
-fresh machine paid while the arm moved); each published estimate includes the projection
-onto physically possible payloads.
+over the time taken; the live service is timed fed 10 records at a time. The estimator is numpy
+but for the projection of each published estimate onto physically possible payloads, a
+compiled kernel that ``PayloadRLS.warm`` compiles before the service says it is alive (a cold
+compile of the whole estimator once took 40 s, which a fresh machine paid while the arm moved).
 
     python benchmarks/bench_payload.py [seconds_of_data]
 """

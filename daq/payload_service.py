@@ -19,6 +19,7 @@ output is what the service would have published.
 from __future__ import annotations
 
 import json
+import os
 import threading
 import time
 from collections import deque
@@ -241,7 +242,10 @@ class PayloadService:
     """Run an :class:`EstimateStream` on a Zenoh session until :meth:`close`."""
 
     def __init__(self, session: Any, robot: str, stream: EstimateStream, max_backlog_s: float = 0.5,
-                 on_estimate: Callable[[dict[str, Any]], None] | None = None) -> None:
+                 on_estimate: Callable[[dict[str, Any]], None] | None = None, log: Callable[[str], None] | None = None) -> None:
+        """``log`` is told, in words, each time the worker falls behind and skips: how far, and
+        whether it was computing or not running (the figures that tell a slow estimator from a
+        busy machine)."""
         import zenoh
 
         if not max_backlog_s > 0:
@@ -252,7 +256,9 @@ class PayloadService:
         self.max_backlog_s = max_backlog_s
         self.behind = 0  # times the worker fell behind and skipped
         self.on_estimate = on_estimate
-        self._pending: deque[bytes] = deque()
+        self.log = log
+        self._clock = _WorkerClock()
+        self._pending: deque[tuple[float, bytes]] = deque()  # (arrival on the monotonic clock, record)
         self._held: dict[int, tuple[int, float, Array, Array, Array]] = {}  # the reorder buffer, by sequence number
         self._released: int | None = None
         self._wake = threading.Event()
@@ -270,7 +276,7 @@ class PayloadService:
     def _on_sample(self, sample: Any) -> None:
         try:
             check_encoding(str(sample.encoding))
-            self._pending.append(sample.payload.to_bytes())
+            self._pending.append((time.monotonic(), sample.payload.to_bytes()))
             self._wake.set()
         except Exception as err:  # a callback never kills the receive thread
             if len(self.errors) < 100:
@@ -296,21 +302,28 @@ class PayloadService:
                 batch.append(self._pending.popleft())
             if not batch and not self._held:
                 continue
+            waited_s = time.monotonic() - batch[0][0] if batch else 0.0
             try:
-                records = self._in_order(self._records(batch), idle=not batch)
+                records = self._in_order(self._records([b for _, b in batch]), idle=not batch)
                 if not records:
                     continue
-                if self._behind_s(records) > self.max_backlog_s:
+                behind_s = self._behind_s(records)
+                if behind_s > self.max_backlog_s:
                     # behind by more than max_backlog_s of the arm's time: the newest record only
                     self.behind += 1
                     self.stream.skip(len(records) - 1)
+                    if self.log is not None:
+                        self.log(f"{behind_s:.2f} s of the arm's time behind: skipped {len(records) - 1} records to the newest; "
+                                 f"the oldest waited {waited_s:.3f} s here; " + self._clock.since_last())
                     records = records[-1:]
+                self._clock.start()
                 for doc in self.stream.feed(records):
                     self._pub.put(json.dumps(doc))
                     self.published += 1
                     self.last = doc
                     if self.on_estimate:
                         self.on_estimate(doc)
+                self._clock.stop()
             except Exception as err:
                 if len(self.errors) < 100:
                     self.errors.append(f"{type(err).__name__}: {err}")
@@ -365,6 +378,33 @@ class PayloadService:
                 entity.undeclare()
             except Exception:  # already gone with the session
                 pass
+
+
+class _WorkerClock:
+    """How the worker spent its last batch and the time since: computing (its own CPU time) or
+    not running (descheduled, or waiting for the interpreter lock), so that a skip says which."""
+
+    def __init__(self) -> None:
+        self._start: tuple[float, float, float] | None = None  # wall, the worker's CPU, the process's CPU
+        self._last: tuple[float, float, float, float] | None = None  # wall, the worker's CPU, the process's CPU taken; wall at its end
+
+    def start(self) -> None:
+        self._start = time.monotonic(), time.thread_time(), time.process_time()
+
+    def stop(self) -> None:
+        if self._start is not None:
+            wall = time.monotonic()
+            self._last = wall - self._start[0], time.thread_time() - self._start[1], time.process_time() - self._start[2], wall
+
+    def since_last(self) -> str:
+        """The batch before: its wall time and the CPU time in it; then the wait until now."""
+        load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+        where = f"load average {load:.1f} on {os.cpu_count()} CPUs"
+        if self._last is None:
+            return f"the first batch; {where}"
+        wall, cpu, process, end = self._last
+        return (f"the batch before took {wall:.3f} s, {cpu:.3f} s of it computing (this process's threads {process:.3f} s), "
+                f"and ended {time.monotonic() - end:.3f} s ago; {where}")
 
 
 def wait_for(predicate: Callable[[], bool], timeout: float) -> bool:

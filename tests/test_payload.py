@@ -6,6 +6,7 @@ import dataclasses
 import functools
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -34,6 +35,7 @@ from armid.identify.payload import (
     derivatives_on_times,
     local_polynomial,
     project_feasible,
+    project_feasible_many,
     pseudo_inertia,
     rls_update,
 )
@@ -138,6 +140,19 @@ def test_projection_is_physical_and_the_nearest_in_the_covariance_metric() -> No
     c = np.array([0.02, -0.03, 0.08])
     point = _phi_of_pseudo(2.0 * np.outer(np.append(c, 1), np.append(c, 1)))
     assert np.allclose(project_feasible(point, np.eye(10)), point)
+
+
+def test_many_projections_are_each_the_one_projection() -> None:
+    """A replay projects its estimates in one call, the live service a few at a time: each
+    answer is the single problem's to the bit, whichever others share the call."""
+    rng = np.random.default_rng(5)
+    scale = np.array([1, 0.1, 0.1, 0.1, 0.01, 0.01, 0.01, 0.01, 0.01, 0.01])
+    thetas = rng.normal(size=(12, 10)) * scale
+    covs = np.array([a @ a.T * 1e-3 + 1e-6 * np.eye(10) for a in rng.normal(size=(12, 10, 10))])
+    many = project_feasible_many(thetas, covs, atol=1e-3)
+    assert np.array_equal(many, np.array([project_feasible(t, c, atol=1e-3) for t, c in zip(thetas, covs)]))
+    assert np.array_equal(project_feasible_many(thetas[::-1], covs[::-1], atol=1e-3), many[::-1])
+    assert all(np.linalg.eigvalsh(pseudo_inertia(x)).min() >= 0 for x in many)
 
 
 def test_derivatives_on_time_stamps() -> None:
@@ -371,8 +386,9 @@ def test_the_service_falls_behind_by_time_not_by_record_count() -> None:
             release.wait(30)
             release.clear()
 
+    notes: list[str] = []
     service = PayloadService(estimator, robot, EstimateStream(PayloadRLS(arm), publish_every=1), max_backlog_s=0.5,
-                             on_estimate=on_estimate)
+                             on_estimate=on_estimate, log=notes.append)
     stream = Stream(publisher, robot, "test", lambda: {})
     start = np.asarray(load_rig(RIG).simulation["initial_position"], float)
     state = {"seq": 0, "t": 0.0}
@@ -405,10 +421,19 @@ def test_the_service_falls_behind_by_time_not_by_record_count() -> None:
         held.clear()
         send(80, 0.01)  # 0.8 s at 100 Hz queued: fewer records, more time than 0.5 s
         assert wait_for(lambda: service.backlog >= 80, 10.0), service.backlog
+        time.sleep(0.3)  # held a while longer: the note must say the batch before was mostly not computing
         release.set()
         assert wait_for(lambda: service.backlog == 0 and service.behind == 1, 20.0)
         assert service.stream.lost == 0 and service.stream.skipped >= 79, service.stream.skipped
         assert not service.errors, service.errors
+        # the skip is said, with the figures that tell a worker that was not running (held here)
+        assert len(notes) == 1, notes
+        said = re.fullmatch(r"(\S+) s of the arm's time behind: skipped (\d+) records to the newest; the oldest waited \S+ s here; "
+                            r"the batch before took (\S+) s, (\S+) s of it computing \(this process's threads \S+ s\), "
+                            r"and ended \S+ s ago; load average \S+ on \d+ CPUs", notes[0])
+        assert said is not None, notes[0]
+        assert float(said[1]) > 0.5 and int(said[2]) == service.stream.skipped, notes[0]
+        assert float(said[4]) < 0.5 * float(said[3]), notes[0]
     finally:
         release.set()
         service.close()

@@ -157,7 +157,8 @@ def _estimate(args: argparse.Namespace) -> int:
         ordinary_priority()  # the arithmetic never at a real-time policy inherited from what started it
         estimator.warm()  # nothing left to run for the first time once records arrive
         session = open_zenoh(args)
-        service = PayloadService(session, robot.name, stream, on_estimate=lambda d: out.write(json.dumps(d, allow_nan=False) + "\n"))
+        service = PayloadService(session, robot.name, stream, on_estimate=lambda d: out.write(json.dumps(d, allow_nan=False) + "\n"),
+                                 log=lambda line: print(f"armid estimate: {line}", file=sys.stderr, flush=True))
         print(f"armid estimate: listening on armid/{robot.name}/joint_state (Ctrl-C stops)", file=sys.stderr, flush=True)
         try:
             deadline = time.monotonic() + args.duration if args.duration else None
