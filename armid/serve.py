@@ -408,7 +408,6 @@ class EstimatorService:
 
         arm = ArmModel(self.robot, tuple(fit.effects), fit.base.independent, fit.estimate.beta, fit.estimate.joint_sigma)
         estimator = PayloadRLS(arm)
-        estimator.warm()
         self.payload_service = PayloadService(self.session, self.name, EstimateStream(estimator), log=lambda line: self.log(f"payload: {line}"))
         self.log("payload estimator running on the live stream (estimate/payload)")
 

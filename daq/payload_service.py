@@ -250,6 +250,9 @@ class PayloadService:
 
         if not max_backlog_s > 0:
             raise ValueError(f"max_backlog_s must be a positive number of seconds, got {max_backlog_s}")
+        # nothing runs for the first time once records arrive: the projection's compiled kernel
+        # loads in about 1 s holding the interpreter, which stalled a bus loop in the same process
+        stream.estimator.warm()
         self.session = session
         self.robot = robot
         self.stream = stream

@@ -155,7 +155,6 @@ def _estimate(args: argparse.Namespace) -> int:
         from armid.drivers.realtime import ordinary_priority
 
         ordinary_priority()  # the arithmetic never at a real-time policy inherited from what started it
-        estimator.warm()  # nothing left to run for the first time once records arrive
         session = open_zenoh(args)
         service = PayloadService(session, robot.name, stream, on_estimate=lambda d: out.write(json.dumps(d, allow_nan=False) + "\n"),
                                  log=lambda line: print(f"armid estimate: {line}", file=sys.stderr, flush=True))
