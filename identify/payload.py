@@ -46,8 +46,8 @@ information form (:func:`rls_update` is the one-sample form of the same update).
   onto the payloads that can exist (mass >= 0 and the pseudo-inertia
   ``[[tr(I)/2 1 - I, m s], [m s^T, m]]`` positive semidefinite; Wensing et al. 2017), in the
   metric of the estimate's covariance: directions the data pin down move least. The
-  unconstrained estimate is kept beside it. A replay projects all its estimates in one
-  batch (:func:`project_feasible_many`).
+  unconstrained estimate is kept beside it. Each projection is a compiled barrier method
+  (:mod:`identify._projection_kernel`), the same live and on replay.
 - **Converged** means: the mass (and, with a mass, the centre of mass) excited, their
   standard deviations below ``MASS_STD_KG + MASS_STD_REL m`` and ``COM_STD_M``, and the
   whitened innovations of the last ``CONSISTENCY_WINDOW_S`` no larger than their covariance
@@ -559,21 +559,16 @@ class PayloadRLS:
         return self.document(self.snapshot(), self.feasible_())
 
     def estimates(self, snapshots: list[dict[str, Any]]) -> list[dict[str, Any]]:
-        """The documents of many snapshots, their projections in one batch
-        (:func:`project_feasible_many`): what a replay publishes, at a fraction of the cost."""
-        if not snapshots:
-            return []
-        if len(snapshots) < 4:  # a live batch: each from the cold start, as the batch below (never the last answer: see project_feasible)
-            out = []
-            for s in snapshots:
-                key = (s["updates"] + s["resets"] + s["rejected"], s["theta"].tobytes())
-                if self._projected is None or self._projected[0] != key:
-                    self._projected = (key, project_feasible(s["theta"], s["P"], atol=PUBLISH_ATOL))
-                out.append(self.document(s, self._projected[1]))
-            return out
-        feasible = project_feasible_many(np.array([s["theta"] for s in snapshots]), np.array([s["P"] for s in snapshots]),
-                                         atol=PUBLISH_ATOL)
-        return [self.document(s, f) for s, f in zip(snapshots, feasible)]
+        """The documents of many snapshots, each projected on its own from the cold start (never
+        from the last answer: see :func:`project_feasible`), so live and replay publish the same;
+        a snapshot equal to the last one (no new equation) reuses its projection."""
+        out = []
+        for s in snapshots:
+            key = (s["updates"] + s["resets"] + s["rejected"], s["theta"].tobytes())
+            if self._projected is None or self._projected[0] != key:
+                self._projected = (key, project_feasible(s["theta"], s["P"], atol=PUBLISH_ATOL))
+            out.append(self.document(s, self._projected[1]))
+        return out
 
     def document(self, snap: dict[str, Any], th: Array) -> dict[str, Any]:
         """The published document of a :meth:`snapshot` whose physically possible parameters are ``th``."""
