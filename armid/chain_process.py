@@ -93,8 +93,9 @@ def serve(rig_file: str, seed: int | None = None) -> None:
     sys.setswitchinterval(0.0001)
     from armid.drivers.interface import ProcessSettings
 
-    # hardware answers in hardware time: the chain's threads at real-time priority where allowed
-    ProcessSettings().realtime()  # held until this process ends
+    # hardware answers in hardware time: the chain's threads at real-time priority where
+    # allowed, above the master's (drivers.realtime.HARDWARE_ABOVE)
+    ProcessSettings().realtime(hardware=True)  # held until this process ends
     try:
         chain = SimulatedServoChain(load_rig(rig_file), seed=seed)
     except Exception as err:

@@ -35,14 +35,15 @@ import numpy as np
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable
 from canopen.sdo import SdoAbortedError, SdoCommunicationError, SdoVariable
 
-from armid.schema import Array
-from armid.schema.errors import NotOperational
+from armid.schema import Array, Sample
+from armid.schema.errors import DriveConfigError, DriveFault, DriverError, HeartbeatLost, NotOperational
 
 from ..resources import config_file
-from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverError, HeartbeatLost, ProcessSettings, Sample, bus_time
+from .interface import CycleClock, CycleHeartbeat, Driver, ProcessSettings, bus_time
 from .pdo_plan import PLANS, PdoSpec, check_bus_budget
 from .realtime import stall_sentence
 from .rig import Rig, current_of, open_bus, permille_of
+from .udp_filter import drop_own_frames, master_frames
 
 EDS = str(config_file("drives/armid_cia402.eds"))  # package data (armid.config)
 
@@ -156,12 +157,14 @@ class CanopenDriver(Driver):
         self._emitted = Sample.empty(0, 0.0, self.n_joints)
         self._settings = ProcessSettings()
         self.paced_by_consumer = False  # see _sync_loop; for an arm simulated in this process
+        self.paced_by_drives = False  # see _sync_loop; for an arm simulated in another process (armid sim)
         self._paced_s = 0.0  # time the SYNC loop waited for the consumer since the last watchdog call
         self._listen_only = False
         self._t0: float | None = None
         self._ack = threading.Condition()
         self._acknowledged = 0
         self.consumer_late = 0
+        self.drives_late = 0  # SYNCs sent before the previous cycle's frames were in (paced_by_drives)
         self._target = np.zeros(self.n_joints, np.int64)  # per mille of rated torque
         self._target_position = np.zeros(self.n_joints, np.int64)
         self._position_mode = False
@@ -181,7 +184,7 @@ class CanopenDriver(Driver):
         self._nmt = np.full(self.n_joints, -1, np.int64)  # each drive's NMT state as its heartbeat says
         self._not_operational = np.zeros(self.n_joints, bool)  # was operational, reports another state
         self._nmt_supervised = False  # from NMT start all on: before, the drives are sent to pre-operational on purpose
-        self._hb_task: can.broadcastmanager.CyclicSendTaskABC | _CycleHeartbeat | None = None
+        self._hb_task: can.broadcastmanager.CyclicSendTaskABC | CycleHeartbeat | None = None
         self._bcm_task: can.broadcastmanager.CyclicSendTaskABC | None = None
         self.late_frames = np.zeros(self.n_joints, np.int64)
         self.lost_cycles = np.zeros(self.n_joints, np.int64)
@@ -234,6 +237,7 @@ class CanopenDriver(Driver):
             if r.bus.interface == "socketcan":
                 kwargs["receive_own_messages"] = True
             self._bus = open_bus(**kwargs)
+            drop_own_frames(self._bus, master_frames(self._node_ids, r.master_node_id))  # udp_multicast loops them back
         self.network = canopen.Network(self._bus)
         self.network.connect()
         assert self.network.notifier is not None
@@ -265,7 +269,7 @@ class CanopenDriver(Driver):
         if r.bus.interface == "socketcan":
             self._hb_task = self._bus.send_periodic(heartbeat, r.master_heartbeat_ms / 1000.0)
         else:
-            self._hb_task = _CycleHeartbeat(heartbeat, round(r.master_heartbeat_ms / 1000.0 / self.period_s))
+            self._hb_task = CycleHeartbeat(heartbeat, round(r.master_heartbeat_ms / 1000.0 / self.period_s))
         # a drive is supervised from its first operational heartbeat after this start: one that
         # was operational before (a previous run) and went pre-operational above is not lost
         self._nmt[:] = -1
@@ -412,19 +416,8 @@ class CanopenDriver(Driver):
         counter = 0
         while not self._stop.is_set():
             clock.wait()
-            if self.paced_by_consumer and self._cycle:
-                # the arm is simulated in this process: its next step waits for the control
-                # law to have acted on the last one, so a busy process slows the simulation
-                # down instead of stretching the control loop's delay. The wait never makes the
-                # gap since the last SYNC longer than PACE_WAIT_S, inside the drives' SYNC
-                # timeout (the master's heartbeat goes on meanwhile): after a stall, which
-                # spent that budget already, the SYNC goes out at once
-                waited_from = time.monotonic()
-                budget = PACE_WAIT_S - (waited_from - self.last_sync_sent)
-                with self._ack:
-                    if not self._ack.wait_for(lambda: self._acknowledged >= self._cycle or self._stop.is_set(), max(budget, 0.0)):
-                        self.consumer_late += 1
-                self._paced_s += time.monotonic() - waited_from
+            if (self.paced_by_consumer or self.paced_by_drives) and self._cycle:
+                self._pace()
                 clock.not_before_now()
             counter = counter % SYNC_COUNTER_OVERFLOW + 1
             self._cycle += 1
@@ -437,11 +430,30 @@ class CanopenDriver(Driver):
                 self.longest_sync_gap = max(self.longest_sync_gap, sent - self.last_sync_sent)
                 self.last_sync_sent = sent
                 self._send_commands()
-                if isinstance(self._hb_task, _CycleHeartbeat) and self._hb_task.due(self._cycle):
+                if isinstance(self._hb_task, CycleHeartbeat) and self._hb_task.due(self._cycle):
                     self._bus.send(self._hb_task.frame)
             except can.CanError as err:
                 self._event("bus", f"cannot send SYNC {counter}: {err}")
             self._watchdog()
+
+    def _pace(self) -> None:
+        """Co-simulation: the next SYNC waits for the last cycle's consumer (``paced_by_consumer``:
+        an arm in this process; a busy process slows it instead of the control loop) and frames
+        (``paced_by_drives``: an arm in another process, which a shared machine stalls, 9 ms seen;
+        its late answers were lost cycles), up to PACE_WAIT_S after the last SYNC (inside the
+        drives' SYNC timeout)."""
+        waited_from = time.monotonic()
+        with self._ack:
+            if not self._ack.wait_for(lambda: self._paced_through() or self._stop.is_set(),
+                                      max(PACE_WAIT_S - (waited_from - self.last_sync_sent), 0.0)):
+                self.consumer_late += self.paced_by_consumer and self._acknowledged < self._cycle
+                self.drives_late += self.paced_by_drives and self._emitted.cycle < self._cycle
+        self._paced_s += time.monotonic() - waited_from
+
+    def _paced_through(self) -> bool:
+        """The last cycle is done with: acted on by the consumer, its frames in, as paced."""
+        return ((not self.paced_by_consumer or self._acknowledged >= self._cycle)
+                and (not self.paced_by_drives or self._emitted.cycle >= self._cycle))
 
     def _on_sync_echo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """A SYNC the broadcast manager sent, seen on the bus: its cycle starts at its stamp."""
@@ -471,7 +483,7 @@ class CanopenDriver(Driver):
             self._t0 = now - cycle * self.period_s
         # a paced simulation steps its arm one period per SYNC, whenever the SYNC goes out:
         # its samples carry the arm's time; on a real bus the SYNC's own time is the arm's
-        stamp = self._t0 + cycle * self.period_s if self.paced_by_consumer else now
+        stamp = self._t0 + cycle * self.period_s if self.paced_by_consumer or self.paced_by_drives else now
         s = Sample.empty(cycle, stamp, self.n_joints)
         # start from the newest complete sample: the previous cycle's frames may not be in yet
         s.position[:], s.velocity[:] = self._emitted.position, self._emitted.velocity
@@ -505,6 +517,9 @@ class CanopenDriver(Driver):
                     mine[j] = before[j]
         self._emitted = s
         self._publish(s)
+        if self.paced_by_drives:
+            with self._ack:
+                self._ack.notify_all()
 
     def _flush_complete(self) -> None:
         while self._open and not self._open[0].expected:
@@ -749,23 +764,6 @@ class CanopenDriver(Driver):
             elif self.network.notifier is not None:
                 self.network.notifier.stop(0.5)
         self.network = None
-
-
-class _CycleHeartbeat:
-    """The master's heartbeat, sent by the SYNC thread every ``every`` cycles (the first
-    cycle included): where no kernel times it, a thread of its own waits for the interpreter
-    lock as any other, and a drive that saw SYNCs for 0.15 s without a heartbeat between
-    them faulted the arm on a loaded machine. :meth:`stop` stops it (a hung master)."""
-
-    def __init__(self, frame: can.Message, every: int) -> None:
-        self.frame, self.every = frame, max(1, every)
-        self.stopped = False
-
-    def due(self, cycle: int) -> bool:
-        return not self.stopped and (cycle - 1) % self.every == 0
-
-    def stop(self) -> None:
-        self.stopped = True
 
 
 class _Watcher(can.Listener):

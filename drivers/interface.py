@@ -27,6 +27,8 @@ from armid.schema.errors import DriveConfigError, DriveFault, DriverError, Heart
 from .realtime import RealtimeScheduling, Timing
 
 if TYPE_CHECKING:
+    import can
+
     from .rig import DriveUnits
 
 __all__ = ["CycleClock", "DriveConfigError", "DriveFault", "Driver", "DriverError", "Event", "HeartbeatLost", "Sample"]
@@ -66,13 +68,15 @@ class ProcessSettings:
     def __init__(self) -> None:
         self._interval = self._freeze = self._realtime = False
 
-    def realtime(self) -> Timing:
-        """SCHED_FIFO for this process's Python threads while any holder runs (the first takes it)."""
+    def realtime(self, hardware: bool = False) -> Timing:
+        """SCHED_FIFO for this process's Python threads while any holder runs (the first takes
+        it); above a master's for simulated ``hardware`` in a process of its own
+        (:data:`~drivers.realtime.HARDWARE_ABOVE`)."""
         cls = type(self)
         with cls._lock:
             if not self._realtime:
                 if cls._rt_holders == 0:
-                    cls._rt = RealtimeScheduling()
+                    cls._rt = RealtimeScheduling(hardware)
                     cls._rt.acquire()
                 cls._rt_holders += 1
                 self._realtime = True
@@ -158,6 +162,23 @@ class CycleClock:
     def not_before_now(self) -> None:
         """The next period starts no earlier than now (after waiting for something else)."""
         self._next = max(self._next, time.perf_counter())
+
+
+class CycleHeartbeat:
+    """The master's heartbeat, sent by the SYNC thread every ``every`` cycles (the first
+    cycle included): where no kernel times it, a thread of its own waits for the interpreter
+    lock as any other, and a drive that saw SYNCs for 0.15 s without a heartbeat between
+    them faulted the arm on a loaded machine. :meth:`stop` stops it (a hung master)."""
+
+    def __init__(self, frame: can.Message, every: int) -> None:
+        self.frame, self.every = frame, max(1, every)
+        self.stopped = False
+
+    def due(self, cycle: int) -> bool:
+        return not self.stopped and (cycle - 1) % self.every == 0
+
+    def stop(self) -> None:
+        self.stopped = True
 
 
 class Driver(abc.ABC):

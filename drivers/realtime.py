@@ -14,7 +14,11 @@ policy (``pthread_create``'s default). Memory is locked as it is touched
 (``mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT)``), so no page of the loop is swapped out.
 
 ``ARMID_REALTIME`` chooses: a priority 1-99 (default 50, below the kernel's threaded
-interrupts of a PREEMPT_RT kernel, which the bus itself needs), or ``off``.
+interrupts of a PREEMPT_RT kernel, which the bus itself needs), or ``off``. A simulated arm or
+servo chain in a process of its own stands in for drives, which have processors of their own:
+it runs :data:`HARDWARE_ABOVE` higher, so that on a machine it shares with the master it is
+never the one waiting (a simulator and a master at one priority on two cores lost cycles over
+``udp_multicast`` when both were busy, issue 31).
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 
 DEFAULT_PRIORITY = 50
+HARDWARE_ABOVE = 10  # a simulated drive's priority over its master's
 ORDINARY_THREADS = ("armid-serve-", "armid-payload", "armid-regressor")
 """Threads that compute, left at the ordinary policy when they share the process (a test's
 in-process service, the regressor's pool): arithmetic must not take the cores from the cycle."""
@@ -53,18 +58,20 @@ class Timing:
         return f"{what} at normal priority: {self.why}; expect jitter under load"
 
 
-def requested_priority() -> tuple[int, str]:
-    """(priority, why) from ``ARMID_REALTIME``; priority 0 means off."""
+def requested_priority(hardware: bool = False) -> tuple[int, str]:
+    """(priority, why) from ``ARMID_REALTIME``, :data:`HARDWARE_ABOVE` higher for simulated
+    ``hardware``; priority 0 means off."""
     text = os.environ.get("ARMID_REALTIME", "").strip().lower()
+    above = HARDWARE_ABOVE if hardware else 0
     if not text:
-        return DEFAULT_PRIORITY, ""
+        return DEFAULT_PRIORITY + above, ""
     if text in ("off", "0", "no", "false"):
         return 0, "ARMID_REALTIME=off"
     try:
         value = int(text)
     except ValueError:
-        return DEFAULT_PRIORITY, f"ARMID_REALTIME={text!r} is not a priority (1-99 or off): using {DEFAULT_PRIORITY}"
-    return max(1, min(99, value)), ""
+        return DEFAULT_PRIORITY + above, f"ARMID_REALTIME={text!r} is not a priority (1-99 or off): using {DEFAULT_PRIORITY}"
+    return max(1, min(99, value + above)), ""
 
 
 def _libc() -> ctypes.CDLL | None:
@@ -76,13 +83,14 @@ class RealtimeScheduling:
     """Holds ``SCHED_FIFO`` for the process's Python threads; :meth:`release` puts back the
     policy each had (threads started meanwhile go back to normal)."""
 
-    def __init__(self) -> None:
+    def __init__(self, hardware: bool = False) -> None:
+        self.hardware = hardware  # a simulated drive in a process of its own: above its master
         self._before: dict[int, tuple[int, int]] = {}  # every thread's policy and priority before acquire()
         self._locked = False
         self.timing: Timing | None = None
 
     def acquire(self) -> Timing:
-        priority, why = requested_priority()
+        priority, why = requested_priority(self.hardware)
         if not hasattr(os, "sched_setscheduler"):
             self.timing = Timing("normal", 0, False, "this system has no sched_setscheduler")
             return self.timing
@@ -134,6 +142,23 @@ class RealtimeScheduling:
             if libc is not None:
                 libc.munlockall()
             self._locked = False
+
+
+def one_cpu() -> int | None:
+    """Keep this process on one CPU, the last it may use; returns it (None where the system
+    cannot). For a simulated device: the kernel queues a datagram looped back on this host on
+    the CPU that sent it, so a sender that moves between CPUs can have its frames delivered out
+    of order, one held behind a busy CPU while the next goes through (a simulated drive's TPDO
+    came after the next cycle's, on a 2-core machine with two busy processes), which a CAN bus
+    never does."""
+    if not hasattr(os, "sched_setaffinity"):
+        return None
+    try:
+        cpu = max(os.sched_getaffinity(0))
+        os.sched_setaffinity(0, {cpu})
+    except OSError:
+        return None
+    return cpu
 
 
 def realtime_allowed() -> bool:

@@ -22,7 +22,9 @@ import canopen
 import numpy as np
 
 from armid.drivers.interface import ProcessSettings
+from armid.drivers.realtime import one_cpu
 from armid.drivers.rig import Rig, open_bus
+from armid.drivers.udp_filter import drive_frames, drop_own_frames
 
 from .drive import SimulatedDrive
 from .physics import ArmPhysics, Measurement, simulation_config
@@ -61,8 +63,13 @@ class StateLog:
 class SimulatedArm:
     """Run the rig's arm on ``bus`` (or on a bus opened from the rig) until :meth:`close`."""
 
-    def __init__(self, rig: Rig, bus: can.BusABC | None = None, seed: int | None = None, log_size: int = 200_000) -> None:
+    def __init__(self, rig: Rig, bus: can.BusABC | None = None, seed: int | None = None, log_size: int = 200_000,
+                 own_process: bool = False) -> None:
+        """``own_process``: the arm is alone in its process (``armid sim``), standing in for
+        drives with processors of their own: its threads run above the master's, on one CPU
+        (:func:`~drivers.realtime.one_cpu`: its frames leave in order)."""
         self.rig = rig
+        self.cpu = one_cpu() if own_process else None
         self._settings = ProcessSettings()  # put back by close()
         sim = dict(rig.simulation)
         self.seed = int(sim.get("seed", 0) if seed is None else seed)
@@ -70,11 +77,13 @@ class SimulatedArm:
         self.physics = ArmPhysics(rig.robot, self.config, rig.period_s, self.seed)
         self._own_bus = bus is None
         self.bus = bus if bus is not None else open_bus(**rig.bus.kwargs())
+        if self._own_bus:  # udp_multicast loops every frame back to its sender
+            drop_own_frames(self.bus, drive_frames(d.node_id for d in rig.drives))
         self.network = canopen.Network(self.bus)
         # a thread waiting for the GIL waits up to the switch interval (5 ms by default):
         # more than two cycles. A 2 ms loop needs the interpreter to switch ten times faster.
         self._settings.fast_switching(rig.period_s)
-        self.timing = self._settings.realtime()  # before the notifier's thread starts: it inherits the policy
+        self.timing = self._settings.realtime(own_process)  # before the notifier's thread starts: it inherits the policy
         self.network.connect()
         sync_timeout = float(sim.get("sync_timeout_s", 0.1))
         self.drives = [SimulatedDrive(d.node_id, d.joint, d.units, self.network, sync_timeout) for d in rig.drives]

@@ -29,6 +29,8 @@ from armid.identify.pinocchio_bridge import to_pinocchio
 from armid.identify.robot import Robot
 from armid.schema import Array
 
+from ._physics_kernel import EFFECT_ROWS, substep
+
 EFFECT_FIELDS = ("coulomb", "viscous", "stribeck", "stribeck_velocity", "rotor_inertia", "torque_gain", "cogging",
                  "cogging_period", "cogging_phase", "spring", "spring_rest", "offset", "delay_s", "load_friction")
 
@@ -189,7 +191,6 @@ class ArmPhysics:
         ry = np.array([[np.cos(ay), 0, np.sin(ay)], [0, 1, 0], [-np.sin(ay), 0, np.cos(ay)]])
         self.model.gravity = pin.Motion(ry @ rx @ np.asarray(robot.gravity, float), np.zeros(3))
         self._data = self.model.createData()
-        self._upper = np.triu(np.ones((self.model.nv, self.model.nv), bool))  # crba fills the upper triangle
         self._last_inertia = self.model.inertias[self.n].copy()
         self.kt = np.array([j.torque_constant for j in robot.joints], float)
         self.gain = np.array([config.effects(j).torque_gain for j in range(self.n)])
@@ -203,17 +204,13 @@ class ArmPhysics:
         self._lock = threading.Lock()
         self._pending_payload: list[tuple[float, Payload | None]] = []
         self.payload_events: list[tuple[float, Payload | None]] = []
-        fx = [config.effects(j) for j in range(self.n)]
-        self._fc = np.array([e.coulomb for e in fx])
-        self._fv = np.array([e.viscous for e in fx])
-        self._fs = np.array([e.stribeck for e in fx])
-        self._vs = np.array([e.stribeck_velocity for e in fx])
-        self._cog = np.array([e.cogging for e in fx])
-        self._cog_period = np.array([e.cogging_period for e in fx])
-        self._cog_phase = np.array([e.cogging_phase for e in fx])
-        self._spring = np.array([e.spring for e in fx])
-        self._rest = np.array([e.spring_rest for e in fx])
-        self._fl = np.array([e.load_friction for e in fx])
+        self._effects = np.array([[getattr(config.effects(j), row) for j in range(self.n)] for row in EFFECT_ROWS], float)
+        tau_c = config.current_time_constant_s
+        self._alpha = 1.0 - np.exp(-self.dt / tau_c) if tau_c > 0 else 1.0  # the current loop's lag per sub-step
+        self._motor_gain = self.gain * self.kt
+        self._max_delay = int(self.delay_steps.max()) if self.n else 0
+        self._all_free, self._zero = np.ones(self.n, bool), np.zeros(self.n)
+        self._warm()
         self.payload: Payload | None = None
 
     # --- payload, settable from any thread; applied at the next step, or at a time of the arm's clock ---
@@ -248,39 +245,11 @@ class ArmPhysics:
     def time_s(self) -> float:
         return self._state.time_s
 
-    def effect_torque(self, q: Array, qd: Array) -> Array:
-        """:meth:`JointEffects.torque` of every joint, vectorised."""
-        s = np.tanh(qd / 1e-3)
-        x = np.minimum(np.abs(qd / self._vs), 30.0)
-        t = (self._fc + self._fs * np.exp(-(x**2))) * s + self._fv * qd
-        return t + self._cog * np.sin(2.0 * np.pi * q / self._cog_period + self._cog_phase) + self._spring * (q - self._rest)
-
-    def friction_slope(self, qd: Array) -> Array:
-        """:meth:`JointEffects.friction_slope` of every joint, vectorised."""
-        th = np.tanh(qd / 1e-3)
-        s = 1.0 - th**2
-        x = np.minimum(np.abs(qd / self._vs), 30.0)
-        stribeck = self._fs * np.exp(-(x**2)) * (s / 1e-3 - 2.0 * (qd / self._vs) / self._vs * th)
-        return np.maximum(0.0, self._fv + self._fc * s / 1e-3 + stribeck)
-
-    def _acceleration(self, q: Array, qd: Array, tau: Array, braked: Array | None, extra_slope: Array | float = 0.0) -> Array:
-        """Solve ``(M + dt D) a = tau - b(q, qd)``; D is the friction slope (linearly implicit
-        Euler for friction, stable however stiff); braked joints have ``a = 0``."""
-        pin = self._pin
-        free = np.ones(self.n, bool) if braked is None else ~np.asarray(braked, bool)
-        every = bool(free.all())
-        qd = qd if every else np.where(free, qd, 0.0)
-        mass = pin.crba(self.model, self._data, q)
-        mass = np.where(self._upper, mass, mass.T)
-        bias = pin.rnea(self.model, self._data, q, qd, np.zeros(self.n))
-        slope = self.friction_slope(qd) + extra_slope
-        if every:  # the common case, without the index arrays (this runs every sub-step)
-            return np.linalg.solve(mass + self.dt * np.diag(slope), tau - bias)
-        acc = np.zeros(self.n)
-        if free.any():
-            lhs = mass[np.ix_(free, free)] + self.dt * np.diag(slope[free])
-            acc[free] = np.linalg.solve(lhs, (tau - bias)[free])
-        return acc
+    def _warm(self) -> None:
+        """Compile (or load from numba's cache) the sub-step kernel now: the first call holds
+        the interpreter for seconds, which must not happen inside a bus thread's SYNC."""
+        z = np.zeros(self.n)
+        substep(np.eye(self.n), z, z.copy(), z.copy(), z.copy(), z, 1.0, z, z, np.ones(self.n, bool), self._effects, self.dt)
 
     def step(self, current_command: Array, braked: Array | None = None) -> Measurement:
         """Advance one period under ``current_command`` (A per joint); return the sensors.
@@ -294,26 +263,15 @@ class ArmPhysics:
             for _, payload in sorted(due, key=lambda e: e[0]):
                 self._apply_payload(payload)
                 self.payload_events.append((self._state.time_s, payload))
-        s = self._state
+        s, pin = self._state, self._pin
         cmd = np.asarray(current_command, float)
-        tau_c = self.config.current_time_constant_s
-        alpha = 1.0 - np.exp(-self.dt / tau_c) if tau_c > 0 else 1.0
+        free = self._all_free if braked is None else ~np.asarray(braked, bool)
         acc = self._last_acc
-        max_delay = int(self.delay_steps.max()) if self.n else 0
+        max_delay = self._max_delay
         for _ in range(self.config.substeps):
-            s.current = s.current + alpha * (cmd - s.current)
-            tau_motor = self.gain * self.kt * s.current
-            tau = tau_motor + self.offset - self.effect_torque(s.q, s.qd)
-            extra: Array | float = 0.0
-            if self._fl.any():  # friction that grows with the load the gear carries
-                th = np.tanh(s.qd / 1e-3)
-                tau = tau - self._fl * np.abs(tau_motor) * th
-                extra = self._fl * np.abs(tau_motor) * (1.0 - th**2) / 1e-3
-            acc = self._acceleration(s.q, s.qd, tau, braked, extra)
-            s.qd = s.qd + acc * self.dt
-            if braked is not None:
-                s.qd = np.where(braked, 0.0, s.qd)
-            s.q = s.q + s.qd * self.dt
+            mass = pin.crba(self.model, self._data, s.q)
+            bias = pin.rnea(self.model, self._data, s.q, s.qd if free is self._all_free else np.where(free, s.qd, 0.0), self._zero)
+            acc = substep(mass, bias, s.q, s.qd, s.current, cmd, self._alpha, self._motor_gain, self.offset, free, self._effects, self.dt)
             s.time_s += self.dt
             if max_delay:
                 s.history.append((s.q.copy(), s.qd.copy()))

@@ -30,10 +30,10 @@ def _sim(args: argparse.Namespace) -> int:
 def _sim_arm(rig: Any, args: argparse.Namespace, stop: Any) -> int:
     from armid.sim_bus.arm import SimulatedArm
 
-    arm = SimulatedArm(rig, seed=args.seed)
+    arm = SimulatedArm(rig, seed=args.seed, own_process=True)
     print(f"armid sim: {rig.name}: {rig.n_joints} drives (nodes {', '.join(str(d.node_id) for d in rig.drives)}) "
           f"on {rig.bus.interface}:{rig.bus.channel}, lock-step with SYNC at {rig.period_s * 1000:g} ms (co-simulated: a late "
-          f"SYNC pauses the arm); {arm.timing.sentence('simulator threads')}", file=sys.stderr, flush=True)
+          f"SYNC pauses the arm); {arm.timing.sentence('simulator threads')}{'' if arm.cpu is None else f' on CPU {arm.cpu}'}", file=sys.stderr, flush=True)
     if args.ready:
         Path(args.ready).write_text("ready\n")
     try:
@@ -50,8 +50,10 @@ def _sim_arm(rig: Any, args: argparse.Namespace, stop: Any) -> int:
 def _sim_chain(rig: Any, args: argparse.Namespace, stop: Any) -> int:
     """A Dynamixel rig: the simulated servo chain on a pty; the driver opens the printed port."""
 
+    from armid.drivers.interface import ProcessSettings
     from armid.sim_bus.servo_chain import SimulatedServoChain
 
+    ProcessSettings().realtime(hardware=True)  # hardware answers in hardware time, above its master (until this process ends)
     chain = SimulatedServoChain(rig, seed=args.seed)
     print(f"armid sim: {rig.name}: {rig.n_joints} Dynamixel servos (ids {', '.join(str(d.node_id) for d in rig.drives)}) "
           f"at {rig.bus.bitrate:,} baud on {chain.port}", file=sys.stderr, flush=True)
