@@ -70,7 +70,7 @@ def requested_priority(hardware: bool = False) -> tuple[int, str]:
     try:
         value = int(text)
     except ValueError:
-        return DEFAULT_PRIORITY + above, f"ARMID_REALTIME={text!r} is not a priority (1-99 or off): using {DEFAULT_PRIORITY}"
+        return DEFAULT_PRIORITY + above, f"ARMID_REALTIME={text!r} is not a priority (1-99 or off): using {DEFAULT_PRIORITY + above}"
     return max(1, min(99, value + above)), ""
 
 
@@ -148,9 +148,9 @@ def one_cpu() -> int | None:
     """Keep this process on one CPU, the last it may use; returns it (None where the system
     cannot). For a simulated device: the kernel queues a datagram looped back on this host on
     the CPU that sent it, so a sender that moves between CPUs can have its frames delivered out
-    of order, one held behind a busy CPU while the next goes through (a simulated drive's TPDO
-    came after the next cycle's, on a 2-core machine with two busy processes), which a CAN bus
-    never does."""
+    of order, one held behind a busy CPU while the next goes through, which a CAN bus never
+    does (on a 2-core machine with busy processes, one joint's TPDO came after its cycle's
+    deadline while the joints sent after it were on time; kept on one CPU, none did)."""
     if not hasattr(os, "sched_setaffinity"):
         return None
     try:

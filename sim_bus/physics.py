@@ -264,7 +264,7 @@ class ArmPhysics:
                 self._apply_payload(payload)
                 self.payload_events.append((self._state.time_s, payload))
         s, pin = self._state, self._pin
-        cmd = np.asarray(current_command, float)
+        cmd = np.ascontiguousarray(current_command, float)  # the kernel is compiled for contiguous arrays
         free = self._all_free if braked is None else ~np.asarray(braked, bool)
         acc = self._last_acc
         max_delay = self._max_delay
