@@ -4,8 +4,8 @@ On python-can's ``udp_multicast`` every member of the group, the sender included
 datagram back (multicast loop-back is how processes on one host hear each other), and each
 received frame costs the Python side about 60 us (select, receive, msgpack, ``can.Message``,
 the notifier, canopen's dispatch). With a simulated six-axis arm at 2 ms, 16 frames a cycle,
-the simulator and the master each spent over half a core on frames they sent themselves, and
-lost cycles on a 2-core machine (issue 31). A classic BPF socket filter drops them in the
+the simulator and the master each spent a fifth to a quarter of a core on the 7-9 frames a
+cycle they had sent themselves, on a 2-core machine where the two lost cycles (issue 31). A classic BPF socket filter drops them in the
 kernel, as SocketCAN's ``CAN_RAW_FILTER`` would.
 
 The filter reads python-can's wire format (a msgpack map whose first entries are
