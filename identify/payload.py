@@ -513,9 +513,13 @@ class PayloadRLS:
 
     def feasible_(self) -> Array:
         """The published parameters: :func:`project_feasible` of ``theta_`` (cached per update)."""
-        key = (self.n_updates_ + self.resets_ + self.rejected_, self.theta_.tobytes())
+        return self._projection(self.n_updates_ + self.resets_ + self.rejected_, self.theta_, self.P_)
+
+    def _projection(self, equations: int, theta: Array, cov: Array) -> Array:
+        """:func:`project_feasible` of ``theta``, reused while no equation came since the last."""
+        key = (equations, theta.tobytes())
         if self._projected is None or self._projected[0] != key:
-            self._projected = (key, project_feasible(self.theta_, self.P_, atol=PUBLISH_ATOL))
+            self._projected = (key, project_feasible(theta, cov, atol=PUBLISH_ATOL))
         return self._projected[1]
 
     def snapshot(self) -> dict[str, Any]:
@@ -562,13 +566,8 @@ class PayloadRLS:
         """The documents of many snapshots, each projected on its own from the cold start (never
         from the last answer: see :func:`project_feasible`), so live and replay publish the same;
         a snapshot equal to the last one (no new equation) reuses its projection."""
-        out = []
-        for s in snapshots:
-            key = (s["updates"] + s["resets"] + s["rejected"], s["theta"].tobytes())
-            if self._projected is None or self._projected[0] != key:
-                self._projected = (key, project_feasible(s["theta"], s["P"], atol=PUBLISH_ATOL))
-            out.append(self.document(s, self._projected[1]))
-        return out
+        return [self.document(s, self._projection(s["updates"] + s["resets"] + s["rejected"], s["theta"], s["P"]))
+                for s in snapshots]
 
     def document(self, snap: dict[str, Any], th: Array) -> dict[str, Any]:
         """The published document of a :meth:`snapshot` whose physically possible parameters are ``th``."""
