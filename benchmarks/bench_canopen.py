@@ -53,6 +53,7 @@ def run(interface: str, seconds: float) -> str:
             time.sleep(0.05)
     driver = CanopenDriver(rig)
     driver.paced_by_consumer = interface == "virtual"
+    driver.paced_by_drives = False  # the bus's own timing, as a real arm would meet it (not co-simulated)
     sync_times: list[float] = []
     try:
         driver.start()

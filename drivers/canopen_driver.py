@@ -49,6 +49,7 @@ EDS = str(config_file("drives/armid_cia402.eds"))  # package data (armid.config)
 
 SYNC_COUNTER_OVERFLOW = 240
 SYNC_COB_ID = 0x80
+SIMULATED_PRODUCT_CODE = 0x41524D53  # 0x1018:2 of armid's simulated drive ("ARMS"): see paced_by_drives
 CONTROLWORD_REFRESH = 25
 PACE_WAIT_S = 0.05
 STALL_S = 0.05  # a watchdog call this late means this process (not the bus) was stalled
@@ -157,7 +158,9 @@ class CanopenDriver(Driver):
         self._emitted = Sample.empty(0, 0.0, self.n_joints)
         self._settings = ProcessSettings()
         self.paced_by_consumer = False  # see _sync_loop; for an arm simulated in this process
-        self.paced_by_drives = False  # see _sync_loop; for an arm simulated in another process (armid sim)
+        # see _pace; for an arm simulated in another process (armid sim). None: when every drive
+        # says it is armid's simulator (0x1018:2) on a bus between processes
+        self.paced_by_drives: bool | None = None
         self._paced_s = 0.0  # time the SYNC loop waited for the consumer since the last watchdog call
         self._listen_only = False
         self._t0: float | None = None
@@ -256,6 +259,9 @@ class CanopenDriver(Driver):
         self.network.send_message(0, bytes([0x80, 0]))  # all nodes to pre-operational
         for d, node in zip(r.drives, self.nodes):
             self.drive_configuration.append(self._configure(d.joint, node))
+        if self.paced_by_drives is None:
+            self.paced_by_drives = r.bus.interface != "virtual" and not self.paced_by_consumer and all(
+                c["product_code"] == SIMULATED_PRODUCT_CODE for c in self.drive_configuration)
         # a full garbage collection walks every object of the process and stalls all threads
         # for many milliseconds; what exists after start-up is never garbage, so freeze it.
         # Before the heartbeat starts: the collection that precedes the freeze holds the GIL
@@ -283,7 +289,7 @@ class CanopenDriver(Driver):
             self._bcm_task = self._bus.send_periodic(frames, r.period_s)
             self.timing_note = "SYNC from the kernel (SocketCAN BCM); " + timing.sentence("bus threads")
         else:
-            self.timing_note = timing.sentence("SYNC thread")
+            self.timing_note = timing.sentence("SYNC thread") + ("; paced by the simulated drives' answers (co-simulation)" if self.paced_by_drives else "")
             self._thread = threading.Thread(target=self._sync_loop, name="armid-sync", daemon=True)
             self._thread.start()
 
@@ -447,7 +453,7 @@ class CanopenDriver(Driver):
             if not self._ack.wait_for(lambda: self._paced_through() or self._stop.is_set(),
                                       max(PACE_WAIT_S - (waited_from - self.last_sync_sent), 0.0)):
                 self.consumer_late += self.paced_by_consumer and self._acknowledged < self._cycle
-                self.drives_late += self.paced_by_drives and self._emitted.cycle < self._cycle
+                self.drives_late += bool(self.paced_by_drives) and self._emitted.cycle < self._cycle
         self._paced_s += time.monotonic() - waited_from
 
     def _paced_through(self) -> bool:

@@ -189,6 +189,9 @@ class Driver(abc.ABC):
     paced_by_consumer: bool = False
     """True when the driver's cycle waits for :meth:`acknowledge` (an arm simulated in this
     process never runs ahead of its control loop); a driver that cannot pace ignores it."""
+    paced_by_drives: bool | None = False
+    """True when each cycle waits for the drives' answers (armid's simulated drives in another
+    process: a co-simulation); known after :meth:`start`."""
     timing_note: str = ""
     """What keeps the cycle and at what priority, said once at start-up (``drivers.realtime``)."""
     lost_cycles: Array

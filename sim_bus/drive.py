@@ -24,6 +24,7 @@ import canopen
 import numpy as np
 from canopen.objectdictionary import ODVariable
 
+from armid.drivers.canopen_driver import SIMULATED_PRODUCT_CODE
 from armid.drivers.interface import bus_time
 from armid.drivers.rig import DriveUnits, current_of, permille_of
 from armid.resources import config_file
@@ -156,7 +157,8 @@ class SimulatedDrive:
         self.node.data_store[0x6091][2] = struct.pack("<I", 1000)
         self.node.data_store.setdefault(0x6075, {})[0] = struct.pack("<I", int(round(u.rated_current_a * 1000)))
         self.node.data_store.setdefault(0x6076, {})[0] = struct.pack("<I", int(round(u.rated_motor_torque_nm * 1000)))
-        self.node.data_store.setdefault(0x1018, {})[4] = struct.pack("<I", 0x1000 + self.id)
+        self.node.data_store.setdefault(0x1018, {})[2] = struct.pack("<I", SIMULATED_PRODUCT_CODE)  # a master paces on it
+        self.node.data_store[0x1018][4] = struct.pack("<I", 0x1000 + self.id)
 
     def _od(self, index: int, subindex: int) -> ODVariable:
         obj = self.node.object_dictionary[index]

@@ -387,10 +387,11 @@ def test_udp_multicast_two_processes_10_s(tmp_path: Path) -> None:
         assert ready.exists(), f"the simulator did not come up (exit code {proc.poll()})"
         # both ends take real-time priority themselves where allowed (drivers.realtime), the
         # simulator above the master; the master paces its SYNC on the simulated drives' answers
-        # (a co-simulation: a stall of the simulator's process must delay the arm, not lose cycles)
+        # (a co-simulation: a stall of the simulator's process must delay the arm, not lose cycles),
+        # by itself: the drives say they are armid's simulator (0x1018:2), as `armid record` meets them
         driver = CanopenDriver(rig)
-        driver.paced_by_drives = True
         driver.start()
+        assert driver.paced_by_drives and "paced by the simulated drives" in driver.timing_note, driver.timing_note
         if "SCHED_FIFO" in driver.timing_note:  # the simulated drives above the master, on one CPU
             assert os.sched_getparam(proc.pid).sched_priority == os.sched_getparam(0).sched_priority + HARDWARE_ABOVE
             assert len(os.sched_getaffinity(proc.pid)) == 1

@@ -26,9 +26,8 @@ def _record(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     driver, sim = _open_driver(rig, args)
-    # an arm simulated in this process never runs ahead of what records it (SYNC waits for
-    # the consumer); --duration is then the arm's time, whatever the wall clock does
-    paced = driver.paced_by_consumer
+    # an arm simulated here or by `armid sim` never runs ahead of what records it (SYNC waits
+    # for the consumer or the drives); --duration is then the arm's time, whatever the wall clock does
     stop = threading.Event()
     restore = _stop_on_signals(stop)
     session = stream = None
@@ -79,10 +78,11 @@ def _record(args: argparse.Namespace) -> int:
         acq.start()
         start = time.monotonic()
         print(f"armid record: {rig.name} -> {out / 'run.mcap'} (Ctrl-C stops)", file=sys.stderr, flush=True)
+        print(f"armid record: timing: {driver.timing_note}", file=sys.stderr, flush=True)
         with live:
             while not stop.wait(0.1):
                 supervision.events(driver.events())
-                elapsed = acq.sequence * rig.period_s if paced else time.monotonic() - start
+                elapsed = acq.sequence * rig.period_s if driver.paced_by_consumer or driver.paced_by_drives else time.monotonic() - start
                 if args.duration and elapsed >= args.duration:
                     break
                 if acq.error:
