@@ -145,6 +145,13 @@ def _noise_floor(validation: list[Prepared]) -> dict[str, Any]:
             "noise spreads over the whole band; what lies below the cut-off is not counted), over its norm"}
 
 
+def _joint_noise_floors(validation: list[Prepared]) -> Array:
+    """(N,) each joint's noise over the validation stamps as a norm (its share of
+    :func:`_noise_floor`'s numerator): what no model of that joint removes."""
+    noise = _segment_noise(validation)
+    return np.sqrt(np.sum([sd**2 * seg.n_samples for seg, sd in noise], axis=0))
+
+
 def _noise_levels(experiments: list[Prepared], n_joints: int) -> Array:
     """(N,) each joint's raw torque noise in the identification data: the rms of what a
     low-pass at the chosen cut-off removes (as :func:`_noise_floor`), over all segments."""

@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from armid.cli import main
+from armid.identify import diagnosis
 from armid.identify.diagnosis import MATERIALITY, Finding, _Search, negligible_sentence, set_aside_sentence
 from armid.identify.diagnosis_candidates import Candidate
 from armid.identify.diagnosis_data import _Data
@@ -158,14 +159,14 @@ class _Fit:
     """What ``_Search._material`` reads of an ``identify`` fit: its validation error and its
     prediction at the validation stamps."""
 
-    def __init__(self, error: float, pred: np.ndarray) -> None:
+    def __init__(self, error: float, pred: np.ndarray, tau: np.ndarray | None = None) -> None:
         self.validation = {"relative_error": error}
-        self.pred = pred
+        self.pred, self.tau = pred, tau
         self.names: list[str] = []
         self.effects: list[object] = []
 
-    def predict_stamps(self, segments: list[object]) -> tuple[None, None, np.ndarray]:
-        return None, None, self.pred
+    def predict_stamps(self, segments: list[object]) -> tuple[None, np.ndarray | None, np.ndarray]:
+        return None, self.tau, self.pred
 
     def parameter_values(self) -> tuple[np.ndarray, np.ndarray]:
         return np.zeros(0), np.zeros(0)
@@ -221,19 +222,23 @@ def test_a_finding_that_raises_the_validation_error_is_set_aside_not_negligible(
     assert "cogging on joint 2" in text and "from 1.8 % to 1.9 %" in text and "negligible" not in text
 
 
-def test_a_stribeck_peak_below_the_materiality_leaves_its_coulomb_friction() -> None:
+def test_a_stribeck_peak_below_the_materiality_leaves_its_coulomb_friction(monkeypatch: pytest.MonkeyPatch) -> None:
     """A Stribeck finding is judged twice: as a whole against the model before it, and its
-    peak against its own Coulomb level. On the nearly noise-free PUMA 560 example a Coulomb
+    peak against its own Coulomb level, on its joint's validation error and noise (a friction's
+    shape is its joint's question). On the nearly noise-free PUMA 560 example a Coulomb
     friction's best Stribeck term (a peak 0.06 % of the Coulomb level) fitted the held-out
-    blocks better and was named; here a peak that takes 1.800 % to 1.799 % after its Coulomb
-    level is negligible, with its size, and the finding is the Coulomb friction; a peak that
-    takes 1.80 % to 1.70 % stays Stribeck."""
+    blocks better and was named. Here joint 2 (relative noise 0.05) errs 0.100 with the Coulomb
+    level: a peak that takes it to 0.0999 is negligible, with its size, and the finding is the
+    Coulomb friction, though the arm's error moves 1.80 % -> 1.70 % (a shoulder's fit moving
+    with it); a peak that takes it to 0.060 stays Stribeck, though the arm's moves 1.800 % ->
+    1.799 % (a wrist's peak under a shoulder's noise: blind Stribeck seed 13)."""
     n = 1000
-    base = np.zeros((n, 2))
-    for with_peak, expect in ((0.01799, "coulomb_friction"), (0.0170, "stribeck_friction")):
+    tau = np.column_stack([np.full(n, 50.0), np.ones(n)])
+    monkeypatch.setattr(diagnosis, "_joint_noise_floors", lambda validation: np.array([0.0, 0.05 * np.sqrt(n)]))
+    for arm_with, joint_with, expect in ((0.0170, 0.0999, "coulomb_friction"), (0.01799, 0.060, "stribeck_friction")):
         stribeck = Finding("stribeck_friction", 1, {"fc": 2.0, "fs": 0.5, "velocity": 0.1}, 0.1, 0.02, 0.01)
-        fits = {(): _Fit(0.0200, base), ("stribeck_friction",): _Fit(with_peak, base + [0.0, 0.6]),
-                ("coulomb_friction",): _Fit(0.0180, base + [0.0, 0.5])}
+        fits = {(): _Fit(0.0200, tau - [0.0, 0.2], tau), ("stribeck_friction",): _Fit(arm_with, tau - [0.0, joint_with], tau),
+                ("coulomb_friction",): _Fit(0.0180, tau - [0.0, 0.1], tau)}
         search = SimpleNamespace(validation_segments=[], validation=[], result0=fits[()], conflicting=[],
                                  _fit_findings=lambda found, fits=fits: fits[tuple(f.effect for f in found)])
         kept, fit, negligible = _Search._material(search, [stribeck], fits[("stribeck_friction",)])  # type: ignore[arg-type]
@@ -242,7 +247,8 @@ def test_a_stribeck_peak_below_the_materiality_leaves_its_coulomb_friction() -> 
             assert kept[0].parameters == {"fc": 2.0} and fit is fits[("coulomb_friction",)]
             (x,) = negligible
             assert (x["effect"], x["joint"], x["kept"]) == ("stribeck_friction", 2, "coulomb_friction")
-            assert x["torque_rms"] == pytest.approx(0.1) and (x["validation_error_before"], x["validation_error_with"]) == (0.0180, with_peak)
+            assert x["torque_rms"] == pytest.approx(0.1 - joint_with) and (x["validation_error_before"], x["validation_error_with"]) == (0.0180, arm_with)
+            assert (x["joint_validation_error_before"], x["joint_validation_error_with"]) == pytest.approx((0.1, joint_with))
         else:
             assert negligible == [] and fit is fits[("stribeck_friction",)]
 
