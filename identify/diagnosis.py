@@ -624,9 +624,10 @@ class _Search:
         its joint from 1.18 to 0.88 of its noise and the arm's error, which the shoulder's noise
         sets, by 0.01 %): where it is negligible the finding is that Coulomb friction (on the
         nearly noise-free PUMA 560 example a peak of 0.06 % of the Coulomb level fitted the
-        held-out blocks better, and was named). The validation only removes findings here: it never ranks them. A noise floor read above
-        the error the findings reach (the PUMA 560 example's 5.8 % for 1.57 %: friction's steps
-        are above any cut-off) is no floor; the whole error's power is judged then."""
+        held-out blocks better, and was named). The validation only removes findings here: it
+        never ranks them. A noise floor read above the error the findings reach (the PUMA 560
+        example's 5.8 % for 1.57 %: friction's steps are above any cut-off) is no floor; the
+        whole error's power is judged then."""
         segments = self.validation_segments
         kept: list[Finding] = []
         fit_kept = self.result0
