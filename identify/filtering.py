@@ -95,12 +95,12 @@ def lowpass(x: Array, period_s: float, cutoff_hz: float, order: int = 4, axis: i
     would force the curvature to zero there, which differentiation turns into large
     acceleration errors); short signals are returned unfiltered.
     """
-    from scipy.signal import sosfiltfilt
+    from ._filter_kernel import forward_backward
 
     nyquist = 0.5 / period_s
     if not 0.0 < cutoff_hz < nyquist:
         raise ValueError(f"low-pass cut-off {cutoff_hz:g} Hz must lie in (0, {nyquist:g}) Hz, the Nyquist frequency of this recording")
-    sos = _butter_sos(order, cutoff_hz / nyquist).copy()  # scipy's filter wants it writable
+    sos = _butter_sos(order, cutoff_hz / nyquist)
     x = np.moveaxis(np.asarray(x, dtype=float), axis, 0)
     n = x.shape[0]
     if n <= 3 * (2 * len(sos) + 1):
@@ -111,8 +111,10 @@ def lowpass(x: Array, period_s: float, cutoff_hz: float, order: int = 4, axis: i
     flat = x.reshape(n, -1)
     head = _extrapolate(flat[:fit][::-1], pad)[::-1]
     tail = _extrapolate(flat[n - fit :], pad)
-    y = sosfiltfilt(sos, np.concatenate([head, flat, tail]), axis=0, padtype="odd", padlen=min(pad, 3 * (2 * len(sos) + 1)))
-    return np.moveaxis(y[pad : pad + n].reshape(x.shape), 0, axis)
+    edge = min(pad, 3 * (2 * len(sos) + 1))
+    y = _odd_extended(head, flat, tail, edge)
+    forward_backward(sos, _steady_state(order, cutoff_hz / nyquist), y)  # scipy's sosfiltfilt, to the bit
+    return np.moveaxis(y[edge + pad : edge + pad + n].reshape(x.shape), 0, axis)
 
 
 @functools.lru_cache(maxsize=64)
@@ -125,6 +127,30 @@ def _butter_sos(order: int, wn: float) -> Array:
     sos = np.asarray(butter(order, wn, output="sos"), dtype=float)
     sos.flags.writeable = False
     return sos
+
+
+@functools.lru_cache(maxsize=64)
+def _steady_state(order: int, wn: float) -> Array:
+    """The cascade's steady-state delay line for a unit step (``sosfilt_zi``), once per design."""
+    from scipy.signal import sosfilt_zi
+
+    zi = np.asarray(sosfilt_zi(_butter_sos(order, wn).copy()), dtype=float)
+    zi.flags.writeable = False
+    return zi
+
+
+def _odd_extended(head: Array, flat: Array, tail: Array, edge: int) -> Array:
+    """``[head; flat; tail]`` (m, k) with ``edge`` rows before and after, reflected about its
+    end values (``sosfiltfilt``'s ``padtype="odd"``), written once into a new array that the
+    filter then overwrites (two concatenations of a 250-column candidate array cost more than
+    the filter)."""
+    m = head.shape[0] + flat.shape[0] + tail.shape[0]
+    y = np.empty((m + 2 * edge, flat.shape[1]))
+    mid = y[edge : edge + m]
+    mid[: head.shape[0]], mid[head.shape[0] : m - tail.shape[0]], mid[m - tail.shape[0] :] = head, flat, tail
+    y[:edge] = 2 * mid[:1] - mid[edge:0:-1]
+    y[edge + m :] = 2 * mid[-1:] - mid[-2 : -(edge + 2) : -1]
+    return y
 
 
 def _extrapolate(x: Array, count: int, degree: int = 5) -> Array:

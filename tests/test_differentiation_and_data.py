@@ -76,6 +76,26 @@ def test_zero_phase_lowpass_keeps_slow_signal_in_phase():  # type: ignore[no-unt
         lowpass(noisy, 0.002, 400.0)
 
 
+@pytest.mark.parametrize("shape, axis", [((3000,), 0), ((2500, 7), 0), ((3, 2000, 130), 1), ((41,), 0)])
+def test_the_compiled_lowpass_is_scipys_sosfiltfilt_to_the_bit(shape, axis):  # type: ignore[no-untyped-def]
+    """identify/_filter_kernel.py against scipy's own forward-backward filter on the same
+    extended signal: any difference in the recursion's arithmetic shows in the last bit."""
+    from scipy.signal import butter, sosfiltfilt
+
+    from armid.identify.filtering import _extrapolate
+
+    period, cutoff = 0.002, 9.7
+    x = np.cumsum(np.random.default_rng(3).normal(size=shape), axis=axis)
+    span = int(np.ceil(1.0 / (cutoff * period)))
+    flat = np.moveaxis(x, axis, 0).reshape(x.shape[axis], -1)
+    n, fit, pad = flat.shape[0], min(flat.shape[0], max(8, 2 * span)), 4 * span
+    extended = np.concatenate([_extrapolate(flat[:fit][::-1], pad)[::-1], flat, _extrapolate(flat[n - fit :], pad)])
+    sos = butter(4, cutoff / (0.5 / period), output="sos")  # the cut-off as a fraction of Nyquist, computed as lowpass does
+    reference = sosfiltfilt(sos, extended, axis=0, padtype="odd", padlen=min(pad, 15))[pad : pad + n]
+    out = np.moveaxis(lowpass(x, period, cutoff, axis=axis), axis, 0).reshape(n, -1)
+    assert np.array_equal(out, reference)
+
+
 def _recording(t, q, tau, qd=None):  # type: ignore[no-untyped-def]
     return Recording("mem.csv", t, q, tau, qd, None, np.arange(2, t.size + 2), [])
 
