@@ -238,6 +238,14 @@ class EstimatorService:
                     self.busy = None
 
     @property
+    def still_running(self) -> list[str]:
+        """After :meth:`close`: what outlived its wait (an identification in the middle of a long
+        step), by thread name; such a thread must not meet the interpreter's exit (a thread inside
+        compiled code there aborts the process)."""
+        names = [t.name for t in self._threads if t.is_alive()]
+        return names + (["armid-payload"] if self.payload_service is not None and self.payload_service.running else [])
+
+    @property
     def idle(self) -> bool:
         """Nothing received waits to be filed or identified."""
         return not (self._inbox or self._events or self._jobs or self.collector.stopping or self.busy)
@@ -454,13 +462,20 @@ class EstimatorService:
         query.reply(key(self.name, "status"), strict_json(doc))
 
     def close(self) -> None:
+        """Stop filing and identifying after the current step (all threads together up to
+        :data:`~armid.daq.payload_service.STOP_WAIT_S`), then leave the session."""
+        from armid.daq.payload_service import STOP_WAIT_S
+
         self._stop.set()
         self._wake.set()
         self._job_ready.set()
-        for t in self._threads:
-            t.join(5.0)
         if self.payload_service is not None:
-            self.payload_service.close()
+            self.payload_service.request_stop()
+        deadline = time.monotonic() + STOP_WAIT_S  # one wait for all: they stop side by side
+        for t in self._threads:
+            t.join(max(deadline - time.monotonic(), 0.0))
+        if self.payload_service is not None:
+            self.payload_service.close(max(deadline - time.monotonic(), 0.0))
         for entity in (*self._subs, self._queryable, self._token, self._pub):
             try:
                 entity.undeclare()

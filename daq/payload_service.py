@@ -46,6 +46,12 @@ JUMP_MIN_S, JUMP_STEPS = 1.0, 100.0
 """A record further ahead of the last accepted one than 1 s and 100 typical steps per
 sequence number is a time jump (a corrupt stamp): dropped, unless the stream stays there."""
 
+STOP_WAIT_S = 30.0
+"""How long :meth:`PayloadService.close` waits for the worker's batch to end. A batch is at most
+``max_backlog_s`` of its CPU time (the catch-up rule) or one record, but a loaded machine
+stretches that several-fold in wall time: at 2 s a service stopped beside two busy loops left
+the worker inside a batch, and the interpreter's exit aborted the process (SIGABRT)."""
+
 
 class EstimateStream:
     """Records in sequence order -> the documents to publish (pure, no I/O).
@@ -289,6 +295,11 @@ class PayloadService:
                 self.errors.append(f"{type(err).__name__}: {err}")
 
     @property
+    def running(self) -> bool:
+        """The worker is still inside a batch (after :meth:`close`: it outlived ``STOP_WAIT_S``)."""
+        return self._thread.is_alive()
+
+    @property
     def backlog(self) -> int:
         """Records received and not yet estimated on."""
         return len(self._pending)
@@ -387,10 +398,15 @@ class PayloadService:
             records.append(r)
         return records
 
-    def close(self) -> None:
+    def request_stop(self) -> None:
+        """Ask the worker to stop after its batch (:meth:`close` then waits for it)."""
         self._stop.set()
         self._wake.set()
-        self._thread.join(2.0)
+
+    def close(self, wait_s: float = STOP_WAIT_S) -> None:
+        """Stop the worker after its batch (waiting up to ``wait_s``), then leave the session."""
+        self.request_stop()
+        self._thread.join(wait_s)
         for entity in (self._sub, self._queryable, self._token, self._pub):
             try:
                 entity.undeclare()

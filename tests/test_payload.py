@@ -48,7 +48,7 @@ from armid.simulated import excitation_session
 ROOT = Path(__file__).resolve().parent.parent
 RIG = ROOT / "config" / "rigs" / "sim.yaml"
 HELPERS = Path(__file__).resolve().parent / "helpers"
-ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
+ENV = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONFAULTHANDLER": "1"}  # a child that aborts prints every thread's stack
 PAYLOAD = Payload(2.0, (0.02, -0.03, 0.08), (0.004, 0.0, 0.0, 0.004, 0.0, 0.002))  # 2 kg, 8.8 cm from the flange
 
 

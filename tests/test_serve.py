@@ -25,11 +25,12 @@ import numpy as np
 import pytest
 
 from armid.cli import main
+from armid.daq.payload_service import STOP_WAIT_S
 
 ROOT = Path(__file__).resolve().parent.parent
 RIG = ROOT / "config" / "rigs" / "sim.yaml"
 ROBOT = ROOT / "config" / "robots" / "puma560.yaml"
-ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
+ENV = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONFAULTHANDLER": "1"}  # a child that aborts prints every thread's stack
 
 
 def _free_port() -> int:
@@ -474,7 +475,7 @@ def test_once_the_arm_is_identified_the_service_estimates_a_payload_on_the_live_
             z.close()
         serve.send_signal(signal.SIGTERM)
         try:
-            serve.wait(20)
+            serve.wait(STOP_WAIT_S + 20)  # its threads' last steps, then its own exit
         except subprocess.TimeoutExpired:
             serve.kill()
     took = time.monotonic() - began

@@ -66,12 +66,16 @@ def _serve(args: argparse.Namespace) -> int:
                 service.close()
         print(f"armid serve: {service.received} records received, {service.skipped} skipped, {service.lost} lost; "
               f"{service.published} estimates published", file=sys.stderr)
-        return 0
     finally:
         if out_json is not None:
             out_json.close()
         if tmp is not None:
             tmp.cleanup()
+    if service.still_running:  # the interpreter's exit would abort a thread inside compiled code (SIGABRT)
+        print(f"armid serve: {', '.join(service.still_running)} still inside a step at the stop: not waited for", file=sys.stderr, flush=True)
+        sys.stdout.flush()
+        os._exit(0)
+    return 0
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
