@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from .estimation import batch_means_covariance, correlation_length
+from .estimation import correlation_length, lag_window_covariance
 from .excitation import experiment_columns, experiment_regressor
 from .identifiability import base_parameters, preferred_order
 from .identification import IdentificationResult
@@ -191,8 +191,8 @@ def single_link_sequence(robot: Robot, experiments: dict[int, list[Prepared]], m
         b_new, *_ = np.linalg.lstsq(a, y_new, rcond=None)
         resid = y_new - a @ b_new
         ata_inv = np.linalg.pinv(a.T @ a)
-        block = 4 * correlation_length(resid)
-        own = batch_means_covariance(ata_inv, a * resid[:, None], block)
+        block = 2 * correlation_length(resid)
+        own = lag_window_covariance(ata_inv, a, resid, block)
         h = ata_inv @ a.T @ g  # d b_new / d beta_prev (with a minus sign)
         c_new = own + h @ cov @ h.T
         cross = -h @ cov
