@@ -121,7 +121,7 @@ def lowpass(x: Array, period_s: float, cutoff_hz: float, order: int = 4, axis: i
 def _butter_sos(order: int, wn: float) -> Array:
     """The Butterworth design (second-order sections), once per order and cut-off: the
     diagnosis filters thousands of candidate columns through the same filter, and designing it
-    cost more than filtering a column. Read-only: every caller shares it, and copies it."""
+    cost more than filtering a column. Read-only: every caller shares it."""
     from scipy.signal import butter
 
     sos = np.asarray(butter(order, wn, output="sos"), dtype=float)
