@@ -191,6 +191,7 @@ class CanopenDriver(Driver):
         self._bcm_task: can.broadcastmanager.CyclicSendTaskABC | None = None
         self.late_frames = np.zeros(self.n_joints, np.int64)
         self.lost_cycles = np.zeros(self.n_joints, np.int64)
+        self._taken_late: dict[tuple[int, int], float] = {}  # (joint, TPDO): bus time of its last frame, given to a cycle with a later one waiting
         self.error_frames = 0
         self._clock = CycleClock(rig.period_s)
         self.drive_configuration: list[dict[str, int]] = []
@@ -545,9 +546,7 @@ class CanopenDriver(Driver):
             return
         values = t.unpack.unpack(data)
         key = (t.joint, t.number)
-        # the oldest open cycle that still waits for this frame and whose SYNC went out
-        # before it: frames keep their order, and a frame cannot answer a later SYNC
-        target = next((c for c in self._open if key in c.expected and c.time_s <= bus + 1e-4), None)
+        target = self._cycle_answered(key, bus)
         if target is None:
             self.late_frames[t.joint] += 1
             return
@@ -571,6 +570,30 @@ class CanopenDriver(Driver):
         while self._open and self._open[0] is not target and bus - self._open[0].time_s > deadline:
             self._emit(self._open.pop(0))
         self._flush_complete()
+
+    def _cycle_answered(self, key: tuple[int, int], bus: float) -> _Cycle | None:
+        """The open cycle a TPDO answers: frames keep their order and none answers a later
+        SYNC, so the oldest cycle still waiting for it, sent before it. When a later cycle
+        waits too, the frame is its predecessor's, late (a drive, or the process simulating
+        it, held up past the next SYNCs: its own frames follow at once), or the later one's,
+        its predecessor's lost. It is taken as late unless the previous frame was taken so
+        and a SYNC went out after it: then that frame was the loss's successor and this one
+        answers the newest SYNC. Oldest-first alone let one lost frame shift every later one
+        by a cycle and pace each SYNC by the whole wait (issue 31)."""
+        waiting = [c for c in self._open if key in c.expected and c.time_s <= bus + 1e-4]
+        taken_late = self._taken_late.pop(key, None)
+        if len(waiting) < 2:
+            return waiting[0] if waiting else None
+        if taken_late is None or waiting[-1].time_s <= taken_late:
+            self._taken_late[key] = bus
+            return waiting[0]
+        joint, number = key
+        for stale in waiting[:-1]:  # their frames went to their predecessors: lost
+            stale.expected.discard(key)
+            self.lost_cycles[joint] += 1
+        self._event("frame_lost", f"joint {joint + 1}: TPDO{number} of cycle {waiting[0].cycle - 1} was lost and cycle "
+                                  f"{waiting[0].cycle}'s took its place; realigned at cycle {waiting[-1].cycle}", joint)
+        return waiting[-1]
 
     def _send_commands(self) -> None:
         assert self.network is not None

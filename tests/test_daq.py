@@ -10,6 +10,7 @@ import sys
 import time
 import uuid
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -237,29 +238,12 @@ def test_a_long_raw_can_log_replays_every_cycle_whole(tmp_path: Path) -> None:
     plan): the replay must give every cycle, valid, with the values written. The player
     sends faster than the notifier decodes; closing the open cycles when the sending ended
     cut a cycle in two (an all-invalid record in the middle of a 12 s demo run's replay)."""
-    import struct
-
-    import can
-
     from armid.daq.canlog import replay_log
     from armid.io.rig_file import load_rig
 
     rig = load_rig(ROOT / "config/rigs/sim.yaml")
-    n_cycles, t0 = 6000, 1_764_000_000.0
-    counts = np.arange(n_cycles)[:, None] * 7 + 100 * np.arange(1, rig.n_joints + 1)[None, :]
-    permille = (np.arange(n_cycles)[:, None] + 13 * np.arange(rig.n_joints)[None, :]) % 2000 - 1000
-    logger = can.Logger(str(tmp_path / "can.log"))
-    for k in range(n_cycles):
-        counter = k % 240 + 1
-        t = t0 + k * rig.period_s
-        logger.on_message_received(can.Message(timestamp=t, arbitration_id=0x80, data=[counter], is_extended_id=False))
-        for j, d in enumerate(rig.drives):
-            logger.on_message_received(can.Message(timestamp=t + 2e-4 + 1e-5 * j, arbitration_id=0x180 + d.node_id, is_extended_id=False,
-                                                   data=struct.pack("<ih", int(counts[k, j]), int(permille[k, j]))))
-            if counter % 2 == 0:
-                logger.on_message_received(can.Message(timestamp=t + 3e-4 + 1e-5 * j, arbitration_id=0x280 + d.node_id, is_extended_id=False,
-                                                       data=struct.pack("<iH", int(counts[k, j]), 0x27)))
-    logger.stop()
+    n_cycles = 6000
+    counts, permille = _write_sim_log(tmp_path / "can.log", rig, n_cycles)
     samples = replay_log(tmp_path / "can.log", rig)
     assert len(samples) == n_cycles
     invalid = [s.cycle for s in samples if not s.valid.all()]
@@ -268,3 +252,66 @@ def test_a_long_raw_can_log_replays_every_cycle_whole(tmp_path: Path) -> None:
     rated = np.array([d.units.rated_current_a for d in rig.drives])
     assert np.array_equal(np.array([s.position for s in samples]), counts / scale)
     assert np.allclose(np.array([s.measured_current for s in samples]), permille / 1000.0 * rated, rtol=0, atol=1e-12)
+
+
+def _write_sim_log(path: Path, rig: Any, n_cycles: int, lost: frozenset[tuple[int, int]] = frozenset(),
+                   held: dict[tuple[int, int], float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The sim rig's frames, cycle by cycle (SYNC with its counter, each drive's TPDO1 =
+    position + current, on even counters TPDO2 = velocity + statusword), in stamp order.
+    ``lost``: (cycle, joint) whose TPDO1 is left out; ``held``: (cycle, joint) whose TPDO1
+    goes out that many seconds after its SYNC. Returns the counts and per mille written."""
+    import struct
+
+    import can
+
+    t0, held = 1_764_000_000.0, held or {}
+    counts = np.arange(n_cycles)[:, None] * 7 + 100 * np.arange(1, rig.n_joints + 1)[None, :]
+    permille = (np.arange(n_cycles)[:, None] + 13 * np.arange(rig.n_joints)[None, :]) % 2000 - 1000
+    frames = []
+    for k in range(n_cycles):
+        counter = k % 240 + 1
+        t = t0 + k * rig.period_s
+        frames.append(can.Message(timestamp=t, arbitration_id=0x80, data=[counter], is_extended_id=False))
+        for j, d in enumerate(rig.drives):
+            if (k, j) not in lost:
+                frames.append(can.Message(timestamp=t + held.get((k, j), 2e-4 + 1e-5 * j), arbitration_id=0x180 + d.node_id, is_extended_id=False,
+                                          data=struct.pack("<ih", int(counts[k, j]), int(permille[k, j]))))
+            if counter % 2 == 0:
+                frames.append(can.Message(timestamp=t + 3e-4 + 1e-5 * j, arbitration_id=0x280 + d.node_id, is_extended_id=False,
+                                          data=struct.pack("<iH", int(counts[k, j]), 0x27)))
+    logger = can.Logger(str(path))
+    for msg in sorted(frames, key=lambda m: m.timestamp):
+        logger.on_message_received(msg)
+    logger.stop()
+    return counts, permille
+
+
+def test_a_lost_frame_costs_its_cycle_and_the_next_and_a_late_one_costs_none(tmp_path: Path) -> None:
+    """Frames answer SYNCs in order, so a drive's frame is its oldest waiting cycle's; but a
+    frame lost on the way left that cycle to take the next one's, and every later cycle of
+    that joint one behind, each SYNC paced by the whole wait (a 20 s recording took 391 s
+    beside two busy loops; issue 31). Lost: TPDO1 of joint 3 at cycle 1000 and of joint 6 at
+    2000 and 2001 (two in a row). Late: joint 5's frames of cycles 3000 and 3001 held up
+    until after SYNC 3002 (a drive or its simulator not scheduled for 4 ms): every cycle
+    stays its own. After each loss the replay is realigned within two cycles."""
+    from armid.daq.canlog import replay_log
+    from armid.io.rig_file import load_rig
+
+    rig = load_rig(ROOT / "config/rigs/sim.yaml")
+    n_cycles, period = 4000, rig.period_s
+    lost = frozenset({(1000, 2), (2000, 5), (2001, 5)})
+    held = {(3000, 4): 2 * period + 1.0e-4, (3001, 4): period + 1.1e-4}  # then 3002's own, at 2.4e-4
+    counts, _ = _write_sim_log(tmp_path / "can.log", rig, n_cycles, lost, held)
+    samples = replay_log(tmp_path / "can.log", rig)
+    assert len(samples) == n_cycles
+    scale = np.array([d.units.counts_per_rad for d in rig.drives])
+    position = np.array([s.position for s in samples]) * scale
+    valid = np.array([s.valid for s in samples])
+    own = np.isclose(position, counts) & valid  # the cycle's own value, valid
+    # a loss costs at most its own cycle (taken by the next one's frame, unknowable then)
+    # and the next (lost); every other cycle, on every joint, is its own
+    spoiled = {(1000, 2), (1001, 2), (2000, 5), (2001, 5), (2002, 5)}
+    wrong = [(int(k), int(j)) for k, j in zip(*np.nonzero(~own)) if (int(k), int(j)) not in spoiled]
+    assert wrong == [], f"cycles not their own (cycle, joint): {wrong[:10]}"
+    assert own[3000:3003, 4].all()  # the late frames went to their own cycles
+    assert not valid[1001, 2] and valid[1001, np.arange(6) != 2].all()
