@@ -12,7 +12,8 @@ few cycles, so that a loaded process cannot starve one of the two and not the ot
 
 Each cycle's record is keyed by the SYNC counter: a TPDO belongs to the oldest open cycle
 that still waits for it and whose SYNC went out before the frame (a drive answers SYNCs in
-order, and cannot answer one not yet sent). A record goes out as soon as every expected
+order, and cannot answer one not yet sent), unless a lost frame shows in the order
+(:meth:`CanopenDriver._cycle_answered`). A record goes out as soon as every expected
 frame is in, or three periods after its SYNC with the missing joints marked invalid.
 
 A drive's heartbeat is lost when frames read from the bus are stamped more than three
@@ -32,13 +33,13 @@ from dataclasses import dataclass, field
 import can
 import canopen
 import numpy as np
-from canopen.objectdictionary import ODArray, ODRecord, ODVariable
 from canopen.sdo import SdoAbortedError, SdoCommunicationError, SdoVariable
 
 from armid.schema import Array, Sample
 from armid.schema.errors import DriveConfigError, DriveFault, DriverError, HeartbeatLost, NotOperational
 
 from ..resources import config_file
+from .cia_codes import NMT_OPERATIONAL, NMT_STATES, OPERATION_ENABLED, PDO_FORMATS, STATE_MASK, emcy_meaning, is_signed
 from .interface import CycleClock, CycleHeartbeat, Driver, ProcessSettings, bus_time
 from .pdo_plan import PLANS, PdoSpec, check_bus_budget
 from .realtime import stall_sentence
@@ -55,61 +56,8 @@ PACE_WAIT_S = 0.05
 STALL_S = 0.05  # a watchdog call this late means this process (not the bus) was stalled
 BUS_SILENT_S = 1.0  # nothing at all read from the bus for this long: every drive is lost (or this process's reader is)
 TARGET_POSITION = (0x607A, 0, 32)
-NMT_OPERATIONAL = 0x05
-NMT_STATES = {0x00: "reset: its boot-up message came (an NMT reset or a power cycle); it is unconfigured until the recording restarts",
-              0x04: "stopped by an NMT command (NMT state STOPPED): it sends no PDOs and takes no commands",
-              0x7F: "sent back to pre-operational by an NMT command: it sends no PDOs and takes no commands"}
 EMCY_BYTES = 8  # CiA 301: error code (2), error register (1), manufacturer data (5)
 EMCY_KEPT = 100  # canopen keeps every EMCY it decodes: a storm would grow its lists without end
-
-EMCY_MEANINGS = {
-    0x0000: "error reset or no error",
-    0x1000: "generic error",
-    0x2310: "continuous over-current",
-    0x3210: "DC link over-voltage",
-    0x3220: "DC link under-voltage",
-    0x4310: "drive over-temperature",
-    0x5530: "EEPROM fault",
-    0x7121: "motor blocked",
-    0x7305: "incremental encoder fault",
-    0x8100: "communication error (SYNC lost when the data say SYNC)",
-    0x8110: "CAN overrun, frames lost",
-    0x8120: "CAN in error passive mode",
-    0x8130: "life guard or heartbeat error: the drive lost the master's heartbeat",
-    0x8140: "recovered from bus off",
-    0x8210: "PDO not processed due to length error",
-    0x8220: "PDO length exceeded",
-    0x8250: "RPDO timeout",
-    0x8400: "velocity limit exceeded (velocity speed controller)",
-    0x8611: "following error",
-    0x8612: "position limit exceeded (reference limit)",
-    0xFF00: "device-specific fault",
-}
-
-_FMT = {(True, 8): "b", (True, 16): "h", (True, 32): "i", (False, 8): "B", (False, 16): "H", (False, 32): "I"}
-
-STATE_MASK = 0x006F
-OPERATION_ENABLED = 0x0027
-FAULT_BITS = 0x0008
-
-
-SIGNED_INTEGERS = (2, 3, 4)
-"""CiA 301 data types INTEGER8, INTEGER16 and INTEGER32: the signed values a PDO maps."""
-
-
-def _signed(entry: ODArray | ODRecord | ODVariable) -> bool:
-    """Whether a PDO-mapped entry of the object dictionary holds a signed integer. A PDO maps
-    variables only (canopen types the entry as any object of the dictionary)."""
-    assert isinstance(entry, ODVariable), f"object 0x{entry.index:04X} is not a variable"
-    return entry.data_type in SIGNED_INTEGERS
-
-def emcy_meaning(code: int, data: bytes = b"") -> str:
-    if code in EMCY_MEANINGS:
-        text = EMCY_MEANINGS[code]
-    else:
-        text = canopen.emcy.EmcyError(code, 0, data, 0.0).get_desc() or "unknown code"
-    return f"{text} (data {data.hex()})" if data.strip(b"\x00") else text
-
 
 @dataclass
 class _Tpdo:
@@ -382,7 +330,7 @@ class CanopenDriver(Driver):
             if spec.direction == "tpdo":
                 if m.trans_type != spec.every:
                     raise DriveConfigError(f"joint {joint + 1} (node {node.id}): TPDO{spec.number} transmission type reads back as {m.trans_type}, expected {spec.every}")
-                fmt = "<" + "".join(_FMT[(_signed(v.od), v.length)] for v in m.map)
+                fmt = "<" + "".join(PDO_FORMATS[(is_signed(v.od), v.length)] for v in m.map)
                 self._tpdo[m.cob_id] = _Tpdo(joint, spec.number, spec.every, struct.Struct(fmt), [(v.index, v.subindex) for v in m.map])
                 network.subscribe(m.cob_id, self._on_tpdo)
 
@@ -402,7 +350,7 @@ class CanopenDriver(Driver):
             for spec in self.plan:
                 if spec.direction != "tpdo":
                     continue
-                fmt = "<" + "".join(_FMT[(_signed(od[index]), bits)] for index, _, bits in spec.entries)
+                fmt = "<" + "".join(PDO_FORMATS[(is_signed(od[index]), bits)] for index, _, bits in spec.entries)
                 cob = 0x180 + 0x100 * (spec.number - 1) + d.node_id
                 self._tpdo[cob] = _Tpdo(d.joint, spec.number, spec.every, struct.Struct(fmt), [(i, sub) for i, sub, _ in spec.entries])
                 self.network.subscribe(cob, self._on_tpdo)
