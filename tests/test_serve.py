@@ -33,6 +33,15 @@ ROBOT = ROOT / "config" / "robots" / "puma560.yaml"
 ENV = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONFAULTHANDLER": "1"}  # a child that aborts prints every thread's stack
 
 
+def _tail_with_fault(log: str) -> str:
+    """A child's stderr for a failure message: its last lines, and where it died when the fault
+    handler printed that (the lines before it, the thread stacks; a long list of extension
+    modules follows them)."""
+    fatal = log.find("Fatal Python error")
+    head = log[max(fatal - 800, 0):fatal + 4000].split("Extension modules:")[0] if fatal >= 0 else ""
+    return (head + "\n...\n" if head else "") + log[-2000:]
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -480,7 +489,7 @@ def test_once_the_arm_is_identified_the_service_estimates_a_payload_on_the_live_
             serve.kill()
     took = time.monotonic() - began
     log = serve.stderr.read() if serve.stderr else ""
-    assert serve.returncode == 0, log[-2000:]
+    assert serve.returncode == 0, _tail_with_fault(log)
     assert "payload estimator running on the live stream" in log, log[-2000:]
     assert len(physics.payload_events) == 1
     recorded, _, _ = read_mcap(tmp_path / "excite" / "whole" / "run.mcap")
