@@ -94,10 +94,11 @@ def run() -> None:
     """The ``armid`` executable: :func:`main`, then the process ends. Where Zenoh was loaded,
     without the interpreter's finalization: Zenoh's runtime threads outlive its sessions, and
     one that calls into the interpreter while it finalizes (a callback's last reference
-    dropped) is unwound by force through Rust's frames, which aborts the process
-    (SIGABRT, "FATAL: exception not rethrown": a stopped ``armid serve`` in 1 of 13 runs
-    beside two busy loops, after its last line). Outputs are closed by then; what a cycle of
-    garbage still holds is collected and the standard streams flushed first."""
+    dropped) is unwound by force through Rust's frames, which aborts the process (SIGABRT,
+    "FATAL: exception not rethrown": a stopped ``armid serve`` in 1 of 10 tries beside two
+    busy loops, after its last line); so would a worker still inside compiled code. Outputs
+    are closed by then; garbage still held in cycles is collected and the standard streams
+    flushed first."""
     code = main()
     if "zenoh" not in sys.modules:
         raise SystemExit(code)

@@ -40,7 +40,6 @@ PDO_FORMATS = {  # (signed, bits): the struct format of a mapped entry
 
 STATE_MASK = 0x006F  # CiA 402 statusword: the bits that name the state
 OPERATION_ENABLED = 0x0027
-FAULT_BITS = 0x0008
 
 SIGNED_INTEGERS = (2, 3, 4)
 """CiA 301 data types INTEGER8, INTEGER16 and INTEGER32: the signed values a PDO maps."""

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -169,10 +168,8 @@ def _estimate(args: argparse.Namespace) -> int:
         finally:
             service.close()
             session.close()
-        if service.running:  # the interpreter's exit would abort a thread inside compiled code (SIGABRT)
-            out.flush()
+        if service.running:  # the executable ends without finalization (armid.cli.run), which would abort it
             print("armid estimate: the estimator was still inside a batch at the stop: not waited for", file=sys.stderr, flush=True)
-            os._exit(0)
         return 0
     finally:
         if out is not sys.stdout:

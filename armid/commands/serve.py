@@ -71,10 +71,8 @@ def _serve(args: argparse.Namespace) -> int:
             out_json.close()
         if tmp is not None:
             tmp.cleanup()
-    if service.still_running:  # the interpreter's exit would abort a thread inside compiled code (SIGABRT)
+    if service.still_running:  # the executable ends without finalization (armid.cli.run), which would abort it
         print(f"armid serve: {', '.join(service.still_running)} still inside a step at the stop: not waited for", file=sys.stderr, flush=True)
-        sys.stdout.flush()
-        os._exit(0)
     return 0
 
 
