@@ -123,6 +123,27 @@ class Candidate:
         return self.full(d)
 
 
+def _coulomb_column(j: int, q: Array, qd: Array, qdd: Array) -> Array:
+    """(n, 1) joint j's ``sign(qd)``, computed where the torque was measured, before the
+    parallel filter: the filtered torque smooths friction's step at a reversal over the
+    filter's span, and so must the column that fits it."""
+    return np.sign(qd[:, j : j + 1])
+
+
+def _stribeck_columns(j: int, vs: float, q: Array, qd: Array, qdd: Array) -> Array:
+    """(n, 2) joint j's ``sign(qd)`` and Stribeck peak ``sign(qd) exp(-(qd/vs)^2)``, computed
+    where the torque was measured, before the parallel filter: the peak is as narrow as the
+    joint's time below ``vs``, which the low-pass smooths in the torque alike (computed on the
+    filtered velocity, the peak of blind seed 11 fitted at -10 N*m for a true 18.6)."""
+    s = np.sign(qd[:, j])
+    return np.column_stack([s, s * np.exp(-((qd[:, j] / vs) ** 2))])
+
+
+def coulomb(d: _Data, j: int) -> Array:
+    """(n, 1) joint j's Coulomb column as ``d``'s equations see it (:func:`_coulomb_column`)."""
+    return d.filtered(functools.partial(_coulomb_column, j))
+
+
 def _load_friction_columns(robot: Robot, phi: tuple[float, ...], q: Array, qd: Array, qdd: Array) -> Array:
     """(n, N) every joint's ``|tau_load_j| sign(qd_j)``, the load the rigid-body torque of
     ``phi``: computed where the torque was measured, before the parallel filter (the filtered
@@ -150,7 +171,7 @@ def _candidates(robot: Robot, data: _Data, present: set[tuple[str, int | None]],
                 out.append(Candidate(name, j, setting, labels, block=fn))
 
         lin("viscous_friction", lambda d, j=j: d.qd[:, j : j + 1], ("fv",))  # type: ignore[misc]
-        lin("coulomb_friction", lambda d, j=j: np.sign(d.qd[:, j : j + 1]), ("fc",))  # type: ignore[misc]
+        lin("coulomb_friction", lambda d, j=j: coulomb(d, j), ("fc",))  # type: ignore[misc]
         lin("torque_offset", lambda d: np.ones((d.q.shape[0], 1)), ("offset",))
         lin("rotor_inertia", lambda d, j=j: d.qdd[:, j : j + 1], ("ia",))  # type: ignore[misc]
         with_offset = ("torque_offset", j) not in present
@@ -160,13 +181,11 @@ def _candidates(robot: Robot, data: _Data, present: set[tuple[str, int | None]],
         outrun = float(np.percentile(np.abs(data.qd[:, j]), STRIBECK_DECAYED[0])) / STRIBECK_DECAYED[1]
         for vs in [v for v in STRIBECK_VELOCITIES if v <= outrun]:
             def strib(d: _Data, j: int = j, vs: float = vs, wc: bool = with_coulomb) -> Array:
-                s = np.sign(d.qd[:, j])
-                cols = [s * np.exp(-((d.qd[:, j] / vs) ** 2))]
-                return np.column_stack(([s] if wc else []) + cols)
+                return d.filtered(functools.partial(_stribeck_columns, j, vs))[:, 0 if wc else 1 :]
             lin("stribeck_friction", strib, (("fc",) if with_coulomb else ()) + ("fs",), setting=(("velocity", vs),))
         def load_friction(d: _Data, j: int = j, wc: bool = with_coulomb) -> Array:
             cols = d.filtered(functools.partial(_load_friction_columns, robot, ctx["load"]))
-            return np.column_stack(([np.sign(d.qd[:, j])] if wc else []) + [cols[:, j]])
+            return np.column_stack(([coulomb(d, j)[:, 0]] if wc else []) + [cols[:, j]])
         lin("load_dependent_coulomb", load_friction, (("fc",) if with_coulomb else ()) + ("fl",))
         if revolute:
             span = float(np.ptp(data.q[:, j]))
@@ -187,7 +206,7 @@ def _candidates(robot: Robot, data: _Data, present: set[tuple[str, int | None]],
         def friction(d: _Data, joints: list[int] = bare) -> Array:
             cols = np.zeros((d.q.shape[0] * nj, 3 * len(joints)))
             for k, j in enumerate(joints):
-                cols[j::nj, 3 * k : 3 * k + 3] = np.column_stack([np.sign(d.qd[:, j]), d.qd[:, j], np.ones(d.q.shape[0])])
+                cols[j::nj, 3 * k : 3 * k + 3] = np.column_stack([coulomb(d, j)[:, 0], d.qd[:, j], np.ones(d.q.shape[0])])
             return cols
         labels = tuple(f"{name}{j + 1}" for j in bare for name in ("fc", "fv", "offset"))
         out.append(Candidate("coulomb_friction", None, (), labels, full=friction))

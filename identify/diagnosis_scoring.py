@@ -229,6 +229,16 @@ def _score(c: Candidate, rnd: _Round, ident: _Data, held: _Data, wt_i: Array, wt
     return _Scored(rss_v1, p_value, c, gamma, proj, None, power_after)
 
 
+def joint_power_after(s: _Scored, rnd: _Round, held: _Data, wt_v: Array) -> float:
+    """The whitened held-out residual power a one-joint candidate leaves on its own joint (its
+    rows weigh alike, so whitening does not change which of two shapes leaves less)."""
+    j, nj = s.candidate.joint, rnd.n_joints
+    assert j is not None and s.candidate.block is not None and s.projection is not None
+    cv = s.candidate.block(held) * wt_v[j::nj, None]
+    res = rnd.res_v[j::nj] + rnd.rows_of_joint[j].g_t.T @ (s.projection @ s.gamma) - cv @ s.gamma
+    return float(res @ res)
+
+
 def _score_gain(c: Candidate, rnd: _Round, n_used: int) -> _Scored | None:
     """A drive gain fitted exactly, not linearised about the current fit: the joint's
     rigid-body columns scaled by the gain, profiled over it (:class:`_GainProfile`); None for a
