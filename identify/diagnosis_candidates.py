@@ -163,6 +163,7 @@ def _candidates(robot: Robot, data: _Data, present: set[tuple[str, int | None]],
     read when the columns are computed."""
     out: list[Candidate] = []
     nj = robot.n_joints
+    declared_coulomb = {k for e in robot.effects if e.effect == "coulomb_friction" for k in (range(nj) if e.joint is None else [e.joint - 1])}
     for j in range(nj):
         revolute = robot.joints[j].revolute
 
@@ -179,8 +180,13 @@ def _candidates(robot: Robot, data: _Data, present: set[tuple[str, int | None]],
             ("stiffness", "offset") if with_offset else ("stiffness",))
         with_coulomb = ("coulomb_friction", j) not in present
         outrun = float(np.percentile(np.abs(data.qd[:, j]), STRIBECK_DECAYED[0])) / STRIBECK_DECAYED[1]
+        # a peak pairs with its Coulomb level's column: filtered as the torque was, unless the
+        # level is the robot file's (the declared model's columns are on the filtered motion)
+        on_motion = j in declared_coulomb
         for vs in [v for v in STRIBECK_VELOCITIES if v <= outrun]:
-            def strib(d: _Data, j: int = j, vs: float = vs, wc: bool = with_coulomb) -> Array:
+            def strib(d: _Data, j: int = j, vs: float = vs, wc: bool = with_coulomb, on_motion: bool = on_motion) -> Array:
+                if on_motion:
+                    return _stribeck_columns(j, vs, d.q, d.qd, d.qdd)[:, 1:]
                 return d.filtered(functools.partial(_stribeck_columns, j, vs))[:, 0 if wc else 1 :]
             lin("stribeck_friction", strib, (("fc",) if with_coulomb else ()) + ("fs",), setting=(("velocity", vs),))
         def load_friction(d: _Data, j: int = j, wc: bool = with_coulomb) -> Array:
