@@ -531,10 +531,10 @@ class _Search:
     def _explains_nearly_as_much(self, rnd: _Round, alt: _Scored, s: _Scored) -> bool:
         """Whether look-alike ``alt`` removes at least 0.9 of what ``s`` removes from the arm's
         held-out residual. A Stribeck or load-dependent friction against its Coulomb look-alike
-        is a question of its term on its joint's rows (as :meth:`_friction_shape` names it): told
-        apart where Coulomb leaves more than 1/0.9 of what the shape leaves there (the 0.9 of the Coulomb
-        level both share said nothing of the peak: blind Stribeck seed 11's peak took joint
-        3's held-out power to a thirtieth of Coulomb's and was called a look-alike)."""
+        is a question of its term on its joint's rows (as :meth:`_friction_shape` names it):
+        told apart where Coulomb leaves more than 1/0.9 of what the shape leaves there (the 0.9
+        of the Coulomb level both share said nothing of the peak: blind Stribeck seed 11's peak
+        took joint 3's held-out power to a thirtieth of Coulomb's and was called a look-alike)."""
         if s.candidate.effect in ("stribeck_friction", "load_dependent_coulomb") and alt.candidate.effect == "coulomb_friction":
             return 0.9 * joint_power_after(alt, rnd, self.held, self.wt_v) <= joint_power_after(s, rnd, self.held, self.wt_v)
         return (rnd.rss_v - alt.rss_v) >= 0.9 * (rnd.rss_v - s.rss_v)
