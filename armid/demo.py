@@ -13,6 +13,7 @@ from __future__ import annotations
 import secrets
 import time
 import uuid
+from contextlib import closing
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -36,6 +37,7 @@ from .experiments import (
     service_agreement,
     write_json,
 )
+from .kernels import compiled_ahead
 from .peer import Peer, PeerLink
 from .simulated import excitation_session
 
@@ -155,8 +157,12 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
         per_whole = float(np.median(design_times[len(links) :])) if design_times[len(links) :] else 2.0 * per_link
         phases.estimates["design"] = (time.monotonic() - phases.phase_started) + (total - done - whole_left) * per_link + whole_left * per_whole
 
-    with threadpool_limits(1, "blas"):  # OpenBLAS's threads stall on a loaded 2-core machine; the demo's products are small
-        experiments = design_experiments(robot, start, links, whole_runs, rig.period_s, seed=seed, log=phases.note, progress=designed)
+    # OpenBLAS's threads stall on a loaded 2-core machine, and the demo's products are small; the kernels
+    # that the runs and the payload estimator will need compile on the other core while the first design does
+    # and the estimator service starts (seconds of imports) while the trajectories are designed
+    with threadpool_limits(1, "blas"), compiled_ahead(rig_path), closing(_estimator_service(rig, out)) as service:
+        experiments = design_experiments(robot, start, links, whole_runs, rig.period_s, seed=seed, log=phases.note, progress=designed,
+                                         whole_beside=True)
         write_json(out / "designs.json", {e.name: e.design.to_json() for e in experiments})
         runs_s = sum(e.plan.duration_s + 0.5 for e in experiments)
         phases.estimates.update(design=time.monotonic() - phases.phase_started, runs=runs_s,
@@ -164,7 +170,7 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
         motion_s = sum(e.plan.duration_s for e in experiments)
         phases.start("runs", f"running the {len(experiments)} experiments on the drives in real time ({motion_s:.0f} s of motion, "
                      "2 ms SYNC over the virtual CAN bus), each recorded as MCAP")
-        reports, published = _runs_beside_the_service(rig, experiments, out, console)
+        reports, published = _runs_beside_the_service(rig, service, experiments, out, console)
         write_json(out / "runs.json", [r.to_json() for r in reports])
         failed = [r for r in reports if not r.completed]
         if failed:
@@ -175,8 +181,10 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
         write_json(out / "service.json", published)
         prepared = prepared_runs(reports, robot, rig.period_s, warn=lambda w: phases.note(f"[yellow]warning:[/] {escape(w)}"))
         # the same pipeline as the service's (armid.experiments), on the complete recordings
-        seq = single_link_sequence(robot, {e.link: [prepared[e.name]] for e in experiments if e.link is not None})
         whole = identify_whole_arm(robot, prepared["whole_a"], [prepared["whole_b"]])
+        # the payload estimator needs only the whole-arm fit: it starts while the rest is computed
+        estimator = closing(payload_estimator(rig, whole.to_json(), out))
+        seq = single_link_sequence(robot, {e.link: [prepared[e.name]] for e in experiments if e.link is not None})
         agreement = service_agreement(published[-1], whole)
         console.print(f"  the estimator service published {len(published)} estimates; records it missed "
                       f"{sum(d['experiment']['missing'] for d in published)}; its whole_a fit against the recording's: "
@@ -188,7 +196,8 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
         diagnosis = diagnose(robot, Inputs([prepared["whole_a"]], [prepared["whole_b"]]))
         phases.start("payload", "payload: the identified arm works through whole_a; a 2 kg payload is attached and removed, "
                      "estimated on-line from the live Zenoh stream by `armid estimate live` in a process of its own")
-        payload = run_payload(rig, whole.to_json(), experiments[-2].design, out, console)
+        with estimator as link:
+            payload = run_payload(rig, link, experiments[-2].design, out)
         phases.start("report", "writing the report and its plots")
         from armid.identify.feasible import feasible_estimate
 
@@ -219,13 +228,18 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
     return 0
 
 
-def _runs_beside_the_service(rig: Rig, experiments: list[Any], out: Path, console: Any) -> tuple[list[Any], list[dict[str, Any]]]:
-    """The experiments on the drives, streamed to ``armid serve`` in a process of its own (as in
-    a lab); its ``estimate/parameters`` documents, one per experiment it identified."""
+def _estimator_service(rig: Rig, out: Path) -> PeerLink:
+    """``armid serve`` started in a process of its own (as in a lab), not yet waited for."""
     robot = rig.robot
-    link = PeerLink(robot.name, ["serve", "--robot", robot.source, "--whole-arm", "drives", "--no-payload", "--out", str(out / "service"),
-                                 "--json", str(out / "service.jsonl")], out / "service.log", "estimate/parameters", "alive/estimator")
+    return PeerLink(robot.name, ["serve", "--robot", robot.source, "--whole-arm", "drives", "--no-payload", "--out", str(out / "service"),
+                                 "--json", str(out / "service.jsonl")], out / "service.log", "estimate/parameters", "alive/estimator", wait=False)
+
+
+def _runs_beside_the_service(rig: Rig, link: PeerLink, experiments: list[Any], out: Path, console: Any) -> tuple[list[Any], list[dict[str, Any]]]:
+    """The experiments on the drives, streamed to the estimator service once it is ready; its
+    ``estimate/parameters`` documents, one per experiment it identified."""
     try:
+        link.ready()
         with excitation_session(rig, simulate=True, stream=link.stream) as session:
             console.print(f"  timing: {session.driver.timing_note}; the estimator service runs in process {link.peer.proc.pid}")
             reports = run_experiments(session, experiments, out / "runs", console)
@@ -242,11 +256,22 @@ DEMO_PAYLOAD = (2.0, (0.02, -0.03, 0.08), (0.004, 0.0, 0.0, 0.004, 0.0, 0.002))
 """Mass (kg), centre of mass in the last link's frame (m), inertia about it (kg m^2)."""
 
 
-def run_payload(rig: Rig, identification: dict[str, Any], design: Any, out: Path, console: Any) -> dict[str, Any]:
+def payload_estimator(rig: Rig, identification: dict[str, Any], out: Path) -> PeerLink:
+    """``armid estimate live`` on the identified arm (``identification``: its ``armid identify
+    --json`` document), started in a process of its own, not yet waited for."""
+    robot = rig.robot
+    params = out / "identified_arm.json"
+    write_json(params, identification)
+    return PeerLink(robot.name, ["estimate", "live", "--robot", robot.source, "--params", str(params), "--out",
+                                 str(out / "payload_estimates.jsonl")], out / "payload_estimator.log", "estimate/payload",
+                    "alive/payload_estimator", wait=False)
+
+
+def run_payload(rig: Rig, link: PeerLink, design: Any, out: Path) -> dict[str, Any]:
     """Khosla's on-line strategy: the identified arm works through a whole-arm trajectory; a
-    payload is attached 3 s in and removed 4 s later; ``armid estimate live``, in a process of
-    its own, listens to the live Zenoh stream and publishes its estimates; they are compared
-    with the truth. ``identification`` is the arm's ``armid identify --json`` document.
+    payload is attached 3 s in and removed 4 s later; ``link``'s ``armid estimate live``, in a
+    process of its own, listens to the live Zenoh stream and publishes its estimates; they are
+    compared with the truth.
 
     Everything runs on the arm's clock: the attach and the removal are scheduled in the
     simulated arm at times of its own clock (not when a polling thread gets to them), and
@@ -259,16 +284,11 @@ def run_payload(rig: Rig, identification: dict[str, Any], design: Any, out: Path
     from armid.io.recordings import read_mcap_arrays
     from armid.sim_bus.physics import Payload
 
-    robot = rig.robot
     truth = Payload(*DEMO_PAYLOAD)  # type: ignore[arg-type]
     run_dir = out / "runs" / "payload"
-    params = out / "identified_arm.json"
-    write_json(params, identification)
-    link = PeerLink(robot.name, ["estimate", "live", "--robot", robot.source, "--params", str(params), "--out",
-                                 str(out / "payload_estimates.jsonl")], out / "payload_estimator.log", "estimate/payload",
-                    "alive/payload_estimator")
     estimates = link.docs
     try:
+        link.ready()
         with excitation_session(rig, simulate=True, stream=link.stream) as s:
             assert s.arm is not None
             physics = s.arm.physics

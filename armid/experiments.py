@@ -41,45 +41,82 @@ class Experiment:
 def design_experiments(robot: Robot, start: np.ndarray, links: list[int], whole: list[tuple[str, int]], period_s: float,
                        link_frequency_hz: float = 0.5, link_periods: int = 2, whole_frequency_hz: float = 0.2,
                        seed: int = 0, log: Any = None, whole_margin: float = 0.6,
-                       progress: Callable[[int, int, float], None] | None = None) -> list[Experiment]:
+                       progress: Callable[[int, int, float], None] | None = None, whole_beside: bool = False) -> list[Experiment]:
     """Single-link experiments for ``links`` (0-based, in the order given), then the whole-arm
     runs ``whole`` (name, periods); each plan starts where the previous one ends. Every
     plan is checked at the control period; the first violation raises
     :class:`~identify.excitation.TrajectoryLimitError` before anything moves. Whole-arm
     runs use ``whole_margin`` of each limit: coupled joints at speed track less well, and
     the supervision stops the arm at the limit itself. ``progress(done, total, seconds)``
-    follows each design with the time it took."""
+    follows each design with the time it took. ``whole_beside``: the whole-arm designs, which
+    do not depend on the pose they start from, are made in a process of their own while the
+    single-link chain is designed here (the same designs, in about half the time on two cores);
+    each is planned from its pose and checked here."""
     limits = ex.Limits.of(robot)
-    out = []
+    out: list[Experiment] = []
     pose = np.asarray(start, float)
     total = len(links) + len(whole)
-    for k in links:
-        began = time.monotonic()
-        hold = ex.choose_hold(robot, k, pose, seed=seed + k)
-        d = ex.design(robot, moving=(k,), q_hold=hold, base_frequency_hz=link_frequency_hz, seed=seed + k)
-        p = ex.plan(d, pose, limits, periods=link_periods)
-        ex.check_plan(robot, p, period_s, limits)
-        out.append(Experiment(f"link{k + 1}", d, p))
-        pose = d.trajectory.evaluate(np.zeros(1))[0][0]
-        took = time.monotonic() - began
-        if progress:
-            progress(len(out), total, took)
-        if log:
-            log(f"designed link {k + 1} in {took:.1f} s: identifies {', '.join(d.base)}; condition number {d.condition_number:.3g}")
-    for i, (name, periods) in enumerate(whole):
-        began = time.monotonic()
-        d = ex.design(robot, base_frequency_hz=whole_frequency_hz, seed=seed + 100 + i, margin=whole_margin)
+    seeds = [seed + 100 + i for i in range(len(whole))]
+
+    def add(name: str, d: ex.Design, periods: int, took: float, what: str) -> np.ndarray:
         p = ex.plan(d, pose, limits, periods=periods)
         ex.check_plan(robot, p, period_s, limits)
         out.append(Experiment(name, d, p))
-        pose = d.trajectory.evaluate(np.zeros(1))[0][0]
-        took = time.monotonic() - began
         if progress:
             progress(len(out), total, took)
         if log:
-            log(f"designed {name} in {took:.1f} s: rank {d.rank}, condition number {d.condition_number:.3g}, "
-                f"{len(d.unidentifiable)} parameters unidentifiable")
+            log(f"designed {what} in {took:.1f} s: " + (f"identifies {', '.join(d.base)}; condition number {d.condition_number:.3g}"
+                if len(d.moving) == 1 else f"rank {d.rank}, condition number {d.condition_number:.3g}, "
+                f"{len(d.unidentifiable)} parameters unidentifiable"))
+        return d.trajectory.evaluate(np.zeros(1))[0][0]
+
+    beside = _WholeDesigns(robot, whole_frequency_hz, seeds, whole_margin) if whole_beside and whole and links else None
+    try:
+        for k in links:
+            began = time.monotonic()
+            hold = ex.choose_hold(robot, k, pose, seed=seed + k)
+            d = ex.design(robot, moving=(k,), q_hold=hold, base_frequency_hz=link_frequency_hz, seed=seed + k)
+            pose = add(f"link{k + 1}", d, link_periods, time.monotonic() - began, f"link {k + 1}")
+        for i, (name, periods) in enumerate(whole):
+            d, took = beside.result(i) if beside is not None else _timed_whole_design(robot, whole_frequency_hz, seeds[i], whole_margin)
+            pose = add(name, d, periods, took, name)
+    finally:
+        if beside is not None:
+            beside.close()
     return out
+
+
+def _timed_whole_design(robot: Robot, frequency_hz: float, seed: int, margin: float) -> tuple[ex.Design, float]:
+    """A whole-arm design and the seconds it took."""
+    began = time.monotonic()
+    d = ex.design(robot, base_frequency_hz=frequency_hz, seed=seed, margin=margin)
+    return d, time.monotonic() - began
+
+
+def _one_blas_thread() -> None:
+    """The worker's BLAS as the demo's (one thread: the products are small, and a second
+    thread stalls on a loaded 2-core machine), so that its designs are the ones made here."""
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1, "blas")
+
+
+class _WholeDesigns:
+    """Whole-arm designs made in one worker process (spawned: a fork would copy this process's
+    threads' locks), handed over in order."""
+
+    def __init__(self, robot: Robot, frequency_hz: float, seeds: list[int], margin: float) -> None:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_one_blas_thread)
+        self._futures = [self._pool.submit(_timed_whole_design, robot, frequency_hz, s, margin) for s in seeds]
+
+    def result(self, i: int) -> tuple[ex.Design, float]:
+        return self._futures[i].result()
+
+    def close(self) -> None:
+        self._pool.shutdown(cancel_futures=True)
 
 
 def run_experiments(session: ExcitationSession, experiments: list[Experiment], out: Path, console: Any = None,

@@ -82,12 +82,16 @@ class PeerLink:
     publishes on ``publishes`` collected in :attr:`docs`, and a :class:`~daq.stream.Stream` that
     carries the records to it. :meth:`close` ends them in order (safe to call twice)."""
 
-    def __init__(self, robot: str, args: list[str], log: Path, publishes: str, token: str, component: str = "demo") -> None:
+    def __init__(self, robot: str, args: list[str], log: Path, publishes: str, token: str, component: str = "demo",
+                 wait: bool = True) -> None:
+        """``wait=False``: the peer starts (its imports take seconds) while the caller does
+        something else; :meth:`ready` waits for it."""
         import zenoh
 
-        from armid.daq.stream import Stream, key, session_config
+        from armid.daq.stream import key, session_config
 
         self.docs: list[dict[str, Any]] = []
+        self._robot, self._token, self._component = robot, key(robot, token), component
         endpoint = loopback_endpoint()
         self.session = zenoh.open(session_config(listen=[endpoint], connect=[]))
         self.peer = Peer(args, endpoint, log)
@@ -95,11 +99,19 @@ class PeerLink:
         self.stream: Any = None
         try:
             self._subscriber = collect(self.session, key(robot, publishes), self.docs)
-            self.peer.wait_alive(self.session, key(robot, token))
-            self.stream = Stream(self.session, robot, component, lambda: {"component": component})
+            if wait:
+                self.ready()
         except BaseException:
             self.close()
             raise
+
+    def ready(self) -> None:
+        """Until the peer is ready (its liveliness token seen); then the stream that feeds it."""
+        from armid.daq.stream import Stream
+
+        if self.stream is None:
+            self.peer.wait_alive(self.session, self._token)
+            self.stream = Stream(self.session, self._robot, self._component, lambda: {"component": self._component})
 
     def wait(self, done: Any, timeout_s: float) -> None:
         """Until ``done()`` holds, the peer ends, or ``timeout_s`` passes."""

@@ -159,11 +159,14 @@ def wall_minus_monotonic() -> float:
 
 class CycleClock:
     """The absolute schedule of a driver's cycle thread: :meth:`wait` sleeps to the next
-    period boundary; a cycle more than a period late restarts the schedule (and counts in
-    ``late``) instead of bursting to catch up."""
+    period boundary; a cycle late by up to ``catch_up`` periods is made up by the next ones
+    coming sooner, a cycle later than that restarts the schedule (and counts in ``late``)
+    instead of bursting to catch up. A real bus keeps ``catch_up`` at one period; a paced
+    simulation, whose arm steps one period per SYNC whenever it comes, makes up more."""
 
-    def __init__(self, period_s: float) -> None:
+    def __init__(self, period_s: float, catch_up: int = 1) -> None:
         self.period_s = period_s
+        self.catch_up = catch_up
         self.late = 0
         self._next = time.perf_counter()
 
@@ -172,13 +175,9 @@ class CycleClock:
         delay = self._next - time.perf_counter()
         if delay > 0:
             time.sleep(delay)
-        elif delay < -self.period_s:
+        elif delay < -self.catch_up * self.period_s:
             self.late += 1
             self._next = time.perf_counter()
-
-    def not_before_now(self) -> None:
-        """The next period starts no earlier than now (after waiting for something else)."""
-        self._next = max(self._next, time.perf_counter())
 
 
 class CycleHeartbeat:

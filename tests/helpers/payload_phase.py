@@ -10,9 +10,10 @@ import json
 import pickle
 import sys
 import uuid
+from contextlib import closing
 from pathlib import Path
 
-from armid.demo import DEFAULT_RIG, run_payload
+from armid.demo import DEFAULT_RIG, payload_estimator, run_payload
 from armid.identify.payload import identification_document
 from armid.io.rig_file import load_rig
 
@@ -22,7 +23,8 @@ def main() -> None:
         arm, trajectory = pickle.load(f)
     out = Path(sys.argv[2])
     rig = load_rig(DEFAULT_RIG).with_bus(channel=f"armid-phase-{uuid.uuid4().hex[:8]}")
-    result = run_payload(rig, identification_document(arm), trajectory, out, None)
+    with closing(payload_estimator(rig, identification_document(arm), out)) as estimator:
+        result = run_payload(rig, estimator, trajectory, out)
     result.pop("report", None)
     print(json.dumps(result))
 
