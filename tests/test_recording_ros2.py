@@ -122,6 +122,51 @@ def test_the_cdr_bytes_are_what_a_ros2_serializer_writes() -> None:
             assert ros2_messages(r, names) == (bytes(state), bytes(extra))
 
 
+def test_the_columns_read_in_place_are_what_a_ros2_decoder_reads_and_other_layouts_are_left_to_it() -> None:
+    """The recording reader's fast path (``ros2_columns``: every message of a kind read as one
+    array) against mcap_ros2's generic decoder, message by message; a batch whose layouts
+    differ (another joint name, another joint count, a byte of padding) is not read in place."""
+    from mcap.records import Schema
+    from mcap_ros2.decoder import DecoderFactory
+
+    from armid.schema import Sample
+    from armid.schema.joint_state import ROS2_MSGDEFS, ros2_columns, ros2_messages
+
+    factory = DecoderFactory()
+    decode = {kind: factory.decoder_for("cdr", Schema(id=k, name=kind, encoding="ros2msg", data=text.encode()))
+              for k, (kind, text) in enumerate(ROS2_MSGDEFS.items(), 1)}
+    rng = np.random.default_rng(1)
+    for n in (1, 6, 7):
+        names = [f"joint_{'x' * k}" for k in range(n)]
+        pairs = []
+        for k in range(30):
+            s = Sample(k, 1.5 + 0.002 * k, rng.random(n) > 0.3, rng.normal(size=n), rng.normal(size=n), rng.random(n) > 0.5,
+                       rng.normal(size=n), rng.normal(size=n), rng.integers(0, 65536, n), rng.normal(size=n))
+            pairs.append(ros2_messages(JointStateRecord(k * 1_000_003, s), names))
+        for kind, msgs in ((JOINT_STATE_TYPE, [p[0] for p in pairs]), (EXTRA_TYPE, [p[1] for p in pairs])):
+            cols = ros2_columns(msgs, kind)
+            assert cols is not None
+            for k, m in enumerate(msgs):
+                d = decode[kind](m)
+                assert cols["sec"][k, 0] == d.header.stamp.sec and cols["nanosec"][k, 0] == d.header.stamp.nanosec
+                fields = ("position", "velocity", "effort") if kind == JOINT_STATE_TYPE else (
+                    "sequence", "cycle", "valid", "velocity_fresh", "commanded_current", "measured_current", "statusword")
+                for name in fields:
+                    assert np.array_equal(cols[name][k], np.atleast_1d(np.asarray(getattr(d, name), cols[name].dtype))), (kind, name, k)
+        states = [p[0] for p in pairs]
+        other_name = ros2_messages(JointStateRecord(99, Sample(99, 9.0, *(np.ones(n, bool), np.zeros(n), np.zeros(n), np.ones(n, bool),
+                                                                           np.zeros(n), np.zeros(n), np.zeros(n, np.int64)), torque=np.zeros(n))),
+                                   [("y" if k == 0 else "") + name for k, name in enumerate(names)])[0]
+        assert ros2_columns(states + [other_name], JOINT_STATE_TYPE) is None  # same length or not, another name
+        value = states[0][:-1] + b"\x00"  # the last byte is a value's (the last effort's): still read in place
+        assert ros2_columns(states[:3] + [value], JOINT_STATE_TYPE) is not None
+        frame = bytearray(states[0])
+        frame[16] = 0x41  # frame_id's one byte (the terminating zero): structure
+        assert ros2_columns(states[:3] + [bytes(frame)], JOINT_STATE_TYPE) is None
+        assert ros2_columns(states[:3] + [states[0] + b"\x00"], JOINT_STATE_TYPE) is None  # another length
+    assert ros2_columns([b"\x00\x01\x00\x00\x01"], JOINT_STATE_TYPE) is None  # cut short: not this type
+
+
 def test_a_stamp_ros2_time_cannot_hold_is_named_not_a_struct_error() -> None:
     """Issue 35: a run stamped after 2038 failed in ``struct`` (int32 seconds) where the service
     writes its copy; ROS 2's Time cannot hold it, and the error says so and names the record."""

@@ -28,7 +28,7 @@ from armid.identify.errors import RecordingError
 from armid.identify.recordings import Recording
 from armid.identify.robot import Robot
 from armid.schema import Array
-from armid.schema.joint_state import EXTRA_TOPIC, EXTRA_TYPE, JOINT_STATE_TYPE, JOINT_STATES_TOPIC, ROS2_MSGDEFS
+from armid.schema.joint_state import EXTRA_TOPIC, EXTRA_TYPE, JOINT_STATE_TYPE, JOINT_STATES_TOPIC, ROS2_MSGDEFS, ros2_columns
 
 _JOINT_COLUMN = re.compile(r"(q|qd|qdd|tau|i)(\d+)")
 
@@ -631,7 +631,9 @@ def read_mcap_arrays(path: str | Path) -> tuple[dict[str, Array], dict[str, str]
         n = _check_message(msg, k, n, src)
         rows.append(msg)
         offsets.append(pos)
-    notes = _loss_notes(scan, rows, offsets, len(data))
+    seq = np.array([r["sequence"] for r in rows], dtype=np.int64)
+    t = np.array([r["header"]["stamp"]["sec"] + 1e-9 * r["header"]["stamp"]["nsec"] for r in rows])
+    notes = _loss_notes(scan, seq, t, offsets, len(data))
     if scan.adopted is not None and rows:
         notes.append(f"the /joint_state channel record was lost: the {len(rows)} messages of channel {scan.adopted}, "
                      "the only channel left, were read as /joint_state")
@@ -639,8 +641,6 @@ def read_mcap_arrays(path: str | Path) -> tuple[dict[str, Array], dict[str, str]
         if not notes:
             notes.append("no /joint_state record in the file")
         return {}, scan.metadata, notes
-    seq = np.array([r["sequence"] for r in rows])
-    t = np.array([r["header"]["stamp"]["sec"] + 1e-9 * r["header"]["stamp"]["nsec"] for r in rows])
     arrays = {
         "sequence": seq,
         "cycle": np.array([r["cycle"] for r in rows]),
@@ -674,70 +674,99 @@ def _cdr_arrays(scan: _McapScan, src: str, size: int) -> tuple[dict[str, Array],
     """A ROS 2 recording: each cycle's ``/joint_states`` and ``/armid/joint_state_extra``
     messages, paired by their MCAP log time and sequence number. A cycle with one of its
     two messages lost is lost (said among the gaps)."""
-    decoders = _cdr_decoders()
     header = struct.Struct("<HIQ")  # channel id, sequence, log time of a message record
 
-    def decoded(topic: str, kind: str) -> dict[tuple[int, int], tuple[int, Any]]:
-        out = {}
-        for k, (pos, content) in enumerate(scan.cdr[topic]):
+    def by_key(topic: str) -> dict[tuple[int, int], int]:  # the last message of a key, in the order keys first came
+        index = {}
+        for k, (_, content) in enumerate(scan.cdr[topic]):
             _, seq, log_time = header.unpack_from(content)
-            try:
-                out[(log_time, seq)] = (pos, decoders[kind](content[22:]))
-            except Exception as err:  # the CRC held: the recorder wrote something that is not this type
-                raise RecordingError(src, f"{topic} message {k} (in the chunk at byte {pos}): not a {kind} in CDR ({err})") from None
-        return out
+            index[(log_time, seq)] = k
+        return index
 
-    states = decoded(JOINT_STATES_TOPIC, JOINT_STATE_TYPE)
-    extras = decoded(EXTRA_TOPIC, EXTRA_TYPE)
-    keys = [key for key in extras if key in states]  # file order
-    rows: list[dict[str, Any]] = []
-    offsets: list[int] = []
-    n: int | None = None
-    for key in keys:
-        pos, e = extras[key]
-        s = states[key][1]
-        fields = {"position": s.position, "velocity": s.velocity, "effort": s.effort, "valid": e.valid, "velocity_fresh": e.velocity_fresh,
-                  "commanded_current": e.commanded_current, "measured_current": e.measured_current, "status": e.statusword}
-        m = len(s.position) if n is None else n
-        wrong = next((name for name, v in fields.items() if len(v) != m), None)
-        if wrong is not None:
-            raise RecordingError(src, f"{EXTRA_TOPIC if wrong not in ('position', 'velocity', 'effort') else JOINT_STATES_TOPIC} "
-                                      f"(sequence {e.sequence}): '{wrong}' has {len(fields[wrong])} values, the recording's other messages {m}")
-        n = m
-        rows.append({"sequence": int(e.sequence), "cycle": int(e.cycle),
-                     "header": {"stamp": {"sec": int(s.header.stamp.sec), "nsec": int(s.header.stamp.nanosec)}}, **fields})
-        offsets.append(pos)
-    notes = _loss_notes(scan, rows, offsets, size)
-    if scan.adopted is not None and rows:
-        notes.append(f"the channel record was lost for both {JOINT_STATES_TOPIC} and {EXTRA_TOPIC}: the {len(rows)} cycles of "
+    states, extras = by_key(JOINT_STATES_TOPIC), by_key(EXTRA_TOPIC)
+    pairs = np.array([(extras[key], states[key]) for key in extras if key in states], np.int64).reshape(-1, 2)
+    s_msgs = [scan.cdr[JOINT_STATES_TOPIC][k][1][22:] for k in pairs[:, 1]]
+    e_msgs = [scan.cdr[EXTRA_TOPIC][k][1][22:] for k in pairs[:, 0]]
+    offsets = np.array([scan.cdr[EXTRA_TOPIC][k][0] for k in pairs[:, 0]], np.int64)
+    cols = _same_length(ros2_columns(s_msgs, JOINT_STATE_TYPE), ros2_columns(e_msgs, EXTRA_TYPE))
+    if cols is None:  # messages of different layouts: one by one, each checked
+        cols = _decoded_columns(scan, pairs, src)
+    t = cols["sec"][:, 0] + 1e-9 * cols["nanosec"][:, 0]
+    notes = _loss_notes(scan, cols["sequence"][:, 0].astype(np.int64), t, offsets, size)
+    if scan.adopted is not None and len(t):
+        notes.append(f"the channel record was lost for both {JOINT_STATES_TOPIC} and {EXTRA_TOPIC}: the {len(t)} cycles of "
                      "the two channels left were read by the message types they decode as")
-    if not rows:
+    if not len(t):
         if not notes:
             notes.append(f"no {JOINT_STATES_TOPIC} record in the file")
         return {}, scan.metadata, notes
     arrays = {
-        "sequence": np.array([r["sequence"] for r in rows]),
-        "cycle": np.array([r["cycle"] for r in rows]),
-        "t": np.array([r["header"]["stamp"]["sec"] + 1e-9 * r["header"]["stamp"]["nsec"] for r in rows]),
-        "valid": np.array([r["valid"] for r in rows], bool),
-        "position": np.array([r["position"] for r in rows], float),
-        "velocity": np.array([r["velocity"] for r in rows], float),
-        "velocity_fresh": np.array([r["velocity_fresh"] for r in rows], bool),
-        "commanded_current": np.array([r["commanded_current"] for r in rows], float),
-        "measured_current": np.array([r["measured_current"] for r in rows], float),
-        "status": np.array([r["status"] for r in rows], np.int64),
-        "torque": np.array([r["effort"] for r in rows], float),
+        "sequence": cols["sequence"][:, 0].astype(np.int64),
+        "cycle": cols["cycle"][:, 0].astype(np.int64),
+        "t": t,
+        "valid": cols["valid"].astype(bool),
+        "position": cols["position"].astype(float),
+        "velocity": cols["velocity"].astype(float),
+        "velocity_fresh": cols["velocity_fresh"].astype(bool),
+        "commanded_current": cols["commanded_current"].astype(float),
+        "measured_current": cols["measured_current"].astype(float),
+        "status": cols["statusword"].astype(np.int64),
+        "torque": cols["effort"].astype(float),
     }
     return arrays, scan.metadata, notes
 
 
-def _loss_notes(scan: _McapScan, rows: list[dict[str, Any]], offsets: list[int], size: int) -> list[str]:
+_PER_JOINT = ("position", "velocity", "effort", "valid", "velocity_fresh", "commanded_current", "measured_current", "statusword")
+
+
+def _same_length(states: dict[str, Any] | None, extras: dict[str, Any] | None) -> dict[str, Any] | None:
+    """Both kinds' columns together when every per-joint field has as many values as the
+    positions (else None: the one-by-one path names the field that has not)."""
+    if states is None or extras is None:
+        return None
+    cols = {**states, **{k: v for k, v in extras.items() if k not in ("sec", "nanosec")}}
+    return cols if len({cols[name].shape[1] for name in _PER_JOINT}) == 1 else None
+
+
+def _decoded_columns(scan: _McapScan, pairs: Any, src: str) -> dict[str, Any]:
+    """The paired messages (``pairs``: index of the extra, of the state) decoded one by one
+    (``mcap_ros2`` against armid's schemas), as columns; a message that is not its type, or a
+    field with a count unlike the others', is refused naming it."""
+    decoders = _cdr_decoders()
+    cols: dict[str, list[Any]] = {name: [] for name in ("sec", "nanosec", "sequence", "cycle", *_PER_JOINT)}
+    m: int | None = None
+
+    def decoded(topic: str, kind: str, k: int) -> Any:
+        pos, content = scan.cdr[topic][k]
+        try:
+            return decoders[kind](content[22:])
+        except Exception as err:  # the CRC held: the recorder wrote something that is not this type
+            raise RecordingError(src, f"{topic} message {k} (in the chunk at byte {pos}): not a {kind} in CDR ({err})") from None
+
+    for ke, ks in pairs:
+        s, e = decoded(JOINT_STATES_TOPIC, JOINT_STATE_TYPE, int(ks)), decoded(EXTRA_TOPIC, EXTRA_TYPE, int(ke))
+        fields = {"position": s.position, "velocity": s.velocity, "effort": s.effort, "valid": e.valid, "velocity_fresh": e.velocity_fresh,
+                  "commanded_current": e.commanded_current, "measured_current": e.measured_current, "statusword": e.statusword}
+        m = len(s.position) if m is None else m
+        wrong = next((name for name, v in fields.items() if len(v) != m), None)
+        if wrong is not None:
+            raise RecordingError(src, f"{EXTRA_TOPIC if wrong not in ('position', 'velocity', 'effort') else JOINT_STATES_TOPIC} "
+                                      f"(sequence {e.sequence}): '{wrong}' has {len(fields[wrong])} values, the recording's other messages {m}")
+        for name, v in fields.items():
+            cols[name].append(list(v))
+        for name, v in (("sec", s.header.stamp.sec), ("nanosec", s.header.stamp.nanosec), ("sequence", e.sequence), ("cycle", e.cycle)):
+            cols[name].append([v])
+    floats = ("position", "velocity", "effort", "commanded_current", "measured_current")
+    return {name: np.array(v, float if name in floats else np.int64).reshape(len(pairs), -1) for name, v in cols.items()}
+
+
+def _loss_notes(scan: _McapScan, seq: Any, t: Any, offsets: Any, size: int) -> list[str]:
     """What was lost, in records and seconds, and where: one note per unreadable stretch,
-    one per gap in the sequence numbers that no unreadable stretch explains."""
+    one per gap in the sequence numbers that no unreadable stretch explains. ``seq``, ``t``
+    and ``offsets`` (in the file) are the records read, in file order."""
     notes: list[str] = []
-    seq = np.array([r["sequence"] for r in rows], dtype=np.int64)
-    t = np.array([r["header"]["stamp"]["sec"] + 1e-9 * r["header"]["stamp"]["nsec"] for r in rows])
-    pos = np.array(offsets, dtype=np.int64)
+    seq, t = np.asarray(seq, np.int64), np.asarray(t, float)
+    pos = np.asarray(offsets, dtype=np.int64)
     period = float(np.median(np.diff(t))) if t.size > 2 else float("nan")
     explained: set[int] = set()
     for loss in scan.losses:

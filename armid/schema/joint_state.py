@@ -209,3 +209,79 @@ def ros2_messages(record: JointStateRecord, names: list[str]) -> tuple[bytes, by
     extra.array(s.measured_current, "<f8", 8)
     extra.array(np.asarray(s.status, np.int64) & 0xFFFF, "<u2", 2)
     return bytes(state.buf), bytes(extra.buf)
+
+
+def _cdr_layout(msg: bytes, fields: tuple[tuple[str, str], ...]) -> tuple[dict[str, tuple[int, str, int]], NDArray[np.bool_]] | None:
+    """Where each numeric field of one CDR message lies (offset, dtype, count) and which bytes
+    are structure (the encapsulation, lengths, strings, padding); None if ``msg`` does not
+    parse as ``fields`` (kinds: ``header``, ``strings``, or a dtype and ``[]`` for an array).
+    Alignment counts from the end of the 4-byte encapsulation header, as :class:`_Cdr` writes."""
+    numeric: dict[str, tuple[int, str, int]] = {}
+    structure = np.ones(len(msg), bool)
+    at = 4
+
+    def take(name: str, dtype: str, count: int) -> None:
+        nonlocal at
+        size = np.dtype(dtype).itemsize
+        at += -(at - 4) % size
+        if at + size * count > len(msg):
+            raise ValueError
+        numeric[name] = (at, dtype, count)
+        structure[at : at + size * count] = False
+        at += size * count
+
+    def length() -> int:
+        nonlocal at
+        at += -(at - 4) % 4
+        if at + 4 > len(msg):
+            raise ValueError
+        (n,) = struct.unpack_from("<I", msg, at)
+        at += 4
+        return int(n)
+
+    try:
+        for name, kind in fields:
+            if kind == "header":
+                take("sec", "<i4", 1)
+                take("nanosec", "<u4", 1)
+                skip = length()  # frame_id: structure (read before ``at`` moves on: length() moves it)
+                at += skip
+            elif kind == "strings":
+                for _ in range(length()):
+                    skip = length()
+                    at += skip
+            elif kind.endswith("[]"):
+                take(name, kind[:-2], length())
+            else:
+                take(name, kind, 1)
+    except (ValueError, struct.error):
+        return None
+    return (numeric, structure) if at == len(msg) else None
+
+
+_STATE_FIELDS = (("header", "header"), ("name", "strings"), ("position", "<f8[]"), ("velocity", "<f8[]"), ("effort", "<f8[]"))
+_EXTRA_FIELDS = (("header", "header"), ("sequence", "<u8"), ("cycle", "<u8"), ("valid", "u1[]"), ("velocity_fresh", "u1[]"),
+                 ("commanded_current", "<f8[]"), ("measured_current", "<f8[]"), ("statusword", "<u2[]"))
+
+
+def ros2_columns(messages: list[bytes], kind: str) -> dict[str, NDArray[Any]] | None:
+    """The numeric fields of many CDR messages of one type (``JOINT_STATE_TYPE`` or
+    ``EXTRA_TYPE``) as columns (messages, values), read in place: what a generic decoder does
+    message by message (3 s for the demo's 30,000 cycles), at a small fraction of the cost.
+    Only when every message has the first one's layout to the byte (the same length, joint
+    names, frame id and padding: what :func:`ros2_messages` writes for one arm); None
+    otherwise, and the caller decodes them one by one."""
+    if not messages or any(len(m) != len(messages[0]) for m in messages):
+        return None
+    found = _cdr_layout(messages[0], _STATE_FIELDS if kind == JOINT_STATE_TYPE else _EXTRA_FIELDS)
+    if found is None:
+        return None
+    numeric, structure = found
+    table = np.frombuffer(b"".join(messages), np.uint8).reshape(len(messages), len(messages[0]))
+    if not np.array_equal(table[:, structure], np.broadcast_to(table[0, structure], (len(messages), int(structure.sum())))):
+        return None
+    out = {}
+    for name, (offset, dtype, count) in numeric.items():
+        width = np.dtype(dtype).itemsize * count
+        out[name] = np.ascontiguousarray(table[:, offset : offset + width]).view(dtype).reshape(len(messages), count)
+    return out
