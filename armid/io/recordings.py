@@ -28,7 +28,9 @@ from armid.identify.errors import RecordingError
 from armid.identify.recordings import Recording
 from armid.identify.robot import Robot
 from armid.schema import Array
-from armid.schema.joint_state import EXTRA_TOPIC, EXTRA_TYPE, JOINT_STATE_TYPE, JOINT_STATES_TOPIC, ROS2_MSGDEFS, ros2_columns
+from armid.schema.joint_state import EXTRA_TOPIC, EXTRA_TYPE, JOINT_STATE_TYPE, JOINT_STATES_TOPIC, ros2_columns
+
+from .ros2_cdr import cdr_decoders, decoded_columns, same_length
 
 _JOINT_COLUMN = re.compile(r"(q|qd|qdd|tau|i)(\d+)")
 
@@ -530,7 +532,7 @@ class _McapScan:
             self.messages = [(pos, content[22:]) for pos, content in messages]
             self.adopted = channel
         elif len(self.orphans) == 2:
-            decoders = _cdr_decoders()
+            decoders = cdr_decoders()
             found: dict[str, int] = {}
             for channel, messages in self.orphans.items():
                 for topic, kind in ((JOINT_STATES_TOPIC, JOINT_STATE_TYPE), (EXTRA_TOPIC, EXTRA_TYPE)):
@@ -656,20 +658,6 @@ def read_mcap_arrays(path: str | Path) -> tuple[dict[str, Array], dict[str, str]
     return arrays, scan.metadata, notes
 
 
-def _cdr_decoders() -> dict[str, Any]:
-    """CDR decoders of the two message types, built from armid's own ``ros2msg`` schemas."""
-    from mcap.records import Schema
-    from mcap_ros2.decoder import DecoderFactory
-
-    factory = DecoderFactory()
-    out = {}
-    for schema_id, (kind, text) in enumerate(ROS2_MSGDEFS.items(), 1):  # the factory keeps one decoder per schema id
-        decoder = factory.decoder_for("cdr", Schema(id=schema_id, name=kind, encoding="ros2msg", data=text.encode()))
-        assert decoder is not None
-        out[kind] = decoder
-    return out
-
-
 def _cdr_arrays(scan: _McapScan, src: str, size: int) -> tuple[dict[str, Array], dict[str, str], list[str]]:
     """A ROS 2 recording: each cycle's ``/joint_states`` and ``/armid/joint_state_extra``
     messages, paired by their MCAP log time and sequence number. A cycle with one of its
@@ -688,9 +676,9 @@ def _cdr_arrays(scan: _McapScan, src: str, size: int) -> tuple[dict[str, Array],
     s_msgs = [scan.cdr[JOINT_STATES_TOPIC][k][1][22:] for k in pairs[:, 1]]
     e_msgs = [scan.cdr[EXTRA_TOPIC][k][1][22:] for k in pairs[:, 0]]
     offsets = np.array([scan.cdr[EXTRA_TOPIC][k][0] for k in pairs[:, 0]], np.int64)
-    cols = _same_length(ros2_columns(s_msgs, JOINT_STATE_TYPE), ros2_columns(e_msgs, EXTRA_TYPE))
+    cols = same_length(ros2_columns(s_msgs, JOINT_STATE_TYPE), ros2_columns(e_msgs, EXTRA_TYPE))
     if cols is None:  # messages of different layouts: one by one, each checked
-        cols = _decoded_columns(scan, pairs, src)
+        cols = decoded_columns(scan.cdr, pairs, src)
     t = cols["sec"][:, 0] + 1e-9 * cols["nanosec"][:, 0]
     notes = _loss_notes(scan, cols["sequence"][:, 0].astype(np.int64), t, offsets, size)
     if scan.adopted is not None and len(t):
@@ -714,50 +702,6 @@ def _cdr_arrays(scan: _McapScan, src: str, size: int) -> tuple[dict[str, Array],
         "torque": cols["effort"].astype(float),
     }
     return arrays, scan.metadata, notes
-
-
-_PER_JOINT = ("position", "velocity", "effort", "valid", "velocity_fresh", "commanded_current", "measured_current", "statusword")
-
-
-def _same_length(states: dict[str, Any] | None, extras: dict[str, Any] | None) -> dict[str, Any] | None:
-    """Both kinds' columns together when every per-joint field has as many values as the
-    positions (else None: the one-by-one path names the field that has not)."""
-    if states is None or extras is None:
-        return None
-    cols = {**states, **{k: v for k, v in extras.items() if k not in ("sec", "nanosec")}}
-    return cols if len({cols[name].shape[1] for name in _PER_JOINT}) == 1 else None
-
-
-def _decoded_columns(scan: _McapScan, pairs: Any, src: str) -> dict[str, Any]:
-    """The paired messages (``pairs``: index of the extra, of the state) decoded one by one
-    (``mcap_ros2`` against armid's schemas), as columns; a message that is not its type, or a
-    field with a count unlike the others', is refused naming it."""
-    decoders = _cdr_decoders()
-    cols: dict[str, list[Any]] = {name: [] for name in ("sec", "nanosec", "sequence", "cycle", *_PER_JOINT)}
-    m: int | None = None
-
-    def decoded(topic: str, kind: str, k: int) -> Any:
-        pos, content = scan.cdr[topic][k]
-        try:
-            return decoders[kind](content[22:])
-        except Exception as err:  # the CRC held: the recorder wrote something that is not this type
-            raise RecordingError(src, f"{topic} message {k} (in the chunk at byte {pos}): not a {kind} in CDR ({err})") from None
-
-    for ke, ks in pairs:
-        s, e = decoded(JOINT_STATES_TOPIC, JOINT_STATE_TYPE, int(ks)), decoded(EXTRA_TOPIC, EXTRA_TYPE, int(ke))
-        fields = {"position": s.position, "velocity": s.velocity, "effort": s.effort, "valid": e.valid, "velocity_fresh": e.velocity_fresh,
-                  "commanded_current": e.commanded_current, "measured_current": e.measured_current, "statusword": e.statusword}
-        m = len(s.position) if m is None else m
-        wrong = next((name for name, v in fields.items() if len(v) != m), None)
-        if wrong is not None:
-            raise RecordingError(src, f"{EXTRA_TOPIC if wrong not in ('position', 'velocity', 'effort') else JOINT_STATES_TOPIC} "
-                                      f"(sequence {e.sequence}): '{wrong}' has {len(fields[wrong])} values, the recording's other messages {m}")
-        for name, v in fields.items():
-            cols[name].append(list(v))
-        for name, v in (("sec", s.header.stamp.sec), ("nanosec", s.header.stamp.nanosec), ("sequence", e.sequence), ("cycle", e.cycle)):
-            cols[name].append([v])
-    floats = ("position", "velocity", "effort", "commanded_current", "measured_current")
-    return {name: np.array(v, float if name in floats else np.int64).reshape(len(pairs), -1) for name, v in cols.items()}
 
 
 def _loss_notes(scan: _McapScan, seq: Any, t: Any, offsets: Any, size: int) -> list[str]:
