@@ -401,12 +401,13 @@ class CanopenDriver(Driver):
         its late answers were lost cycles), up to PACE_WAIT_S after the last SYNC (inside the
         drives' SYNC timeout)."""
         waited_from = time.monotonic()
+        longest = max(PACE_WAIT_S - (waited_from - self.last_sync_sent), 0.0)
         with self._ack:
-            if not self._ack.wait_for(lambda: self._paced_through() or self._stop.is_set(),
-                                      max(PACE_WAIT_S - (waited_from - self.last_sync_sent), 0.0)):
+            if not self._ack.wait_for(lambda: self._paced_through() or self._stop.is_set(), longest):
                 self.consumer_late += self.paced_by_consumer and self._acknowledged < self._cycle
                 self.drives_late += bool(self.paced_by_drives) and self._emitted.cycle < self._cycle
-        self._paced_s += time.monotonic() - waited_from
+        # a wait beyond its longest is this process not scheduled, and counts as a stall (_watchdog)
+        self._paced_s += min(time.monotonic() - waited_from, longest)
 
     def _paced_through(self) -> bool:
         """The last cycle is done with: acted on by the consumer, its frames in, as paced."""
@@ -575,6 +576,12 @@ class CanopenDriver(Driver):
             # this process did not run: frames sent meanwhile wait unread in the socket
             self._last_read += stall
             self.unscheduled_s += stall
+            if self.paced_by_consumer:
+                # drives simulated in this process stopped with it and sent no heartbeat meanwhile;
+                # the first frame read after the stall (one drive's heartbeat) moved bus time on
+                # before the others' were read, and lost a drive that was answering (a 0.43 s
+                # stall beside two busy loops): the stall does not count against them
+                self._heartbeat += stall
         newest = self._newest_stamp  # read before the heartbeats: one read meanwhile only makes them younger
         bus_silent = now - self._last_read > BUS_SILENT_S
         for d in self.rig.drives:
