@@ -27,14 +27,13 @@ SHARED = ROOT.parent / "shared"
 REALTIME_MODULES = ("test_canopen", "test_daq", "test_dynamixel", "test_excitation", "test_excitation_dynamixel", "test_serve", "test_supervision")
 """The timing-sensitive tests (a bus, a pty, a simulated arm, a live stream): marked ``realtime``
 (a test elsewhere is marked so itself); the README's command runs them after the arithmetic,
-two at a time (each beside the other's load), and CI runs those that are not slow a second time
-with two busy processes beside them (``.ci/run``)."""
+alone, and CI runs those that are not slow a second time with two busy processes beside them
+(``.ci/run``)."""
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     # under pytest-xdist with ``--dist loadgroup`` the timing-sensitive tests run one after another
-    # on one worker, beside the other worker's arithmetic; the README's ``-n 2`` (``--dist load``)
-    # runs two at a time
+    # on one worker, beside the other worker's arithmetic (the README runs them alone)
     grouped = config.pluginmanager.hasplugin("xdist")
     for item in items:
         if item.module is not None and item.module.__name__.rsplit(".", 1)[-1] in REALTIME_MODULES:
