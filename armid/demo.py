@@ -13,7 +13,7 @@ from __future__ import annotations
 import secrets
 import time
 import uuid
-from contextlib import closing
+from contextlib import ExitStack, closing
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -160,7 +160,9 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
     # OpenBLAS's threads stall on a loaded 2-core machine, and the demo's products are small; the kernels
     # that the runs and the payload estimator will need compile on the other core while the first design does
     # and the estimator service starts (seconds of imports) while the trajectories are designed
-    with threadpool_limits(1, "blas"), compiled_ahead(rig_path), closing(_estimator_service(rig, out)) as service:
+    # (``peers``: the processes started ahead, ended with the demo on any error)
+    with threadpool_limits(1, "blas"), compiled_ahead(rig_path), ExitStack() as peers:
+        service = peers.enter_context(closing(_estimator_service(rig, out)))
         experiments = design_experiments(robot, start, links, whole_runs, rig.period_s, seed=seed, log=phases.note, progress=designed,
                                          whole_beside=True)
         write_json(out / "designs.json", {e.name: e.design.to_json() for e in experiments})
@@ -183,7 +185,7 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
         # the same pipeline as the service's (armid.experiments), on the complete recordings
         whole = identify_whole_arm(robot, prepared["whole_a"], [prepared["whole_b"]])
         # the payload estimator needs only the whole-arm fit: it starts while the rest is computed
-        estimator = closing(payload_estimator(rig, whole.to_json(), out))
+        estimator = peers.enter_context(closing(payload_estimator(rig, whole.to_json(), out)))
         seq = single_link_sequence(robot, {e.link: [prepared[e.name]] for e in experiments if e.link is not None})
         agreement = service_agreement(published[-1], whole)
         console.print(f"  the estimator service published {len(published)} estimates; records it missed "
@@ -196,8 +198,7 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
         diagnosis = diagnose(robot, Inputs([prepared["whole_a"]], [prepared["whole_b"]]))
         phases.start("payload", "payload: the identified arm works through whole_a; a 2 kg payload is attached and removed, "
                      "estimated on-line from the live Zenoh stream by `armid estimate live` in a process of its own")
-        with estimator as link:
-            payload = run_payload(rig, link, experiments[-2].design, out)
+        payload = run_payload(rig, estimator, experiments[-2].design, out)
         phases.start("report", "writing the report and its plots")
         from armid.identify.feasible import feasible_estimate
 
