@@ -33,6 +33,7 @@ from armid.identify.payload import (
     ReferenceRun,
     _phi_of_pseudo,
     derivatives_on_times,
+    identification_document,
     local_polynomial,
     project_feasible,
     project_feasible_many,
@@ -803,6 +804,35 @@ def test_the_demo_payload_phase_from_a_cold_start(tmp_path: Path) -> None:
     a2, off = r["after_attach_2s"], r["after_removal_2s"]
     assert abs(a2["mass"] - 2.0) <= 0.1 and a2["com_error_m"] <= 0.01, a2
     assert off["mass"] is not None and abs(off["mass"]) <= 0.1, off
+
+
+def _ignore_sigint() -> None:
+    """As a shell's background job starts a process: SIGINT ignored (inherited across exec)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_live_estimator_started_in_the_background_stops_on_its_signal(tmp_path: Path, sig: int) -> None:
+    """``armid estimate live`` started with SIGINT ignored, as a script's background job (the
+    demo's processes inherit it too), stops on SIGINT and SIGTERM and exits 0. Before, it
+    heard neither: the demo's stop waited 30 s for it, then killed it, in every demo run from a
+    script."""
+    arm, _, _ = _arm_and_design()
+    params = tmp_path / "arm.json"
+    params.write_text(json.dumps(identification_document(arm)))
+    cmd = [sys.executable, "-m", "armid.cli", "estimate", "live", "--robot", str(load_rig(RIG).robot.source), "--params", str(params),
+           "--out", str(tmp_path / "estimates.jsonl"), "--zenoh-listen", f"tcp/127.0.0.1:{_free_port()}"]
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=ENV, stderr=subprocess.PIPE, text=True, preexec_fn=_ignore_sigint)
+    try:
+        assert proc.stderr is not None
+        listening = any("listening" in line for line in proc.stderr)  # stops reading at the first
+        assert listening, "the estimator ended before it listened"
+        proc.send_signal(sig)
+        assert proc.wait(timeout=60) == 0, proc.stderr.read()[-2000:]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
 
 
 @functools.cache

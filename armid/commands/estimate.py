@@ -159,13 +159,19 @@ def _estimate(args: argparse.Namespace) -> int:
         service = PayloadService(session, robot.name, stream, on_estimate=lambda d: out.write(json.dumps(d, allow_nan=False) + "\n"),
                                  log=lambda line: print(f"armid estimate: {line}", file=sys.stderr, flush=True))
         print(f"armid estimate: listening on armid/{robot.name}/joint_state (Ctrl-C stops)", file=sys.stderr, flush=True)
+        # SIGINT and SIGTERM stop it through handlers of its own: a process started in the
+        # background by a shell inherits SIGINT ignored, and a stop sent to it (the demo's,
+        # a supervisor's) went unheard until it was killed 30 s later
+        import threading
+
+        from .rig import _run_until, _stop_on_signals
+
+        stop = threading.Event()
+        restore = _stop_on_signals(stop)
         try:
-            deadline = time.monotonic() + args.duration if args.duration else None
-            while deadline is None or time.monotonic() < deadline:
-                time.sleep(0.1)
-        except KeyboardInterrupt:
-            pass
+            _run_until(stop, args.duration)
         finally:
+            restore()
             service.close()
             session.close()
         if service.running:  # the executable ends without finalization (armid.cli.run), which would abort it
