@@ -24,12 +24,15 @@ from rich.markup import escape
 from armid.drivers.rig import Rig
 from armid.identify import excitation as ex
 from armid.identify.identification import IdentificationResult
+from armid.identify.preprocess import Prepared
+from armid.identify.robot import Robot
 from armid.identify.single_link import SequenceResult, single_link_sequence
 from armid.io.rig_file import load_rig
 from armid.resources import config_file
 from armid.schema.errors import DriverError, SimulationError
 
 from .experiments import (
+    WHOLE_MARGIN,
     design_experiments,
     identify_whole_arm,
     prepared_runs,
@@ -168,24 +171,35 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
         write_json(out / "designs.json", {e.name: e.design.to_json() for e in experiments})
         runs_s = sum(e.plan.duration_s + 0.5 for e in experiments)
         phases.estimates.update(design=time.monotonic() - phases.phase_started, runs=runs_s,
-                                payload=ex.plan(experiments[-2].design, start, ex.Limits.of(robot), periods=2).duration_s + 3.0)
+                                payload=ex.plan(experiments[-2].design, start, ex.Limits.of(robot), periods=2,
+                                                lead_fraction=WHOLE_MARGIN).duration_s + 3.0)
         motion_s = sum(e.plan.duration_s for e in experiments)
         phases.start("runs", f"running the {len(experiments)} experiments on the drives in real time ({motion_s:.0f} s of motion, "
                      "2 ms SYNC over the virtual CAN bus), each recorded as MCAP")
-        reports, published = _runs_beside_the_service(rig, service, experiments, out, console)
+        # the payload estimator starts on the service's whole_a fit as soon as it is published (while
+        # whole_b runs): its imports are then done by the time the payload phase needs it
+        early: list[PeerLink] = []
+
+        def start_the_payload_estimator() -> None:
+            if not early and (fit := _published_fit(service.docs, "whole_a")) is not None:
+                early.append(peers.enter_context(closing(payload_estimator(rig, fit, out))))
+
+        reports, published = _runs_beside_the_service(rig, service, experiments, out, console, start_the_payload_estimator)
         write_json(out / "runs.json", [r.to_json() for r in reports])
         failed = [r for r in reports if not r.completed]
         if failed:
             console.print(f"[red]run {failed[0].name} stopped: {failed[0].stop_reason}[/]")
             return 1
         phases.start("identify", "identifying: the single-link sequence (links 6 to 1) and whole arm (validated on whole_b), "
-                     "as the estimator service did, both against the simulator's known parameters, then diagnosing the residual")
+                     "as the estimator service did, both against the simulator's known parameters")
         write_json(out / "service.json", published)
         prepared = prepared_runs(reports, robot, rig.period_s, warn=lambda w: phases.note(f"[yellow]warning:[/] {escape(w)}"))
         # the same pipeline as the service's (armid.experiments), on the complete recordings
         whole = identify_whole_arm(robot, prepared["whole_a"], [prepared["whole_b"]])
-        # the payload estimator needs only the whole-arm fit: it starts while the rest is computed
-        estimator = peers.enter_context(closing(payload_estimator(rig, whole.to_json(), out)))
+        # the rest of the analysis is not the real-time process's business: it starts now, in a process of its own
+        estimator = early[0] if early else peers.enter_context(closing(payload_estimator(rig, whole.to_json(), out)))
+        beside = peers.enter_context(_Beside())
+        analysis = beside.submit(analyse, robot, whole, prepared["whole_a"], prepared["whole_b"], out)
         seq = single_link_sequence(robot, {e.link: [prepared[e.name]] for e in experiments if e.link is not None})
         agreement = service_agreement(published[-1], whole)
         console.print(f"  the estimator service published {len(published)} estimates; records it missed "
@@ -193,32 +207,23 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
                       f"{agreement['max_difference_sigma']:.2g} sigma at most")
         truth = check_against_truth(rig, seq, whole)
         comparison = seq.compare(whole)
-        from .pipeline import Inputs, diagnose
-
-        diagnosis = diagnose(robot, Inputs([prepared["whole_a"]], [prepared["whole_b"]]))
         phases.start("payload", "payload: the identified arm works through whole_a; a 2 kg payload is attached and removed, "
-                     "estimated on-line from the live Zenoh stream by `armid estimate live` in a process of its own")
+                     "estimated on-line from the live Zenoh stream by `armid estimate live` in a process of its own; the residual "
+                     "is diagnosed and the physically consistent model computed in another")
         payload = run_payload(rig, estimator, experiments[-2].design, out)
         phases.start("report", "writing the report and its plots")
-        from armid.identify.feasible import feasible_estimate
-
-        from .urdf_export import effect_values, write_urdf
-
-        feasible = feasible_estimate(whole, [prepared["whole_b"]])
-        whole_doc = whole.to_json()
-        whole_doc["feasible"] = feasible.to_json()
-        write_urdf(out / "identified.urdf", robot, feasible.phi, effect_values(whole_doc["feasible"]))
+        diagnosis, feasible_line, whole_doc = analysis.result()
         doc = {"rig": rig.name, "arm_seed": arm_seed, "single_link": seq.to_json(), "whole_arm": whole_doc, "comparison": comparison, "truth_check": truth,
                "service": agreement,
                "diagnosis": diagnosis.to_json(), "payload": payload, "runs": [r.to_json() for r in reports]}
         write_json(out / "demo.json", doc)
-        _write_report(out, rig, experiments, reports, seq, whole, comparison, truth, diagnosis, prepared, payload, whole_doc)
+        _write_report(out, rig, experiments, reports, seq, whole, comparison, truth, diagnosis, payload)
     s, w = truth["single_link"], truth["whole_arm"]
     console.print(f"single-link sequence: {s['within_3_sigma']} of {s['combinations']} combinations within 3 sigma of the truth "
                   f"(max |z| {s['max_abs_z']:.2f}; together chi2 {s['chi2']:.1f} on {s['combinations']} dof, p {s['chi2_p']:.2f}); "
                   f"whole arm: {w['within_3_sigma']} of {w['combinations']} (max |z| {w['max_abs_z']:.2f}; chi2 {w['chi2']:.1f} "
                   f"on {w['combinations']}, p {w['chi2_p']:.2f}); validation error {100 * whole.validation['relative_error']:.2f} %")  # type: ignore[index]
-    console.print(f"physically consistent whole-arm model: {feasible.summary_line()} (identified.urdf)")
+    console.print(f"physically consistent whole-arm model: {feasible_line} (identified.urdf)")
     console.print(f"diagnosis: {len(diagnosis.found)} finding(s); validation error {100 * diagnosis.before['relative_error']:.2f} % -> "
                   f"{100 * diagnosis.after['relative_error']:.2f} %")
     p2 = payload["after_attach_2s"]
@@ -229,6 +234,53 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
     return 0
 
 
+def analyse(robot: Robot, whole: IdentificationResult, run: Prepared, validation: Prepared, out: Path) -> tuple[Any, str, dict[str, Any]]:
+    """What the payload phase does not need, made while it runs: the diagnosis of the whole-arm
+    run's residual, the physically consistent model (``identified.urdf``), the whole arm's and
+    the diagnosis's reports with their plots. Returns the diagnosis, the consistent model's
+    summary line and the whole-arm fit's document with it."""
+    from armid.identify.feasible import feasible_estimate
+
+    from .pipeline import Inputs, diagnose
+    from .report import write_diagnosis_report, write_report
+    from .urdf_export import effect_values, write_urdf
+
+    diagnosis = diagnose(robot, Inputs([run], [validation]))
+    feasible = feasible_estimate(whole, [validation])
+    whole_doc = whole.to_json()
+    whole_doc["feasible"] = feasible.to_json()
+    write_urdf(out / "identified.urdf", robot, feasible.phi, effect_values(whole_doc["feasible"]))
+    write_report(whole, whole_doc, list(validation.segments), out / "whole_arm", "validation run whole_b")
+    write_diagnosis_report(diagnosis, robot.name, out / "diagnosis")
+    return diagnosis, feasible.summary_line(), whole_doc
+
+
+def _below_the_real_time() -> None:
+    """A worker beside the real-time process: a lower priority than it, one BLAS thread (the
+    demo's products are small; a second thread stalls on a loaded 2-core machine)."""
+    import os
+
+    from threadpoolctl import threadpool_limits
+
+    os.nice(5)
+    threadpool_limits(1, "blas")
+
+
+class _Beside:
+    """One worker process for the analysis the real-time process must not do (spawned: a fork
+    would copy this process's threads' locks); ended with the demo, its work cancelled."""
+
+    def __enter__(self) -> Any:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_below_the_real_time)
+        return self._pool
+
+    def __exit__(self, *exc: object) -> None:
+        self._pool.shutdown(cancel_futures=True)
+
+
 def _estimator_service(rig: Rig, out: Path) -> PeerLink:
     """``armid serve`` started in a process of its own (as in a lab), not yet waited for."""
     robot = rig.robot
@@ -236,14 +288,26 @@ def _estimator_service(rig: Rig, out: Path) -> PeerLink:
                                  "--json", str(out / "service.jsonl")], out / "service.log", "estimate/parameters", "alive/estimator", wait=False)
 
 
-def _runs_beside_the_service(rig: Rig, link: PeerLink, experiments: list[Any], out: Path, console: Any) -> tuple[list[Any], list[dict[str, Any]]]:
+def _published_fit(docs: list[dict[str, Any]], run: str) -> dict[str, Any] | None:
+    """The whole-arm fit of ``run`` (an ``armid identify --json`` document) that the estimator
+    service published, if it has."""
+    for doc in docs:
+        fit = (doc.get("whole_arm") or {}).get(run)
+        if fit is not None:
+            return dict(fit)
+    return None
+
+
+def _runs_beside_the_service(rig: Rig, link: PeerLink, experiments: list[Any], out: Path, console: Any,
+                             tick: Any = None) -> tuple[list[Any], list[dict[str, Any]]]:
     """The experiments on the drives, streamed to the estimator service once it is ready; its
-    ``estimate/parameters`` documents, one per experiment it identified."""
+    ``estimate/parameters`` documents, one per experiment it identified. ``tick``: called as the
+    runs go (:func:`~armid.experiments.run_experiments`)."""
     try:
         link.ready()
         with excitation_session(rig, simulate=True, stream=link.stream) as session:
             console.print(f"  timing: {session.driver.timing_note}; the estimator service runs in process {link.peer.proc.pid}")
-            reports = run_experiments(session, experiments, out / "runs", console)
+            reports = run_experiments(session, experiments, out / "runs", console, tick=tick)
         expected = len(reports) if all(r.completed for r in reports) else 0
         link.wait(lambda: len(link.docs) >= expected, 300)
     finally:
@@ -293,7 +357,7 @@ def run_payload(rig: Rig, link: PeerLink, design: Any, out: Path) -> dict[str, A
         with excitation_session(rig, simulate=True, stream=link.stream) as s:
             assert s.arm is not None
             physics = s.arm.physics
-            plan = ex.plan(design, s.position, s.limits, periods=2)
+            plan = ex.plan(design, s.position, s.limits, periods=2, lead_fraction=WHOLE_MARGIN)
             box: dict[str, Any] = {}
             runner = threading.Thread(target=lambda: box.update(report=s.run(plan, run_dir, "payload")))
             runner.start()
@@ -392,15 +456,10 @@ def _plot_payload(out: Path, t: np.ndarray, estimates: list[dict[str, Any]], tru
 
 
 def _write_report(out: Path, rig: Rig, experiments: list[Any], reports: list[Any], seq: SequenceResult, whole: IdentificationResult,
-                  comparison: list[dict[str, Any]], truth: dict[str, Any], diagnosis: Any, prepared: dict[str, Any],
-                  payload: dict[str, Any], whole_doc: dict[str, Any]) -> None:
-    from .report import write_diagnosis_report, write_report
-
+                  comparison: list[dict[str, Any]], truth: dict[str, Any], diagnosis: Any, payload: dict[str, Any]) -> None:
     def f(x: float | None, d: int = 5) -> str:
         return "—" if x is None else f"{x:.{d}g}"
 
-    write_report(whole, whole_doc, [s for s in prepared["whole_b"].segments], out / "whole_arm", "validation run whole_b")
-    write_diagnosis_report(diagnosis, rig.robot.name, out / "diagnosis")
     lines = [f"# armid demo: {rig.name}", "",
              f"Simulated {rig.robot.name} on a {rig.bus.interface} CAN bus, {len(rig.drives)} CiA 402 drives, {rig.period_s * 1000:g} ms SYNC. "
              "Every trajectory was designed (D-optimal finite Fourier series) and checked against every limit before any drive was enabled.", "",

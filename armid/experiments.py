@@ -38,16 +38,25 @@ class Experiment:
         return self.design.moving[0] if len(self.design.moving) == 1 else None
 
 
+LINK_MARGIN = 0.8
+"""The share of each velocity and acceleration limit a single-link design may use
+(:func:`~identify.excitation.design`'s default)."""
+
+WHOLE_MARGIN = 0.6
+"""The share a whole-arm design may use: coupled joints at speed track less well."""
+
+
 def design_experiments(robot: Robot, start: np.ndarray, links: list[int], whole: list[tuple[str, int]], period_s: float,
                        link_frequency_hz: float = 0.5, link_periods: int = 2, whole_frequency_hz: float = 0.2,
-                       seed: int = 0, log: Any = None, whole_margin: float = 0.6,
+                       seed: int = 0, log: Any = None, whole_margin: float = WHOLE_MARGIN,
                        progress: Callable[[int, int, float], None] | None = None, whole_beside: bool = False) -> list[Experiment]:
     """Single-link experiments for ``links`` (0-based, in the order given), then the whole-arm
     runs ``whole`` (name, periods); each plan starts where the previous one ends. Every
     plan is checked at the control period; the first violation raises
     :class:`~identify.excitation.TrajectoryLimitError` before anything moves. Whole-arm
     runs use ``whole_margin`` of each limit: coupled joints at speed track less well, and
-    the supervision stops the arm at the limit itself. ``progress(done, total, seconds)``
+    the supervision stops the arm at the limit itself. A lead-in uses the share of the limits
+    its experiment uses (it was half of them: 16 of the demo's 59 s of motion were lead-ins). ``progress(done, total, seconds)``
     follows each design with the time it took. ``whole_beside``: the whole-arm designs, which
     do not depend on the pose they start from, are made in a process of their own while the
     single-link chain is designed here (the same designs, in about half the time on two cores);
@@ -58,8 +67,8 @@ def design_experiments(robot: Robot, start: np.ndarray, links: list[int], whole:
     total = len(links) + len(whole)
     seeds = [seed + 100 + i for i in range(len(whole))]
 
-    def add(name: str, d: ex.Design, periods: int, took: float, what: str) -> np.ndarray:
-        p = ex.plan(d, pose, limits, periods=periods)
+    def add(name: str, d: ex.Design, periods: int, took: float, what: str, margin: float) -> np.ndarray:
+        p = ex.plan(d, pose, limits, periods=periods, lead_fraction=margin)
         ex.check_plan(robot, p, period_s, limits)
         out.append(Experiment(name, d, p))
         if progress:
@@ -75,11 +84,11 @@ def design_experiments(robot: Robot, start: np.ndarray, links: list[int], whole:
         for k in links:
             began = time.monotonic()
             hold = ex.choose_hold(robot, k, pose, seed=seed + k)
-            d = ex.design(robot, moving=(k,), q_hold=hold, base_frequency_hz=link_frequency_hz, seed=seed + k)
-            pose = add(f"link{k + 1}", d, link_periods, time.monotonic() - began, f"link {k + 1}")
+            d = ex.design(robot, moving=(k,), q_hold=hold, base_frequency_hz=link_frequency_hz, seed=seed + k, margin=LINK_MARGIN)
+            pose = add(f"link{k + 1}", d, link_periods, time.monotonic() - began, f"link {k + 1}", LINK_MARGIN)
         for i, (name, periods) in enumerate(whole):
             d, took = beside.result(i) if beside is not None else _timed_whole_design(robot, whole_frequency_hz, seeds[i], whole_margin)
-            pose = add(name, d, periods, took, name)
+            pose = add(name, d, periods, took, name, whole_margin)
     finally:
         if beside is not None:
             beside.close()
@@ -120,9 +129,10 @@ class _WholeDesigns:
 
 
 def run_experiments(session: ExcitationSession, experiments: list[Experiment], out: Path, console: Any = None,
-                    status: Callable[[], str] | None = None) -> list[RunReport]:
+                    status: Callable[[], str] | None = None, tick: Callable[[], None] | None = None) -> list[RunReport]:
     """Run each experiment on the drives with a progress bar; stop at the first that fails.
-    ``status``: a live line (records, rate, lost cycles, faults) shown under the bars."""
+    ``status``: a live line (records, rate, lost cycles, faults) shown under the bars; ``tick``:
+    called with each update of the bars (every 0.2 s, in this thread, not the bus's)."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     reports = []
@@ -143,6 +153,8 @@ def run_experiments(session: ExcitationSession, experiments: list[Experiment], o
                 progress.update(overall, completed=done_s + min(t, e.plan.duration_s))
                 if live is not None and status is not None:
                     progress.update(live, summary=status())
+                if tick is not None:
+                    tick()
 
             report = session.run(e.plan, out / e.name, e.name, {"design": e.design.to_json()}, progress=update)
             reports.append(report)
