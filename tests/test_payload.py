@@ -783,7 +783,8 @@ def test_the_users_command_line_on_100_hz_logs_with_jittered_stamps(tmp_path: Pa
 
 
 @pytest.mark.slow
-@pytest.mark.realtime  # an estimator process that must keep up with the live stream (beside a second test worker it skipped records)
+@pytest.mark.realtime
+@pytest.mark.alone  # an estimator process that must keep up with the live stream (beside a second test worker it skipped records)
 def test_the_demo_payload_phase_from_a_cold_start(tmp_path: Path) -> None:
     """Issue 19: the demo's payload phase in a fresh process with an empty numba cache; the
     estimator is ``armid estimate live`` in a process of its own (issue 31). Events on the
