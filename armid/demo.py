@@ -196,8 +196,8 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
         prepared = prepared_runs(reports, robot, rig.period_s, warn=lambda w: phases.note(f"[yellow]warning:[/] {escape(w)}"))
         # the same pipeline as the service's (armid.experiments), on the complete recordings
         whole = identify_whole_arm(robot, prepared["whole_a"], [prepared["whole_b"]])
-        # the rest of the analysis is not the real-time process's business: it starts now, in a process of its own
         estimator = early[0] if early else peers.enter_context(closing(payload_estimator(rig, whole.to_json(), out)))
+        # the rest of the analysis is not the real-time process's business: it starts now, in a process of its own
         beside = peers.enter_context(_Beside())
         analysis = beside.submit(analyse, robot, whole, prepared["whole_a"], prepared["whole_b"], out)
         seq = single_link_sequence(robot, {e.link: [prepared[e.name]] for e in experiments if e.link is not None})
