@@ -56,8 +56,8 @@ def design_experiments(robot: Robot, start: np.ndarray, links: list[int], whole:
     :class:`~identify.excitation.TrajectoryLimitError` before anything moves. Whole-arm
     runs use ``whole_margin`` of each limit: coupled joints at speed track less well, and
     the supervision stops the arm at the limit itself. A lead-in uses the share of the limits
-    its experiment uses (it was half of them: 16 of the demo's 59 s of motion were lead-ins). ``progress(done, total, seconds)``
-    follows each design with the time it took. ``whole_beside``: the whole-arm designs, which
+    its experiment uses (it was half of them: 16 of the demo's 59 s of motion were lead-ins).
+    ``progress(done, total, seconds)`` follows each design with the time it took. ``whole_beside``: the whole-arm designs, which
     do not depend on the pose they start from, are made in a process of their own while the
     single-link chain is designed here (the same designs, in about half the time on two cores);
     each is planned from its pose and checked here."""
