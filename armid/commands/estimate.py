@@ -158,16 +158,17 @@ def _estimate(args: argparse.Namespace) -> int:
         session = open_zenoh(args)
         service = PayloadService(session, robot.name, stream, on_estimate=lambda d: out.write(json.dumps(d, allow_nan=False) + "\n"),
                                  log=lambda line: print(f"armid estimate: {line}", file=sys.stderr, flush=True))
-        print(f"armid estimate: listening on armid/{robot.name}/joint_state (Ctrl-C stops)", file=sys.stderr, flush=True)
         # SIGINT and SIGTERM stop it through handlers of its own: a process started in the
         # background by a shell inherits SIGINT ignored, and a stop sent to it (the demo's,
-        # a supervisor's) went unheard until it was killed 30 s later
+        # a supervisor's) went unheard until it was killed 30 s later. Installed before it says
+        # it listens: a stop sent on that line found SIGTERM's default (beside two busy loops)
         import threading
 
         from .rig import _run_until, _stop_on_signals
 
         stop = threading.Event()
         restore = _stop_on_signals(stop)
+        print(f"armid estimate: listening on armid/{robot.name}/joint_state (Ctrl-C stops)", file=sys.stderr, flush=True)
         try:
             _run_until(stop, args.duration)
         finally:
