@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy import stats
+from scipy import special
 
 from .diagnosis_candidates import Candidate, defining, lower_bounds
 from .diagnosis_data import _Data
@@ -115,6 +115,13 @@ class _Round:
     joint_of_row: Array
     power_before: Array  # the held-out residual power per joint
     rows_of_joint: list[_JointRows]  # the same, joint by joint (a one-joint candidate's own rows)
+
+
+def f_sf(f_stat: float, dfn: float, dfd: float) -> float:
+    """The F distribution's survival function, ``scipy.stats.f.sf`` to the bit (its own
+    kernel, ``special.fdtrc``) without its argument checks: 0.14 ms a call, thousands of
+    candidates a diagnosis."""
+    return float(special.fdtrc(dfn, dfd, f_stat if np.isnan(f_stat) else max(f_stat, 0.0)))
 
 
 @dataclass
@@ -221,7 +228,7 @@ def _score(c: Candidate, rnd: _Round, ident: _Data, held: _Data, wt_i: Array, wt
     k = len(gamma)
     dof = n_used - rnd.a_i.shape[1] - k
     f_stat = ((rnd.rss - rss1) / k) / max(rss1 / dof, 1e-300)
-    p_value = float(stats.f.sf(f_stat, k, dof))
+    p_value = f_sf(f_stat, k, dof)
     power_after: Array | None = None
     if cv_full is not None:  # the held-out residual power it leaves on each joint
         res_c = rnd.res_v + rnd.g_mat @ u - cv_full @ gamma
@@ -250,7 +257,7 @@ def _score_gain(c: Candidate, rnd: _Round, n_used: int) -> _Scored | None:
     scale, rss1, rss_v1, pred_exact = exact
     dof = n_used - rnd.a_i.shape[1] - 1
     f_stat = (rnd.rss - rss1) / max(rss1 / dof, 1e-300)
-    return _Scored(rss_v1, float(stats.f.sf(f_stat, 1, dof)), c, np.array([scale - 1.0]), None, pred_exact, None)
+    return _Scored(rss_v1, f_sf(f_stat, 1, dof), c, np.array([scale - 1.0]), None, pred_exact, None)
 
 
 Moments = tuple[Array, Array, Array, Array, Array, Array, Array | None]

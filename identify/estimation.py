@@ -10,6 +10,7 @@ covariance come from one QR pass over the data, per joint (:class:`JointFactors`
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -297,6 +298,9 @@ def bounded_quadratic(h: Array, g: Array, lower: Array) -> Array:
         x = np.linalg.lstsq(h, g, rcond=None)[0]
     if np.all(x >= lower):
         return x
+    exact = _by_active_sets(h, g, lower)
+    if exact is not None:
+        return exact
     w, v = np.linalg.eigh(h)
     keep = w > 1e-12 * max(float(w.max()), 1e-300)
     a = np.sqrt(w[keep])[:, None] * v[:, keep].T
@@ -309,6 +313,37 @@ def bounded_quadratic(h: Array, g: Array, lower: Array) -> Array:
     near = np.isfinite(lower) & (out - lower <= 1e-9 * max(1.0, float(np.max(np.abs(start)))))
     out[near] = lower[near]
     return _on_the_bounds(h, g, lower, out)
+
+
+ENUMERATED_BOUNDS = 4
+"""Up to this many bounded parameters, :func:`bounded_quadratic` tries every set of them held
+at their bounds (at most 16 small solves) before an iterative solver: a diagnosis bounds
+hundreds of candidates of one to three parameters, and ``lsq_linear`` took a fifth of it."""
+
+
+def _by_active_sets(h: Array, g: Array, lower: Array) -> Array | None:
+    """The exact bounded minimum by enumeration (fewest parameters held first): the first set
+    held at its bounds whose solution is admissible and meets the KKT conditions
+    (:func:`_on_the_bounds`'s test) is the minimum of a strictly convex quadratic. None when
+    more than ``ENUMERATED_BOUNDS`` parameters are bounded or none passes (``H`` singular)."""
+    bounded = np.flatnonzero(np.isfinite(lower))
+    if bounded.size > ENUMERATED_BOUNDS:
+        return None
+    for size in range(1, bounded.size + 1):
+        for held_idx in itertools.combinations(bounded, size):
+            held = np.zeros(lower.size, bool)
+            held[list(held_idx)] = True
+            x = np.where(held, lower, 0.0)
+            free = ~held
+            if free.any():
+                try:
+                    x[free] = np.linalg.solve(h[np.ix_(free, free)], g[free] - h[np.ix_(free, held)] @ x[held])
+                except np.linalg.LinAlgError:
+                    continue
+            tol = 1e-9 * max(1.0, float(np.max(np.abs(h @ x))), float(np.max(np.abs(g))))
+            if np.all(x[free] >= lower[free]) and np.all((h @ x - g)[held] >= -tol):
+                return x
+    return None
 
 
 def _on_the_bounds(h: Array, g: Array, lower: Array, x: Array) -> Array:
