@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import RecordingError
+from .preprocess import GAP_STEPS
 from .spatial import Array
 
 UNITS = ((1e-3, "milliseconds"), (1e-6, "microseconds"), (1e-9, "nanoseconds"))
@@ -127,13 +128,17 @@ def velocity_ratio(t: Array, q: Array, qd: Array) -> float | None:
     on ``qd dt`` (1 when the units agree), or None when no joint moves enough to tell.
 
     A slope, not a ratio of rms values: the quantisation of q is uncorrelated with qd and
-    averages out, where its rms would dominate a slow joint's dq/dt at a high sample rate."""
+    averages out, where its rms would dominate a slow joint's dq/dt at a high sample rate.
+    Steps across a gap (records missing) are left out: the trapezoid of the velocities at a
+    gap's two ends is not the travel between them."""
     ok = np.isfinite(t) & np.isfinite(q).all(axis=1) & np.isfinite(qd).all(axis=1)
     t, q, qd = t[ok], q[ok], qd[ok]
     if t.size < 3:
         return None
     dt = np.diff(t)
     step = dt > 0
+    if step.sum() >= 2:
+        step &= dt <= GAP_STEPS * float(np.median(dt[step]))
     if step.sum() < 2:
         return None
     dq = np.diff(q, axis=0)[step]
