@@ -124,7 +124,8 @@ class EstimatorService:
         self._whole_docs: dict[str, dict[str, Any]] = {}
         self._names: set[str] = set()  # every experiment's name so far (_with_identity)
         self.payload_service: Any = None
-        self._pub = session.declare_publisher(key(self.name, "estimate/parameters"), encoding=zenoh.Encoding.APPLICATION_JSON)
+        self._pub = session.declare_publisher(key(self.name, "estimate/parameters"), encoding=zenoh.Encoding.APPLICATION_JSON,
+                                              congestion_control=zenoh.CongestionControl.BLOCK)  # a fit, once an experiment: never dropped
         self._token = session.liveliness().declare_token(key(self.name, "alive/estimator"))
         self._queryable = session.declare_queryable(key(self.name, "status"), self._on_query)
         self._subs = [session.declare_subscriber(key(self.name, "joint_state"), self._on_record),
@@ -233,9 +234,19 @@ class EstimatorService:
                 except Exception as err:
                     self._error(err)
                     self.log(f"{exp.name}: not identified: {type(err).__name__}: {err}")
-                    self.experiments.append({"run": exp.name, "error": f"{type(err).__name__}: {err}"})
+                    info = {"run": exp.name, "error": f"{type(err).__name__}: {err}", "note": f"not identified: {type(err).__name__}: {err}"}
+                    self.experiments.append(info)
+                    self._say_failed(info)
                 finally:
                     self.busy = None
+
+    def _say_failed(self, info: dict[str, Any]) -> None:
+        """An experiment the analysis failed on, published as any other (the estimates so
+        far, the reason in its note): a subscriber that waits for the run hears of it."""
+        try:
+            self.publish(self._document(info))
+        except Exception as err:
+            self._error(err)
 
     @property
     def still_running(self) -> list[str]:

@@ -81,7 +81,11 @@ class Stream:
         self.robot = robot
         self._pub = session.declare_publisher(key(robot, "joint_state"), encoding=zenoh.Encoding(ENCODING),
                                               congestion_control=zenoh.CongestionControl.BLOCK)
-        self._events = session.declare_publisher(key(robot, "events"), encoding=zenoh.Encoding.APPLICATION_JSON)
+        # an experiment's start and stop are what a subscriber files its records by: never
+        # dropped (a publisher's default drops a message its queue has no room for), and
+        # queued ahead of the records
+        self._events = session.declare_publisher(key(robot, "events"), encoding=zenoh.Encoding.APPLICATION_JSON,
+                                                 congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.INTERACTIVE_HIGH)
         self._token = session.liveliness().declare_token(key(robot, f"alive/{component}"))
         self._status = status
         self.component = component

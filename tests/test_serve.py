@@ -353,7 +353,7 @@ def test_a_slow_service_skips_records_says_so_and_identifies_what_it_kept(tmp_pa
     for r in reports:
         a, _, notes = read_mcap(r.recording)
         assert not notes and np.all(np.diff(a["sequence"]) == 1) and len(a["sequence"]) == r.records
-    assert [d["experiment"]["run"] for d in docs] == ["link6", "whole"]
+    assert [d["experiment"]["run"] for d in docs] == ["link6", "whole"], (service.experiments, service.errors, service.busy, service.skipped)
     assert service.skipped > 0 and docs[-1]["skipped"] == service.skipped
     assert sum(d["experiment"]["missing"] for d in docs) > 0
     for d, r in zip(docs, reports):
@@ -558,6 +558,46 @@ def test_a_run_that_claims_no_joint_or_moves_nothing_never_becomes_the_arms_para
         assert "not excited: joints 1, 2, 3, 4, 5, 6 did not move" in run("still", "whole_arm")["note"]
         assert service._single == {} and service.whole_fits == {} and service.sequence is None
         assert not service.errors, service.errors
+    finally:
+        service.close()
+        session.close()
+
+
+def test_a_run_the_analysis_fails_on_is_published_with_its_reason(tmp_path: Path) -> None:
+    """A subscriber waiting for a run hears of it when its analysis fails (here the service's
+    copy cannot be written: a file stands where the run's folder goes), as it does of a run
+    identified: a document with the reason in its note, through the service's analysis thread.
+    Before, the failure was logged and nothing published, and a waiting subscriber (or a test)
+    waited for its whole timeout. A real Zenoh session on loopback."""
+    import zenoh
+
+    from armid.daq.experiment_stream import CollectedExperiment
+    from armid.daq.stream import session_config
+    from armid.io.robot_file import load_robot
+    from armid.schema.joint_state import JointStateRecord, Sample
+    from armid.serve import EstimatorService
+
+    robot = load_robot(ROBOT)
+    session = zenoh.open(session_config(listen=[f"tcp/127.0.0.1:{_free_port()}"]))
+    docs: list[dict] = []
+    service = EstimatorService(session, robot, tmp_path / "serve", on_publish=docs.append)
+    (tmp_path / "serve").mkdir(exist_ok=True)
+    (tmp_path / "serve" / "blocked").write_text("not a folder\n")
+    z = np.zeros(6)
+    records = [JointStateRecord(k, Sample(k, 0.002 * k, np.ones(6, bool), np.full(6, 0.3), z, np.ones(6, bool), z, z, np.zeros(6, np.int64),
+                                          torque=np.ones(6))).pack() for k in range(500)]
+    experiment = {"kind": "whole_arm", "metadata": {"period_s": 0.002}}
+    try:
+        service._jobs.append(CollectedExperiment("blocked", {"experiment": experiment}, {"completed": True, "experiment": experiment},
+                                                 records, list(range(500)), 0, [[0, 499]]))
+        service._job_ready.set()
+        deadline = time.monotonic() + 30
+        while not docs and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert [d["experiment"]["run"] for d in docs] == ["blocked"], service.experiments
+        assert docs[0]["experiment"]["note"].startswith("not identified: ") and "blocked" in docs[0]["experiment"]["note"], docs[0]
+        assert docs[0]["source"] is None and docs[0]["base_parameters"] == []
+        assert service.errors and service.experiments[-1]["error"]
     finally:
         service.close()
         session.close()
