@@ -27,19 +27,14 @@ SHARED = ROOT.parent / "shared"
 REALTIME_MODULES = ("test_canopen", "test_daq", "test_dynamixel", "test_excitation", "test_excitation_dynamixel", "test_serve", "test_supervision")
 """The timing-sensitive tests (a bus, a pty, a simulated arm, a live stream): marked ``realtime``
 (a test elsewhere is marked so itself); the README's command runs them after the arithmetic,
-alone, and CI runs those that are not slow a second time with two busy processes beside them
-(``.ci/run``)."""
+two at a time, and those marked ``alone`` last, one at a time; CI runs those that are not slow
+a second time with two busy processes beside them (``.ci/run``)."""
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    # under pytest-xdist with ``--dist loadgroup`` the timing-sensitive tests run one after another
-    # on one worker, beside the other worker's arithmetic (the README runs them alone)
-    grouped = config.pluginmanager.hasplugin("xdist")
     for item in items:
         if item.module is not None and item.module.__name__.rsplit(".", 1)[-1] in REALTIME_MODULES:
             item.add_marker(pytest.mark.realtime)
-        if grouped and item.get_closest_marker("realtime") is not None:
-            item.add_marker(pytest.mark.xdist_group("realtime"))
 
 
 def random_robot(n: int, convention: str, prismatic_at: int | None, seed: int) -> Robot:
