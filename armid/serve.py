@@ -234,7 +234,7 @@ class EstimatorService:
                 except Exception as err:
                     self._error(err)
                     self.log(f"{exp.name}: not identified: {type(err).__name__}: {err}")
-                    info = {"run": exp.name, "error": f"{type(err).__name__}: {err}", "note": f"not identified: {type(err).__name__}: {err}"}
+                    info = {**self._info(exp), "error": f"{type(err).__name__}: {err}", "note": f"not identified: {type(err).__name__}: {err}"}
                     self.experiments.append(info)
                     self._say_failed(info)
                 finally:
@@ -311,10 +311,7 @@ class EstimatorService:
         exp = self._with_identity(exp)
         desc = exp.description
         kind = desc.get("kind") or "recording"
-        stop = exp.stop
-        info: dict[str, Any] = {"run": exp.name, "kind": kind, "link": desc.get("link"), "records": len(exp.records),
-                                "missing": exp.missing, "kept": exp.kept, "completed": bool(stop.get("completed", True)),
-                                "reason": stop.get("reason"), "skipped_total": self.skipped, "timed_out": exp.timed_out}
+        info = self._info(exp)
         if len(exp.records) < 50:
             info["note"] = f"only {len(exp.records)} records received: nothing identified"
             self.experiments.append(info)
@@ -322,7 +319,7 @@ class EstimatorService:
         path = self.write_copy(exp)
         info["mcap"] = str(path)
         if not info["completed"]:
-            info["note"] = f"the run was stopped ({stop.get('reason')}): not identified"
+            info["note"] = f"the run was stopped ({exp.stop.get('reason')}): not identified"
         link = desc.get("link")
         if info["completed"] and kind == "recording":
             kind, moving = self._kind_from_motion(path)
@@ -340,6 +337,13 @@ class EstimatorService:
         self.experiments.append(info)
         self.log(f"{exp.name}: {info.get('note') or 'identified'} ({len(exp.records)} records, {exp.missing} missing)")
         return self._document(info)
+
+    def _info(self, exp: CollectedExperiment) -> dict[str, Any]:
+        """What a published document says of the experiment itself (INTERFACES.md)."""
+        desc, stop = exp.description, exp.stop
+        return {"run": exp.name, "kind": desc.get("kind") or "recording", "link": desc.get("link"), "records": len(exp.records),
+                "missing": exp.missing, "kept": exp.kept, "completed": bool(stop.get("completed", True)),
+                "reason": stop.get("reason"), "skipped_total": self.skipped, "timed_out": exp.timed_out}
 
     def _refusal(self, kind: str, link: Any, path: Path) -> str | None:
         """Why a run cannot become the arm's parameters (None: it can): a claimed link that is
