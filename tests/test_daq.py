@@ -7,6 +7,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 import uuid
 from pathlib import Path
@@ -136,9 +137,32 @@ def test_identify_reads_a_truncated_recording_and_says_what_was_lost(tmp_path: P
     assert any("the rest of the run is lost" in n for n in rec.notes)
 
 
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_watch_started_in_the_background_stops_on_its_signal(sig: int) -> None:
+    """``armid watch`` started with SIGINT ignored (as a script's background job starts it)
+    stops on SIGINT and SIGTERM, exits 0 and says what it saw. Before, it stopped on Ctrl-C's
+    KeyboardInterrupt only: SIGINT went unheard and SIGTERM killed it without its summary."""
+    cmd = [sys.executable, "-m", "armid.cli", "watch", "--robot", "puma560", "--zenoh-listen", f"tcp/127.0.0.1:{_free_port()}"]
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
+        assert proc.stderr is not None
+        first: list[str] = []
+        reader = threading.Thread(target=lambda: first.append(proc.stderr.readline()), daemon=True)  # type: ignore[union-attr]
+        reader.start()
+        reader.join(60)
+        assert first and "watching" in first[0], f"armid watch did not say it watches within 60 s: {first}"
+        proc.send_signal(sig)
+        assert proc.wait(timeout=60) == 0
+        assert "armid watch: 0 records" in proc.stderr.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
 def test_watch_shows_the_live_stream_with_rate_gaps_and_alive_components(tmp_path: Path) -> None:
     import io
-    import threading
 
     import zenoh
     from rich.console import Console
