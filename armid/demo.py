@@ -10,9 +10,11 @@ known parameters; diagnosis of the residual; on-line payload estimation; a repor
 
 from __future__ import annotations
 
+import multiprocessing
 import secrets
 import time
 import uuid
+from concurrent.futures import ProcessPoolExecutor
 from contextlib import ExitStack, closing
 from dataclasses import replace
 from pathlib import Path
@@ -198,7 +200,9 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
         whole = identify_whole_arm(robot, prepared["whole_a"], [prepared["whole_b"]])
         estimator = early[0] if early else peers.enter_context(closing(payload_estimator(rig, whole.to_json(), out)))
         # the rest of the analysis is not the real-time process's business: it starts now, in a process of its own
-        beside = peers.enter_context(_Beside())
+        # (spawned: a fork would copy this process's threads' locks; ended with the demo, its work cancelled)
+        beside = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_below_the_real_time)
+        peers.callback(beside.shutdown, cancel_futures=True)
         analysis = beside.submit(analyse, robot, whole, prepared["whole_a"], prepared["whole_b"], out)
         seq = single_link_sequence(robot, {e.link: [prepared[e.name]] for e in experiments if e.link is not None})
         agreement = service_agreement(published[-1], whole)
@@ -264,21 +268,6 @@ def _below_the_real_time() -> None:
 
     os.nice(5)
     threadpool_limits(1, "blas")
-
-
-class _Beside:
-    """One worker process for the analysis the real-time process must not do (spawned: a fork
-    would copy this process's threads' locks); ended with the demo, its work cancelled."""
-
-    def __enter__(self) -> Any:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-
-        self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_below_the_real_time)
-        return self._pool
-
-    def __exit__(self, *exc: object) -> None:
-        self._pool.shutdown(cancel_futures=True)
 
 
 def _estimator_service(rig: Rig, out: Path) -> PeerLink:
