@@ -324,8 +324,8 @@ hundreds of candidates of one to three parameters, and ``lsq_linear`` took a fif
 def _by_active_sets(h: Array, g: Array, lower: Array) -> Array | None:
     """The exact bounded minimum by enumeration (fewest parameters held first): the first set
     held at its bounds whose solution is admissible and meets the KKT conditions
-    (:func:`_on_the_bounds`'s test) is the minimum of a strictly convex quadratic. None when
-    more than ``ENUMERATED_BOUNDS`` parameters are bounded or none passes (``H`` singular)."""
+    (:func:`_held_at`) is the minimum of a strictly convex quadratic. None when more than
+    ``ENUMERATED_BOUNDS`` parameters are bounded or none passes (``H`` singular)."""
     bounded = np.flatnonzero(np.isfinite(lower))
     if bounded.size > ENUMERATED_BOUNDS:
         return None
@@ -333,38 +333,36 @@ def _by_active_sets(h: Array, g: Array, lower: Array) -> Array | None:
         for held_idx in itertools.combinations(bounded, size):
             held = np.zeros(lower.size, bool)
             held[list(held_idx)] = True
-            x = np.where(held, lower, 0.0)
-            free = ~held
-            if free.any():
-                try:
-                    x[free] = np.linalg.solve(h[np.ix_(free, free)], g[free] - h[np.ix_(free, held)] @ x[held])
-                except np.linalg.LinAlgError:
-                    continue
-            tol = 1e-9 * max(1.0, float(np.max(np.abs(h @ x))), float(np.max(np.abs(g))))
-            if np.all(x[free] >= lower[free]) and np.all((h @ x - g)[held] >= -tol):
+            x = _held_at(h, g, lower, held)
+            if x is not None:
                 return x
     return None
 
 
+def _held_at(h: Array, g: Array, lower: Array, held: Array) -> Array | None:
+    """The minimum with the parameters ``held`` at their bounds and the others solved for,
+    when it is admissible and optimal (each held parameter's gradient pushes it against its
+    bound: the KKT conditions); None otherwise, or when the free block is singular."""
+    free = ~held
+    x = np.where(held, lower, 0.0)
+    if free.any():
+        try:
+            x[free] = np.linalg.solve(h[np.ix_(free, free)], g[free] - h[np.ix_(free, held)] @ x[held])
+        except np.linalg.LinAlgError:
+            return None
+    pushes = (h @ x - g)[held]  # half the gradient: >= 0 where the bound holds the parameter back
+    tol = 1e-9 * max(1.0, float(np.max(np.abs(h @ x))), float(np.max(np.abs(g))))
+    return x if np.all(x[free] >= lower[free]) and np.all(pushes >= -tol) else None
+
+
 def _on_the_bounds(h: Array, g: Array, lower: Array, x: Array) -> Array:
     """``x`` (an iterative solver's answer) made exact where it can be: the parameters it left
-    at or near their bounds held there, the others solved for; kept when that answer is
-    admissible and optimal (each held parameter's gradient pushes it against its bound: the
-    KKT conditions), so a friction the data do not support is 0, not 1e-6 of its
-    scale."""
+    at or near their bounds held there, the others solved for (:func:`_held_at`); kept when
+    that answer is admissible and optimal, so a friction the data do not support is 0, not
+    1e-6 of its scale."""
     scale = max(1.0, float(np.max(np.abs(x))))
     held = np.isfinite(lower) & (x - lower <= 1e-5 * scale)
     if not held.any():
         return x
-    free = ~held
-    out = np.where(held, lower, x)
-    if free.any():
-        try:
-            out[free] = np.linalg.solve(h[np.ix_(free, free)], g[free] - h[np.ix_(free, held)] @ out[held])
-        except np.linalg.LinAlgError:
-            return x
-    pushes = (h @ out - g)[held]  # half the gradient: >= 0 where the bound holds the parameter back
-    tol = 1e-9 * max(1.0, float(np.max(np.abs(h @ x))), float(np.max(np.abs(g))))
-    if np.all(out[free] >= lower[free]) and np.all(pushes >= -tol):
-        return out
-    return x
+    exact = _held_at(h, g, lower, held)
+    return x if exact is None else exact
