@@ -42,6 +42,8 @@ from .rig import Rig
 REBOOT_WAIT_S = 1.0  # a rebooting servo answers a ping again within this
 ONE_OFF_TIMEOUT_S = 0.05  # a one-off transaction's reply timeout, at least (a loaded machine deschedules the chain for tens of ms)
 ONE_OFF_ATTEMPTS = 3
+STALL_S = 0.002  # a wait that returns this much after its timeout: this process was not running
+MAX_STALL_WAITS = 3  # new reply windows one read gets for stalls of this process (a silent servo still times out)
 
 
 class DynamixelDriver(Driver):
@@ -94,6 +96,7 @@ class DynamixelDriver(Driver):
         self._clock = CycleClock(rig.period_s)
         self.noise_bytes = 0
         self.stale_replies = 0  # packets on the line that answered no request of ours (late replies), skipped
+        self.stalled_waits = 0  # reply waits that overran their timeout while this process was not running (given a new window)
         self.reply_times: deque[float] = deque(maxlen=200_000)  # completion stamps (time.perf_counter)
         self.round_trips: deque[float] = deque(maxlen=200_000)  # read request sent -> reply complete (s)
         self.drive_configuration: list[dict[str, int]] = []
@@ -127,8 +130,11 @@ class DynamixelDriver(Driver):
         """The next packet from its header: whole (``size`` bytes, or as its length field
         says), or what arrived of it by ``deadline`` (empty when nothing did). With
         ``packet_id``, whole packets of another id before it are stale (a late reply to an
-        earlier request): they are skipped and counted in ``stale_replies``."""
+        earlier request): they are skipped and counted in ``stale_replies``. A wait that
+        overran its timeout by more than :data:`STALL_S` was this process not running: the
+        line gets a new reply window (:data:`MAX_STALL_WAITS` at most), counted in ``stalled_waits``."""
         buf = self._rx
+        stalls = 0
         while True:
             start = buf.find(dxl.HEADER)
             if start > 0 or (start < 0 and len(buf) > 3):
@@ -154,7 +160,8 @@ class DynamixelDriver(Driver):
                     return out
             # bytes already on the line are read even past the deadline: a process descheduled
             # while the reply arrived must not call a reply that came in time a timeout
-            remaining = deadline - time.perf_counter()
+            asked = time.perf_counter()
+            remaining = deadline - asked
             ready, _, _ = select.select([self._fd], [], [], max(0.0, remaining))
             if ready:
                 try:
@@ -164,6 +171,15 @@ class DynamixelDriver(Driver):
                 if chunk:
                     buf += chunk
                     continue
+            now = time.perf_counter()
+            overran = now - asked - max(0.0, remaining)  # past its timeout: this process was not running
+            if now >= deadline and stalls < MAX_STALL_WAITS and overran > STALL_S:
+                # a machine that pauses this process (a host's steal, SIGSTOP) paused the chain's
+                # answer too: the line gets its reply window again, from when this process runs
+                stalls += 1
+                self.stalled_waits += 1
+                deadline = now + self.reply_timeout_s
+                continue
             if remaining <= 0:
                 out = bytes(buf) if start == 0 and (packet_id is None or len(buf) <= 4 or buf[4] == packet_id) else b""
                 buf.clear()

@@ -133,6 +133,70 @@ def test_infeasible_period_is_refused_before_the_port_opens() -> None:
     assert driver._serial is None
 
 
+def _reply_on_a_pty_after(delay_s: float | None, monkeypatch: pytest.MonkeyPatch, stall_s: float) -> tuple[DynamixelDriver, bytes]:
+    """A driver on one end of a real pty and a servo's status written to the other ``delay_s``
+    after the read starts (never with None); with ``stall_s``, the read's first wait returns
+    that long past its timeout with nothing seen, as it does for a process the machine paused
+    (the chain with it)."""
+    import os
+    import threading
+
+    from armid.drivers import dynamixel_driver as module
+
+    controller, line = os.openpty()
+    d = DynamixelDriver(load_rig(DXL_RIG), port=os.ttyname(line))
+    d._open()
+    os.close(line)
+    if stall_s:
+        real_select, calls = module.select.select, []
+
+        def paused_select(r: list, w: list, x: list, timeout: float) -> tuple:  # type: ignore[type-arg]
+            calls.append(timeout)
+            if len(calls) == 1:
+                time.sleep(timeout + stall_s)  # the machine paused this process and the chain
+                return [], [], []
+            return real_select(r, w, x, timeout)
+
+        monkeypatch.setattr(module.select, "select", paused_select)
+    status = dxl.encode_status(1, 0, b"\x01")
+    if delay_s is not None:
+        threading.Timer(delay_s, os.write, (controller, status)).start()
+    return d, status
+
+
+def test_a_read_gets_its_reply_window_again_after_this_process_was_paused(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 31: a host that pauses the machine pauses the master and the chain together; the
+    master then wakes past its deadline with no reply yet. The wait overran its timeout, so it
+    was this process not running: the line gets its window again, and the reply that comes
+    within it counts (a stall is no servo's silence)."""
+    window = 0.008
+    d, status = _reply_on_a_pty_after(window + 0.02 + 0.003, monkeypatch, stall_s=0.02)
+    try:
+        raw = d._receive(time.perf_counter() + window)
+        assert raw == status and d.stalled_waits == 1, (raw, d.stalled_waits)
+    finally:
+        d._serial.close()
+
+
+def test_a_silent_line_still_times_out_at_its_window_while_this_process_runs(monkeypatch: pytest.MonkeyPatch) -> None:
+    """What the new window must not hide: a servo that does not answer while this process runs
+    times out at the deadline (a new window only for a wait that overran it by STALL_S, at most
+    MAX_STALL_WAITS of them), so a silent servo is still declared within its cycles."""
+    from armid.drivers.dynamixel_driver import MAX_STALL_WAITS, STALL_S
+
+    window = 0.008
+    d, _ = _reply_on_a_pty_after(None, monkeypatch, stall_s=0.0)
+    try:
+        start = time.perf_counter()
+        raw = d._receive(start + window)
+        took = time.perf_counter() - start
+        assert raw == b"" and d.stalled_waits <= MAX_STALL_WAITS
+        if d.stalled_waits == 0:  # this process ran throughout: no wait past the deadline but the rule's margin
+            assert took < window + STALL_S + 0.001, took
+    finally:
+        d._serial.close()
+
+
 # --- over the pty, to the simulated chain in its own process ---
 @pytest.fixture(scope="module")
 def chain():  # type: ignore[no-untyped-def]
