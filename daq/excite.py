@@ -156,7 +156,7 @@ class ExcitationControl:
         self._velocity_age = np.where(s.velocity_fresh, 0, self._velocity_age + 1)
         if self.armed and (self._invalid_run >= LOST_CYCLES_STOP).any():
             j = int(np.argmax(self._invalid_run))
-            return self._stop(f"joint {j + 1}: no frames for {LOST_CYCLES_STOP} cycles", s.cycle)
+            return self._stop(f"joint {j + 1}: no frames for {LOST_CYCLES_STOP} cycles{self.driver.stall_note()}", s.cycle)
         with self._lock:
             active = self.active
         if active is not None and active.first_cycle is None:

@@ -178,6 +178,7 @@ class DynamixelDriver(Driver):
                 # answer too: the line gets its reply window again, from when this process runs
                 stalls += 1
                 self.stalled_waits += 1
+                self.last_stall = (time.monotonic(), overran)
                 deadline = now + self.reply_timeout_s
                 continue
             if remaining <= 0:
@@ -325,6 +326,8 @@ class DynamixelDriver(Driver):
         self._clock = clock = CycleClock(self.period_s)  # the schedule starts with the thread
         while not self._stop.is_set():
             clock.wait()
+            if clock.last_late[0] > self.last_stall[0]:
+                self.last_stall = clock.last_late
             self._serve_requests()
             try:
                 self._cycle_once()

@@ -24,7 +24,7 @@ import numpy as np
 from armid.schema import Array, Sample
 from armid.schema.errors import DriveConfigError, DriveFault, DriverError, HeartbeatLost
 
-from .realtime import RealtimeScheduling, Timing
+from .realtime import RealtimeScheduling, Timing, stall_sentence
 
 if TYPE_CHECKING:
     import can
@@ -168,6 +168,7 @@ class CycleClock:
         self.period_s = period_s
         self.catch_up = catch_up
         self.late = 0
+        self.last_late = (0.0, 0.0)  # (time.monotonic(), s) of the newest restart and how late that cycle was
         self._next = time.perf_counter()
 
     def wait(self) -> None:
@@ -177,6 +178,7 @@ class CycleClock:
             time.sleep(delay)
         elif delay < -self.catch_up * self.period_s:
             self.late += 1
+            self.last_late = (time.monotonic(), -delay)
             self._next = time.perf_counter()
 
 
@@ -216,11 +218,21 @@ class Driver(abc.ABC):
     """What each drive reported of its configuration at :meth:`start` (the recording's metadata)."""
     units: list[DriveUnits]
     """Each joint's unit conversions: counts, currents, torque constant."""
+    last_stall: tuple[float, float] = (0.0, 0.0)
+    """(``time.monotonic()``, s) of the newest time this process was not scheduled when its cycle was due."""
 
     def __init__(self) -> None:
         self._events: deque[Event] = deque(maxlen=10_000)
         self._samples: queue.Queue[Sample] = queue.Queue(maxsize=100_000)
         self._faults: queue.Queue[DriveFault] = queue.Queue()
+
+    def stall_note(self, within_s: float = 0.5) -> str:
+        """Why frames went missing, for a stop that says so: this process not scheduled (with
+        the figure) when it was within ``within_s``, else the drives or the line."""
+        when, stall = self.last_stall
+        if stall and time.monotonic() - when < within_s:
+            return f"; {stall_sentence(stall)}"
+        return "; this process ran on time: the drives or the line went silent"
 
     @abc.abstractmethod
     def start(self) -> None:

@@ -174,6 +174,7 @@ def test_a_read_gets_its_reply_window_again_after_this_process_was_paused(monkey
     try:
         raw = d._receive(time.perf_counter() + window)
         assert raw == status and d.stalled_waits == 1, (raw, d.stalled_waits)
+        assert "this process was not scheduled for 0.0" in d.stall_note(), d.stall_note()  # what a stop for lost frames says
     finally:
         d._serial.close()
 
@@ -193,6 +194,7 @@ def test_a_silent_line_still_times_out_at_its_window_while_this_process_runs(mon
         assert raw == b"" and d.stalled_waits <= MAX_STALL_WAITS
         if d.stalled_waits == 0:  # this process ran throughout: no wait past the deadline but the rule's margin
             assert took < window + STALL_S + 0.001, took
+            assert "this process ran on time: the drives or the line went silent" in d.stall_note(), d.stall_note()
     finally:
         d._serial.close()
 
