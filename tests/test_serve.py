@@ -261,19 +261,22 @@ def _netns() -> str | None:
 def test_record_and_watch_find_each_other_with_no_zenoh_flags(tmp_path: Path) -> None:
     """In a network namespace of its own (only a loopback: nothing else on the machine can
     answer on the well-known endpoint): ``armid watch`` started first, then ``armid record``;
-    then the other order, with ``armid serve`` answering the status query of a third process."""
+    then the other order, with ``armid serve`` answering the status query of a third process.
+    The watcher and the second recorder are stopped by SIGTERM, as a lab's supervisor stops them."""
     armid = [sys.executable, "-m", "armid.cli"]
     channel = f"armid-nf-{uuid.uuid4().hex[:6]}"
     script = f"""
 set -e
 ip link set lo up
 cd {ROOT}
-{' '.join(armid)} watch --robot puma560 --duration 25 > {tmp_path}/watch.out 2> {tmp_path}/watch.err &
+{' '.join(armid)} watch --robot puma560 --duration 60 > {tmp_path}/watch.out 2> {tmp_path}/watch.err &
 W=$!
 sleep 4
 {' '.join(armid)} record --rig {RIG} --channel {channel} --out {tmp_path}/run --duration 3 2> {tmp_path}/record.err
+sleep 2
+kill -TERM $W
 wait $W
-{' '.join(armid)} record --rig {RIG} --channel {channel}b --out {tmp_path}/run2 --duration 20 2> {tmp_path}/record2.err &
+{' '.join(armid)} record --rig {RIG} --channel {channel}b --out {tmp_path}/run2 --duration 60 2> {tmp_path}/record2.err &
 R=$!
 sleep 3
 {' '.join(armid)} serve --robot puma560 --no-payload --duration 25 2> {tmp_path}/serve.err &
@@ -288,6 +291,7 @@ with open_local_session() as s:
             consolidation=zenoh.ConsolidationMode.NONE, timeout=5.0) if r.ok]
     print(json.dumps(docs))
 " > {tmp_path}/status.json
+kill -TERM $R
 wait $R
 kill $S || true
 wait $S || true
@@ -301,6 +305,8 @@ wait $S || true
     summary = (tmp_path / "watch.err").read_text().strip().splitlines()[-1]
     assert summary.startswith(f"armid watch: {n} records, 0 gaps (0 missing), 0 unreadable"), (summary, n)
     # the other order: the recorder was there first; the watcher joined it, the service too
+    arrays2, _, _ = read_mcap(tmp_path / "run2" / "run.mcap")  # the recorder stopped by SIGTERM kept its file
+    assert len(arrays2["sequence"]) > 0 and np.all(np.diff(arrays2["sequence"]) == 1)
     later = (tmp_path / "watch2.err").read_text().strip().splitlines()[-1]
     assert int(later.split()[2]) > 0 and " 0 gaps" in later, later
     status = json.loads((tmp_path / "status.json").read_text())
