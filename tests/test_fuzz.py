@@ -763,6 +763,23 @@ def test_the_scale_check_leaves_a_joint_whose_modeled_torque_is_near_zero() -> N
     assert len(said) == 1 and said[0].startswith("wrist.csv: column tau2: joint 2 measures 1e+03 times"), said
 
 
+def test_the_sign_check_leaves_a_joint_whose_modeled_torque_is_near_zero() -> None:
+    """Issue 33: a blind case's light wrist (modeled torque 0.2 % of the base's, 0.02 N*m)
+    correlated -0.99 with the model through a CAD first moment of the other sign, and was warned
+    of as a flipped sensor; a joint whose modeled torque is a tenth of the base's, flipped,
+    still is said."""
+    from armid.identify.plausibility import check_against_model
+
+    rng = np.random.default_rng(5)
+    s = np.sin(np.linspace(0, 20, 4000))
+    modeled = np.column_stack([30.0 * s, 3.0 * s, 0.066 * s])
+    measured = modeled * [1.0, 1.0, -1.0] + 0.001 * rng.standard_normal(modeled.shape)
+    assert check_against_model(measured, modeled, "wrist.csv") == []
+    measured[:, 1] *= -1.0  # joint 2's sensor flipped
+    said = check_against_model(measured, modeled, "wrist.csv")
+    assert len(said) == 1 and said[0].startswith("wrist.csv: column tau2: joint 2's torque runs opposite"), said
+
+
 def test_the_scale_check_leaves_a_held_joint() -> None:
     """Issue 33: in a single-link experiment a held joint's varying torque is its servo holding
     it against the moving link's pull, through a rotor inertia the rigid body lacks (the demo's
