@@ -273,7 +273,7 @@ cd {ROOT}
 W=$!
 sleep 4
 {' '.join(armid)} record --rig {RIG} --channel {channel} --out {tmp_path}/run --duration 3 2> {tmp_path}/record.err
-sleep 2
+sleep 5
 kill -TERM $W
 wait $W
 {' '.join(armid)} record --rig {RIG} --channel {channel}b --out {tmp_path}/run2 --duration 60 2> {tmp_path}/record2.err &
