@@ -7,7 +7,8 @@ pass: the copies cost as much as the filtering and made the filter a third of a 
 This kernel runs the same recursion on the (n, k) array in place, the k columns side by side
 in SIMD lanes. Each column sees exactly scipy's operations in scipy's order (its
 ``_sosfilt`` loop: transposed direct form II per second-order section), so the result is
-scipy's to the bit (``tests/test_filtering.py``).
+scipy's to the bit (``tests/test_differentiation_and_data.py``). It releases the interpreter's
+lock: the diagnosis filters its joints' candidates in threads side by side (identify._threads).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-_njit = numba.njit(cache=True, error_model="numpy", boundscheck=False)
+_njit = numba.njit(cache=True, nogil=True, error_model="numpy", boundscheck=False)
 
 
 @_njit

@@ -16,20 +16,18 @@ ordinary stores would first read every line they are about to overwrite.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
 import numba
 import numpy as np
 from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
+from ._threads import THREADS, pool
+
 LANES = 128
 CHUNK = 1024
 SERIAL_BELOW = 4 * CHUNK
 """Calls on fewer samples run the kernel in the calling thread alone (:func:`regressor_rows`)."""
-THREADS = max(1, int(getattr(numba.config, "NUMBA_NUM_THREADS", 1)))
-"""Threads that share a large call (numba's thread count: the CPUs, or ``NUMBA_NUM_THREADS``)."""
 
 # rows of the lane state ``s[row * L + lane]``; _Q, _QD, _QDD are also the rows of ``motion[i]``
 _Q, _QD, _QDD = 0, 1, 2
@@ -397,15 +395,6 @@ def regressor_kernel(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g, q, qd, qdd, ou
         _store_fence()
 
 
-_POOL: list[ThreadPoolExecutor] = []
-
-
-def _pool() -> ThreadPoolExecutor:
-    if not _POOL:
-        _POOL.append(ThreadPoolExecutor(max(1, THREADS - 1), thread_name_prefix="armid-regressor"))
-    return _POOL[0]
-
-
 def regressor_rows(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g, q, qd, qdd, out, row_stride, seg_len, seg_stride, first_aligned):  # type: ignore[no-untyped-def]
     """:func:`regressor_kernel` into ``out`` (n, N, 10 N), possibly a view into a wider
     array: the chunks shared out among ``THREADS`` threads (this one and a pool's), in this
@@ -430,7 +419,7 @@ def regressor_rows(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g, q, qd, qdd, out,
     nchunks = (n + CHUNK - 1) // CHUNK
     threads = min(THREADS, nchunks) if n >= SERIAL_BELOW else 1
     bounds = [nchunks * k // threads for k in range(threads + 1)]
-    others = [_pool().submit(regressor_kernel, *args, bounds[k], bounds[k + 1]) for k in range(1, threads)]
+    others = [pool("regressor").submit(regressor_kernel, *args, bounds[k], bounds[k + 1]) for k in range(1, threads)]
     regressor_kernel(*args, bounds[0], bounds[1])
     for f in others:
         f.result()

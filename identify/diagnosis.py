@@ -40,7 +40,9 @@ the noise significant, and on clean low-noise data such an effect is the fit's o
 error, and (f) it does not raise its joint's (the arm's) error on the validation data
 consistently (a one-sided t test at ``veto_alpha`` over the validation's tenths): tenths of
 one trajectory share its excitation, and a fit's own model error can look like an effect
-there and on no other run. Then refit and repeat, until nothing passes. The findings are fitted with the prior as
+there and on no other run, and (g) that exact fit, which holds friction, rotor inertia and a
+spring's stiffness at 0 (physics), does not hold the finding's there: it would explain
+nothing. Then refit and repeat, until nothing passes. The findings are fitted with the prior as
 wide as the declared model's fit or the last accepted finding's found it, whichever is less. A candidate whose columns lie in the span of the model is
 absorbed (rotor inertia of a first joint with a vertical axis joins ``Izz1``), and is
 reported as such. When a look-alike (Coulomb/Stribeck, torque gain/rotor inertia,
@@ -57,12 +59,14 @@ tell a spring from the local slope of a ripple longer than that motion.
 from __future__ import annotations
 
 import warnings
+from concurrent.futures import Future
 from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 from scipy import stats
 
+from ._threads import THREADS, pool
 from .diagnosis_candidates import LOOKALIKES, SEPARATE, STRIBECK_VELOCITIES, Candidate, _candidates, _parameters, coulomb
 from .diagnosis_data import _blocks, _Data, _joint_noise_floors, _noise_floor, _noise_levels, _rel, _stack
 from .diagnosis_refit import _refine_delays, _rotate, _settled, _sign_reversed, _trial_fit, _update_parameters, _widening, findings_model
@@ -75,11 +79,12 @@ from .diagnosis_report import (
     negligible_sentence,
     set_aside_sentence,
 )
-from .diagnosis_scoring import _Absorbed, _fit_round, _phi_hat, _Round, _score, _Scored, joint_moments, joint_power_after
+from .diagnosis_scoring import _Absorbed, _fit_round, _phi_hat, _Round, _score, _Scored, joint_power_after, round_moments
 from .equations import reused_equations
 from .errors import PoorExcitationWarning
 from .identification import (
     IdentificationResult,
+    base_torque,
     column_count,
     declared_effects,
     declared_gains,
@@ -179,7 +184,12 @@ class _Search:
         self.ident, self.held = _blocks(self.ident_all)
         self.nj = robot.n_joints
         self.robot0 = self.robot = robot
-        self._fit_declared()
+        warming = self._start_warming()
+        try:
+            self._fit_declared()
+        finally:
+            if warming is not None:
+                warming.exception()  # waits; a column that fails to compute fails again in the round, in this thread
         self.sample_period = min(s.parallel.period_s for p in experiments for s in p.segments)  # the input's, before decimation
         self.tilt_total, self.tilt_rounds = np.zeros(2), 0
         self.delay_total: dict[int | None, float] = {}
@@ -217,6 +227,23 @@ class _Search:
         self.widening_now = _widening(self.result0)
         self.set_aside: set[tuple[str, int | None]] = set()
 
+    def _start_warming(self) -> Future[None] | None:
+        """The first round's filtered one-joint columns (Coulomb steps, Stribeck peaks, cogging
+        periods at the full rate through the parallel filter: most of a first round's work),
+        computed on another core while the declared model is fitted: they depend on the data
+        alone. None on one core. They share only the data's cache of columns, and the round
+        starts after them."""
+        if THREADS < 2:
+            return None
+        blocks = [c.block for c in _candidates(self.robot, self.ident, set(), {}, self.opts.max_cogging_per_turn)
+                  if c.block is not None and c.effect in ("coulomb_friction", "stribeck_friction", "cogging")]
+
+        def warm() -> None:
+            for block in blocks:
+                block(self.ident), block(self.held)
+
+        return pool("scoring").submit(warm)
+
     def _fit_declared(self) -> None:
         """The declared model exactly as `armid identify` fits it ("before"): its settings, its
         declared drive gains and how far its prior had to widen (the search starts from its
@@ -252,6 +279,13 @@ class _Search:
         cols = stacked_regressor(self.robot, self.effects, d.q, d.qd, d.qdd)[:, self.base.independent]
         return cols if np.all(self.gain_scale == 1.0) else cols * np.tile(self.gain_scale, d.q.shape[0])[:, None]
 
+    def _base_prediction(self, d: _Data, beta: Array) -> Array:
+        """(n, N) the torque of base parameters ``beta`` at the samples of ``d``, as
+        :meth:`_base_columns` ``@ beta`` gives it, without a copy of the columns: a delay's
+        candidate predicts on each joint's motion shifted either way, every round."""
+        tau = base_torque(self.robot, self.effects, self.base.independent, beta, d.q, d.qd, d.qdd)
+        return tau if np.all(self.gain_scale == 1.0) else tau * self.gain_scale
+
     # --- a round ---
     def add_one(self) -> bool:
         """Score every candidate against the model so far and add the best-ranked one that
@@ -271,12 +305,12 @@ class _Search:
     def _predictions(self, rnd: _Round) -> None:
         """What the candidates' columns read of the model so far (``ctx``): its prediction, the
         same without friction's steps, its standard parameters and a load-dependent friction's load."""
-        beta, p_base, nj, base = rnd.beta, rnd.p_base, self.nj, self.base
-        self.ctx["predict"] = lambda d, b=beta[:p_base]: (self._base_columns(d) @ b).reshape(-1, nj)
+        beta, p_base, base = rnd.beta, rnd.p_base, self.base
+        self.ctx["predict"] = lambda d, b=beta[:p_base]: self._base_prediction(d, b)
         # the delay's derivative leaves out Coulomb friction: a step in sign(qd) shifted by a
         # sample is a spike at every reversal, which would fit friction's misfit near rest
         smooth = beta[:p_base] * np.array([not base.names[c].startswith(("fc", "fs", "fl")) for c in base.independent])
-        self.ctx["predict_smooth"] = lambda d, b=smooth: (self._base_columns(d) @ b).reshape(-1, nj)
+        self.ctx["predict_smooth"] = lambda d, b=smooth: self._base_prediction(d, b)
         self.ctx["phi"] = _phi_hat(self.robot, base, beta[:p_base], self.n_cols)
         # a load-dependent friction's load: the modeled rigid body where the robot file models
         # every link (the fit so far has the friction it lacks in its rigid-body parameters),
@@ -293,7 +327,7 @@ class _Search:
         lie in the model's span is reported as absorbed."""
         scored: list[_Scored] = []
         candidates = _candidates(self.robot, self.ident, self.present | self.absorbed_keys, self.ctx, self.opts.max_cogging_per_turn)
-        moments = joint_moments(candidates, rnd, self.ident, self.held, self.wt_i, self.wt_v)
+        moments = round_moments(candidates, rnd, self.ident, self.held, self.wt_i, self.wt_v)
         for c in candidates:
             s = _score(c, rnd, self.ident, self.held, self.wt_i, self.wt_v, self.n_used, self.sample_period, moments.get(id(c)))
             if isinstance(s, _Absorbed):
@@ -442,14 +476,16 @@ class _Search:
         return True
 
     def _clears_exact_fits(self, s: _Scored) -> bool:
-        """Gates (d) and (f), judged by exact fits: the model with the finding added as
+        """Gates (g), (d) and (f), judged by exact fits: the model with the finding added as
         `identify` fits it. A further tilt or delay corrects one found before and is not judged
-        again. A candidate that fails either is set aside (reported, not taken)."""
+        again. A candidate that fails any is set aside (reported, not taken)."""
         best, opts = s.candidate, self.opts
         if best.effect in ("gravity_tilt", "time_delay") and any(f.effect == best.effect and f.joint == best.joint for f in self.found):
             return True
         trial = Finding(best.effect, best.joint, _parameters(best, s.gamma), 0.0, 0.0, 0.0)
         fit_with = self._trial_fit(self.found + [trial])
+        if self._held_at_bound(best, trial, fit_with):
+            return False
         widening = _widening(fit_with)
         if self.widening_now is not None and (widening is None or widening > opts.max_prior_widening * self.widening_now):
             # (d) on the identification data: the prior's widening with the finding
@@ -478,6 +514,19 @@ class _Search:
             return False
         if self.widening_now is not None:
             self.widening_now = widening
+        return True
+
+    def _held_at_bound(self, best: Candidate, trial: Finding, fit_with: IdentificationResult) -> bool:
+        """Gate (g): the exact fit holds the finding's friction, rotor inertia or stiffness at
+        its bound (the search saw it positive on its blocks, the whole data do not): set aside
+        for its sign, as the final fit's check (:meth:`report`) would, before any later round
+        builds on a column that explains nothing."""
+        fitted = replace(trial, parameters=dict(trial.parameters))
+        _update_parameters([fitted], fit_with)
+        if not _sign_reversed([fitted]):
+            return False
+        self.conflicting.append({"effect": fitted.effect, "joint": fitted.joint + 1, "parameters": fitted.parameters, "reason": "sign"})  # type: ignore[operator]
+        self._set_aside(best)
         return True
 
     def _set_aside(self, c: Candidate) -> None:

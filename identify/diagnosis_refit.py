@@ -100,7 +100,7 @@ def _trial_fit(robot: Robot, experiments: list[Prepared], found: list[Finding], 
     data alone cannot tell that finding from a worse model. Gate (f) reads its residual at the
     validation stamps."""
     model, options = findings_model(robot, found)
-    return identify(model, experiments, None, replace(options, covariance="white", load_parameters=tuple(load)))
+    return identify(model, experiments, None, replace(options, covariance="white", load_parameters=tuple(load), stamp_errors=False))
 
 
 def _widening(result: IdentificationResult) -> float | None:

@@ -155,8 +155,8 @@ def extrapolation_sentence(x: dict[str, Any]) -> str:
 
 def set_aside_sentence(c: dict[str, Any]) -> str:
     """What the text and the report say of a candidate set aside: by gate (d) or (f), because
-    the final fit turned the sign of its friction or inertia, or because it raised the
-    validation error in the final fit."""
+    an exact fit (gate (g)'s or the final one) held its friction, inertia or stiffness at 0 or
+    turned its sign, or because it raised the validation error in the final fit."""
     where = "the arm" if c["joint"] is None else f"joint {c['joint']}"
     if c.get("reason") == "validation" and "t" in c:  # gate (f): the search's fit, its joint's error
         return (f"{c['effect'].replace('_', ' ')} on {where}: it cleared the held-out tests on the identification data, but on the "

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 from scipy import special
 
+from ._threads import each_shared
 from .diagnosis_candidates import Candidate, defining, lower_bounds
 from .diagnosis_data import _Data
 from .estimation import bounded_quadratic
@@ -198,7 +199,7 @@ def _score(c: Candidate, rnd: _Round, ident: _Data, held: _Data, wt_i: Array, wt
     be a finding: columns that are not finite or all zero, a singular refit, an effect whose
     best admissible fit (friction, inertia and spring bounded at 0) holds its defining
     parameter at the bound, a delay within half a sample period. ``moments``: its products,
-    when :func:`joint_moments` computed them with its joint's other candidates'."""
+    when :func:`round_moments` computed them (a one-joint candidate's with its joint's others')."""
     if c.effect == "torque_gain":
         return _score_gain(c, rnd, n_used)
     proj, ctc, ctr, gv, cv_res, cvcv, cv_full = moments if moments is not None else _moments(c, rnd, ident, held, wt_i, wt_v)
@@ -264,16 +265,21 @@ Moments = tuple[Array, Array, Array, Array, Array, Array, Array | None]
 """What :func:`_moments` gives: ``P, C^T C, C^T r, G^T Cv, Cv^T res_v, Cv^T Cv`` and the held-out columns of an arm-wide candidate."""
 
 
-def joint_moments(candidates: list[Candidate], rnd: _Round, ident: _Data, held: _Data, wt_i: Array, wt_v: Array) -> dict[int, Moments]:
-    """:func:`_moments` of every one-joint candidate (by ``id``), joint by joint in one matrix
-    product over all of the joint's candidates' columns: the round's rows are read once a
-    joint instead of once a candidate (hundreds a round, most of them cogging periods)."""
+def round_moments(candidates: list[Candidate], rnd: _Round, ident: _Data, held: _Data, wt_i: Array, wt_v: Array) -> dict[int, Moments]:
+    """:func:`_moments` of every candidate but a drive gain (by ``id``). A joint's one-joint
+    candidates go joint by joint in one matrix product over all their columns: the round's
+    rows are read once a joint instead of once a candidate (hundreds a round, most of them
+    cogging periods). The joints and the other candidates (a delay's prediction on each
+    joint's motion shifted either way, the arm's) are independent, and share the cores
+    (identify._threads)."""
     nj = rnd.n_joints
     out: dict[int, Moments] = {}
-    for j in range(nj):
+    alone = [c for c in candidates if c.block is None and c.effect != "torque_gain"]
+
+    def one_joint(j: int) -> None:
         mine = [(c, c.block) for c in candidates if c.block is not None and c.joint == j and c.effect != "torque_gain"]
         if not mine:
-            continue
+            return
         bis = [block(ident) * wt_i[j::nj, None] for _, block in mine]
         bvs = [block(held) * wt_v[j::nj, None] for _, block in mine]
         bi, bv = np.hstack(bis), np.hstack(bvs)
@@ -285,6 +291,15 @@ def joint_moments(candidates: list[Candidate], rnd: _Round, ident: _Data, held: 
             cols = slice(k, k + a.shape[1])
             k += a.shape[1]
             out[id(c)] = (proj[:, cols], a.T @ a, ctr[cols], gv[:, cols], cv_res[cols], v.T @ v, None)
+
+    def task(k: int) -> None:
+        if k < nj:
+            one_joint(k)
+        else:
+            c = alone[k - nj]
+            out[id(c)] = _moments(c, rnd, ident, held, wt_i, wt_v)
+
+    each_shared(task, nj + len(alone), "scoring")
     return out
 
 

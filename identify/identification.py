@@ -71,6 +71,11 @@ class IdentifyOptions:
     # them (friction dissipative, inertia and a passive spring's stiffness positive). Empty for
     # `armid identify`: a declared effect is fitted as declared
     nonnegative: tuple[str, ...] = ()
+    # the errors at every input sample (``fit``, ``validation``: the model against the raw
+    # torque) measured; False for a fit wanted for its parameters alone (a load-dependent
+    # friction's first passes, the diagnosis's trial fits): its ``fit`` is then the filtered
+    # equations', and a prediction at every stamp (a regressor of the whole log) is saved
+    stamp_errors: bool = True
 
 
 PRIORS = ("modeled", "none")
@@ -561,9 +566,10 @@ def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     plain = replace(robot, effects=tuple(e for e in robot.effects if e.effect not in LOAD_DEPENDENT))
     with warnings.catch_warnings():  # the final pass warns what there is to warn
         warnings.simplefilter("ignore", PoorExcitationWarning)
-        load = rigid_parameters(_identify(plain, experiments, None, options))
+        passes = replace(options, stamp_errors=False)  # their parameters alone carry on
+        load = rigid_parameters(_identify(plain, experiments, None, passes))
         for _ in range(LOAD_PASSES - 1):
-            load = rigid_parameters(_identify(robot, experiments, None, options, load))
+            load = rigid_parameters(_identify(robot, experiments, None, passes, load))
     result = _identify(robot, experiments, validation, options, load)
     moved = float(np.linalg.norm(rigid_parameters(result) - load) / max(float(np.linalg.norm(load)), 1e-300))
     result.notes.append(f"load-dependent friction: its load the estimate's own rigid-body torque ({LOAD_PASSES} passes from the fit "
@@ -623,7 +629,9 @@ def _identify(robot: Robot, experiments: list[Prepared], validation: list[Prepar
         notes.append(f"standard deviations: batch-means sandwich over blocks of {block} samples (four times the residual's correlation length)")
     result = IdentificationResult(robot, names, effects, base, est, exc, sum(p.n_stamps for p in experiments), fit, notes=notes, factors=factors,
                                   torque_scale=scale, delay_s=delay, motion_delay_s=motion_delay, prior=prior_doc)
-    _measure_errors(result, segments, validation, int(tau.shape[0]))
+    result.fit["equations"] = int(tau.shape[0])
+    if options.stamp_errors:
+        _measure_errors(result, segments, validation, int(tau.shape[0]))
     result.filtering = [p.filtering() for p in experiments]
     return result
 

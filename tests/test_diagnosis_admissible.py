@@ -313,6 +313,39 @@ def test_a_stribeck_peak_below_the_materiality_leaves_its_coulomb_friction(monke
             assert negligible == [] and fit is fits[("stribeck_friction",)]
 
 
+class _Parameters:
+    """What gate (g) reads of an exact trial fit: its parameters by column name."""
+
+    def __init__(self, **values: float) -> None:
+        self.names, self.effects = list(values), []
+        self.values = np.array(list(values.values()))
+
+    def parameter_values(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.values, np.zeros_like(self.values)
+
+
+def test_a_candidate_the_exact_fit_holds_at_its_bound_is_set_aside_in_the_search() -> None:
+    """Gate (g): the search saw a load-dependent friction on joint 3 positive on its blocks;
+    the exact fit on all the identification data holds its ``fl`` at 0 (bounded). It is set
+    aside there, reason ``sign``, so no later round builds on it and the final fit is not
+    made with it (benchmarks/bench_diagnose.py's log had it, and fitted the findings twice:
+    with it, three fixed-point passes, then without it). A positive ``fl`` clears the gate."""
+    candidate = Candidate("load_dependent_coulomb", 2, (), ("fl",), block=lambda d: d.qd[:, 2:3])
+    for fl, held in ((0.0, True), (0.03, False)):
+        search = SimpleNamespace(conflicting=[], present=set(), set_aside=set())
+        search._set_aside = lambda c, search=search: _Search._set_aside(search, c)  # type: ignore[arg-type]
+        trial = Finding("load_dependent_coulomb", 2, {"fl": 0.05}, 0.0, 0.0, 0.0)
+        assert _Search._held_at_bound(search, candidate, trial, _Parameters(fl3=fl)) is held  # type: ignore[arg-type]
+        assert trial.parameters == {"fl": 0.05}  # the search's own finding untouched
+        if held:
+            (x,) = search.conflicting
+            assert (x["effect"], x["joint"], x["reason"], x["parameters"]) == ("load_dependent_coulomb", 3, "sign", {"fl": 0.0})
+            assert search.set_aside == search.present == {("load_dependent_coulomb", 2)}
+            assert "holds fl at 0" in set_aside_sentence(x)
+        else:
+            assert search.conflicting == [] and search.set_aside == set()
+
+
 @pytest.mark.parametrize("index", [1, 3])  # jittered clean blind cases: 200 Hz medium noise, 1 kHz low noise
 def test_the_noise_floor_of_a_jittered_recording_is_the_raw_torques(index: int, tmp_path: Path) -> None:
     """The materiality is judged above the noise floor: a floor read low counts noise as error

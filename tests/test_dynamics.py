@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import threading
+import time
+
 import numpy as np
 import pinocchio as pin
 import pytest
 from conftest import ROBOTS, random_motion, random_robot
 
+from armid.identify import _threads
 from armid.identify import dynamics as dyn
 from armid.identify.pinocchio_bridge import KHOSLA_TO_PINOCCHIO_ORDER, parameter_map, to_pinocchio
 from armid.identify.robot import Inertial, change_link_frame, inertial_from_parameters, link_parameters
@@ -74,6 +78,37 @@ def test_regressor_into_every_kind_of_output_array(n_joints, prismatic_at):  # t
         single = np.empty((n, n_joints, ncol), np.float32)
         dyn.regressor(robot, q, qd, qdd, out=single)
         assert np.abs(single - literal).max() <= 1e-6 * np.abs(literal).max()
+
+
+def test_independent_parts_are_each_done_once_across_the_threads(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``identify._threads.each_shared`` (the diagnosis's joints): every task once, on this
+    thread and the pool's (two threads, as on the 2-core machine, whatever this one has),
+    each task's regressor the one computed alone (a task waits on the regressor's own pool:
+    it must not wait on its own); a task's error is raised after every thread has stopped."""
+    monkeypatch.setattr(_threads, "THREADS", 2)
+    robot = random_robot(6, "dh", None, seed=3)
+    motions = [random_motion(5000, 6, seed=k) for k in range(5)]
+    alone = [dyn.regressor(robot, *m) for m in motions]
+    done: dict[int, tuple[str, np.ndarray]] = {}
+
+    def task(k: int) -> None:
+        done[k] = (threading.current_thread().name, dyn.regressor(robot, *motions[k]))
+
+    _threads.each_shared(task, 5, "scoring")
+    assert sorted(done) == list(range(5))
+    assert all(np.array_equal(done[k][1], alone[k]) for k in range(5))
+    assert done[0][0] == threading.current_thread().name and done[1][0].startswith("armid-scoring")
+    stopped = threading.Event()
+
+    def failing(k: int) -> None:
+        if k == 1:
+            raise ValueError("task 1")
+        time.sleep(0.05)
+        stopped.set()
+
+    with pytest.raises(ValueError, match="task 1"):
+        _threads.each_shared(failing, 3, "scoring")
+    assert stopped.is_set()
 
 
 def test_standard_dh_matrices_are_khoslas_letter_for_letter():  # type: ignore[no-untyped-def]

@@ -1,0 +1,57 @@
+"""The threads that share a large computation's independent parts.
+
+Identify's regressor shares its chunks of samples (:mod:`identify._regressor_lanes`), the
+diagnosis's scoring its joints and candidates (:func:`identify.diagnosis_scoring.round_moments`). The compiled
+kernels and numpy's large operations release the interpreter's lock, so on a machine's cores
+these parts run side by side. Each use has its own pool: a joint's task may compute a
+regressor, and waits for the regressor's pool then, which a shared pool (all of its threads
+busy with joints) would never serve.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+
+import numba
+
+THREADS = max(1, int(getattr(numba.config, "NUMBA_NUM_THREADS", 1)))
+"""Threads that share a large call (numba's thread count: the CPUs, or ``NUMBA_NUM_THREADS``)."""
+
+_POOLS: dict[str, ThreadPoolExecutor] = {}
+_MADE = threading.Lock()
+
+
+def pool(name: str) -> ThreadPoolExecutor:
+    """The process's pool ``armid-<name>``, ``THREADS - 1`` threads (the caller is the other
+    one), made on first use and kept for the process's life."""
+    with _MADE:
+        if name not in _POOLS:
+            _POOLS[name] = ThreadPoolExecutor(max(1, THREADS - 1), thread_name_prefix=f"armid-{name}")
+        return _POOLS[name]
+
+
+def each_shared(task: Callable[[int], None], count: int, name: str) -> None:
+    """``task(k)`` for k in ``range(count)``, dealt round-robin between this thread and pool
+    ``name``'s (in this thread alone on one core). The tasks must be independent. An exception
+    ends its thread's share and is raised here once every thread has stopped: no task outlives
+    the call."""
+    threads = min(THREADS, count)
+    if threads <= 1:
+        for k in range(count):
+            task(k)
+        return
+
+    def share(first: int) -> None:
+        for k in range(first, count, threads):
+            task(k)
+
+    others = [pool(name).submit(share, t) for t in range(1, threads)]
+    try:
+        share(0)
+    finally:
+        for f in others:
+            f.exception()  # waits
+    for f in others:
+        f.result()
