@@ -10,6 +10,7 @@ busy with joints) would never serve.
 
 from __future__ import annotations
 
+import itertools
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -33,18 +34,23 @@ def pool(name: str) -> ThreadPoolExecutor:
 
 
 def each_shared(task: Callable[[int], None], count: int, name: str) -> None:
-    """``task(k)`` for k in ``range(count)``, dealt round-robin between this thread and pool
-    ``name``'s (in this thread alone on one core). The tasks must be independent. An exception
-    ends its thread's share and is raised here once every thread has stopped: no task outlives
-    the call."""
+    """``task(k)`` for k in ``range(count)``, shared between this thread and pool ``name``'s
+    (in this thread alone on one core): each thread takes the next task not yet taken, so
+    that tasks of unequal size (a joint with all 119 cogging periods, one with a few) keep
+    every thread busy; put the largest first. The tasks must be independent. An exception ends
+    its thread's share and is raised here once every thread has stopped: no task outlives the
+    call."""
     threads = min(THREADS, count)
     if threads <= 1:
         for k in range(count):
             task(k)
         return
+    taken = itertools.count()  # next() is atomic under the interpreter's lock
 
-    def share(first: int) -> None:
-        for k in range(first, count, threads):
+    def share(_: int) -> None:
+        for k in iter(taken.__next__, None):
+            if k >= count:
+                return
             task(k)
 
     others = [pool(name).submit(share, t) for t in range(1, threads)]

@@ -59,14 +59,12 @@ tell a spring from the local slope of a ripple longer than that motion.
 from __future__ import annotations
 
 import warnings
-from concurrent.futures import Future
 from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 from scipy import stats
 
-from ._threads import THREADS, pool
 from .diagnosis_candidates import LOOKALIKES, SEPARATE, STRIBECK_VELOCITIES, Candidate, _candidates, _parameters, coulomb
 from .diagnosis_data import _blocks, _Data, _joint_noise_floors, _noise_floor, _noise_levels, _rel, _stack
 from .diagnosis_refit import _refine_delays, _rotate, _settled, _sign_reversed, _trial_fit, _update_parameters, _widening, findings_model
@@ -184,12 +182,7 @@ class _Search:
         self.ident, self.held = _blocks(self.ident_all)
         self.nj = robot.n_joints
         self.robot0 = self.robot = robot
-        warming = self._start_warming()
-        try:
-            self._fit_declared()
-        finally:
-            if warming is not None:
-                warming.exception()  # waits; a column that fails to compute fails again in the round, in this thread
+        self._fit_declared()
         self.sample_period = min(s.parallel.period_s for p in experiments for s in p.segments)  # the input's, before decimation
         self.tilt_total, self.tilt_rounds = np.zeros(2), 0
         self.delay_total: dict[int | None, float] = {}
@@ -226,23 +219,6 @@ class _Search:
         self.noise_sd = _noise_levels(experiments, self.nj)
         self.widening_now = _widening(self.result0)
         self.set_aside: set[tuple[str, int | None]] = set()
-
-    def _start_warming(self) -> Future[None] | None:
-        """The first round's filtered one-joint columns (Coulomb steps, Stribeck peaks, cogging
-        periods at the full rate through the parallel filter: most of a first round's work),
-        computed on another core while the declared model is fitted: they depend on the data
-        alone. None on one core. They share only the data's cache of columns, and the round
-        starts after them."""
-        if THREADS < 2:
-            return None
-        blocks = [c.block for c in _candidates(self.robot, self.ident, set(), {}, self.opts.max_cogging_per_turn)
-                  if c.block is not None and c.effect in ("coulomb_friction", "stribeck_friction", "cogging")]
-
-        def warm() -> None:
-            for block in blocks:
-                block(self.ident), block(self.held)
-
-        return pool("scoring").submit(warm)
 
     def _fit_declared(self) -> None:
         """The declared model exactly as `armid identify` fits it ("before"): its settings, its
@@ -538,7 +514,10 @@ class _Search:
         return repr([(f.effect, f.joint, sorted(f.parameters.items())) for f in found])
 
     def _trial_fit(self, found: list[Finding]) -> IdentificationResult:
-        """``identify``'s fit of the declared model with ``found`` (as gates d and f see it)."""
+        """``identify``'s fit of the declared model with ``found`` (as gates d and f see it);
+        with nothing found, the declared model's own fit (``armid identify``'s)."""
+        if not found:
+            return self.result0
         key = self._key_of(found)
         if key not in self.fits:
             with warnings.catch_warnings():

@@ -130,8 +130,8 @@ class LinkCheck:
 
 
 def check_link(phi_link: Array, link: int) -> LinkCheck:
-    """Which conditions of a physical body the parameters break: mass > 0, pseudo-inertia
-    positive semidefinite, and (when the mass is positive) the inertia about the centre of
+    """Which conditions of a physical body the parameters break (to rounding): mass > 0,
+    pseudo-inertia positive semidefinite, and (when the mass is positive) the inertia about the centre of
     mass positive semidefinite with its principal moments obeying the triangle inequalities."""
     phi_link = np.asarray(phi_link, dtype=float)
     j = pseudo_inertia(phi_link)
@@ -141,7 +141,7 @@ def check_link(phi_link: Array, link: int) -> LinkCheck:
     tol = 1e-12 * float(np.abs(eigs).max())
     out = []
     m = float(phi_link[0])
-    if not m > 0:
+    if not m > -tol:  # a massless link's completion computes -4e-18 kg as readily as +4e-18 (the PUMA 560's first)
         out.append(f"mass {m:.4g} kg is not positive")
     if eig < -tol:
         out.append(f"pseudo-inertia not positive semidefinite (smallest eigenvalue {eig:.3g} kg m^2)")

@@ -83,6 +83,10 @@ PRIORS = ("modeled", "none")
 SEARCH_EQUATIONS = 10_000
 """Equations per joint the grid search of a declared effect's setting scores its tries on."""
 
+STAMPS_KEPT_BYTES = 32 * 2**20
+"""Predictions at the stamps a result keeps (:meth:`IdentificationResult.predict_stamps`):
+a validation log's (12,500 samples of 6 joints: 1.8 MB), not a 20-minute 1 kHz log's."""
+
 PREDICT_BLOCK = 8192
 """Samples whose regressor a prediction holds at once (7 joints: about 40 MB)."""
 
@@ -247,6 +251,9 @@ class IdentificationResult:
     delay_s: Array | None = None
     motion_delay_s: Array | None = None
     prior: dict[str, Any] | None = None  # the prior the estimate used (identify.prior), None for least squares alone
+    # predict_stamps's answers by the segments asked about (held with them: an id is only
+    # unique while its object lives); the estimate is fixed once the result is made
+    _at_stamps: dict[tuple[int, ...], tuple[list[Segment], tuple[Array, Array, Array]]] = field(default_factory=dict, repr=False, compare=False)
 
     def predict(self, segment: Segment) -> Array:
         """Torques (n, N) the identified model predicts for a segment's motion (its grid)."""
@@ -259,11 +266,21 @@ class IdentificationResult:
 
     def predict_stamps(self, segments: list[Segment]) -> tuple[Array, Array, Array]:
         """Time stamps, raw measured torque and the model's torque at every input sample the
-        segments cover, each evaluated at that sample (INTERFACES.md ``--predictions``)."""
+        segments cover, each evaluated at that sample (INTERFACES.md ``--predictions``). Once
+        per list of segments: the errors, the diagnosis's gates and its report read the
+        validation's several times (kept up to ``STAMPS_KEPT_BYTES``). The arrays may be
+        shared, so read-only."""
+        key = tuple(id(s) for s in segments)
+        if key in self._at_stamps:
+            return self._at_stamps[key][1]
         st = [s.at_stamps for s in segments]
         t = np.concatenate([s.t for s in st])
         tau = np.concatenate([s.tau for s in st])
         tau_hat = np.concatenate([s.as_measured(self.predict_times(s.t, s.q, s.qd, s.qdd)) for s in st])
+        for a in (t, tau, tau_hat):
+            a.flags.writeable = False
+        if sum(a.nbytes for a in (t, tau, tau_hat)) + sum(a.nbytes for v in self._at_stamps.values() for a in v[1]) <= STAMPS_KEPT_BYTES:
+            self._at_stamps[key] = (list(segments), (t, tau, tau_hat))
         return t, tau, tau_hat
 
     def predict_times(self, t: Array, q: Array, qd: Array, qdd: Array) -> Array:
@@ -555,8 +572,22 @@ def identify(robot: Robot, experiments: list[Prepared], validation: list[Prepare
     parameters; with its load fixed it is one more column. The load is the model's own
     rigid-body torque, so it is found by fixed-point passes (:data:`LOAD_PASSES`): the fit
     without the effect gives the first load, each fit the next (Gauss-Seidel on the two
-    factors; cheaper than Gauss-Newton on all parameters and, with ``fl`` small, as good)."""
-    options = options or IdentifyOptions()
+    factors; cheaper than Gauss-Newton on all parameters and, with ``fl`` small, as good).
+
+    On one BLAS thread: its factorisations are a few dozen columns wide, and OpenBLAS's
+    threads on them cost more than they share. On the 2-core machine, the 6-joint 100 Hz log
+    of ``benchmarks/bench_diagnose.py`` took 0.6 s on one thread against 0.8-1.2 s on two,
+    and beside two busy cores 0.8 s against 3.5 s; 100,000 samples at 500 Hz
+    (``benchmarks/bench_identify.py``) 2.4 s against 2.3 s."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1, "blas"):
+        return _identify_passes(robot, experiments, validation, options or IdentifyOptions())
+
+
+def _identify_passes(robot: Robot, experiments: list[Prepared], validation: list[Prepared] | None,
+                     options: IdentifyOptions) -> IdentificationResult:
+    """:func:`identify`: one fit, or the load-dependent friction's fixed-point passes."""
     if not any(e.effect in LOAD_DEPENDENT for e in robot.effects):
         return _identify(robot, experiments, validation, options)
     if options.load_parameters is not None:
