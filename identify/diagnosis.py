@@ -67,7 +67,18 @@ from scipy import stats
 
 from .diagnosis_candidates import LOOKALIKES, SEPARATE, STRIBECK_VELOCITIES, Candidate, _candidates, _parameters, coulomb
 from .diagnosis_data import _blocks, _Data, _joint_noise_floors, _noise_floor, _noise_levels, _rel, _stack
-from .diagnosis_refit import _refine_delays, _rotate, _settled, _sign_reversed, _trial_fit, _update_parameters, _widening, findings_model
+from .diagnosis_refit import (
+    _coulomb_level,
+    _merge_offset_into_spring,
+    _refine_delays,
+    _rotate,
+    _settled,
+    _sign_reversed,
+    _trial_fit,
+    _update_parameters,
+    _widening,
+    findings_model,
+)
 from .diagnosis_report import (
     MATERIALITY,
     Diagnosis,
@@ -78,6 +89,7 @@ from .diagnosis_report import (
     set_aside_sentence,
 )
 from .diagnosis_scoring import _Absorbed, _fit_round, _phi_hat, _Round, _score, _Scored, joint_power_after, round_moments
+from .diagnosis_validation import VETO_BLOCKS, _joint_errors, _material_drop, _validation_error, _worse_on_validation
 from .equations import reused_equations
 from .errors import PoorExcitationWarning
 from .identification import (
@@ -750,66 +762,6 @@ class _Search:
                          (valid.tau, before_pred), (valid.tau, after_pred), (t_v, valid.q, valid.qd, valid.qdd), used_v,
                          (np.asarray(t_s), tau_s, after_stamps), noise, self.conflicting,
                          _extrapolated(found, self.ident_all.q, valid.q))
-
-
-def _material_drop(before: float, after: float, floor: float) -> bool:
-    """A drop of a relative error that removes MATERIALITY of its power above the noise floor."""
-    return before**2 - after**2 >= MATERIALITY * max(before**2 - floor**2, 0.0)
-
-
-def _joint_errors(tau: Array, predictions: tuple[Array, Array], floors: Array, j: int) -> tuple[float, float, float]:
-    """Joint j's relative error under each of two predictions at the validation stamps, and
-    its noise floor (0 where the better prediction reaches below it: then it is no floor)."""
-    norm = max(float(np.sqrt(np.sum(tau[:, j] ** 2))), 1e-300)
-    before, after = (float(np.sqrt(np.sum((tau[:, j] - p[:, j]) ** 2))) / norm for p in predictions)
-    floor = float(floors[j]) / norm
-    return before, after, floor if floor < after else 0.0
-
-
-def _coulomb_level(f: Finding) -> Finding | None:
-    """A Stribeck or load-dependent friction finding whose peak or load term the final fit holds
-    at 0, as the Coulomb friction it brings (its ``fc``); None for any other (or no Coulomb level)."""
-    if f.effect not in ("stribeck_friction", "load_dependent_coulomb") or f.parameters.get("fc", 0.0) <= 0.0:
-        return None
-    return Finding("coulomb_friction", f.joint, {"fc": f.parameters["fc"]}, f.explained, f.error_before, f.error_after)
-
-
-def _validation_error(result: IdentificationResult) -> float:
-    """``result``'s relative_error on the validation data (INTERFACES.md 'Metrics')."""
-    assert result.validation is not None
-    return float(result.validation["relative_error"])
-
-
-VETO_BLOCKS = 10
-"""Gate (f) judges a finding on the validation data's consecutive tenths."""
-
-
-def _worse_on_validation(before: Array, after: Array, joint: int | None, blocks: int = VETO_BLOCKS) -> float:
-    """How consistently a finding raises the validation's squared error (its joint's, or the
-    arm's): the t statistic of the rise summed over ``blocks`` consecutive blocks, by batch
-    means (neighbouring samples are not independent; whole blocks nearly are). A real effect
-    that extrapolates a little worse moves a few blocks (t about 1); a finding the other run
-    contradicts raises most of them."""
-    cols = slice(None) if joint is None else [joint]
-    rise = np.sum(after[:, cols] ** 2 - before[:, cols] ** 2, axis=1)
-    sums = np.array([b.sum() for b in np.array_split(rise, blocks)])
-    spread = float(np.std(sums, ddof=1)) * np.sqrt(blocks)
-    return float(np.sum(sums) / spread) if spread > 0 else 0.0
-
-
-def _merge_offset_into_spring(found: list[Finding], chosen: list[Candidate]) -> tuple[list[Finding], list[Candidate]]:
-    """An offset found first and a spring on the same joint later are one spring off zero."""
-    drop = set()
-    for k, f in enumerate(found):
-        if f.effect != "spring":
-            continue
-        for m, g in enumerate(found[:k]):
-            if g.effect == "torque_offset" and g.joint == f.joint:
-                f.error_before, f.explained = g.error_before, 1.0 - (1.0 - g.explained) * (1.0 - f.explained)
-                drop.add(m)
-    keep = [k for k in range(len(found)) if k not in drop]
-    # the offset's columns stay in the model (the spring's parameters include them)
-    return [found[k] for k in keep], chosen
 
 
 def _moving(d: _Data, opts: DiagnoseOptions) -> Array:

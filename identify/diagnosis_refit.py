@@ -5,8 +5,9 @@ tilted gravity, a torque scale, delays): declaring the same in the robot file gi
 fit. Around it: the exact fits the search's gates (d) and (f) read (:func:`_trial_fit`), the
 declared settings fixed at what the data chose (:func:`_settled`), each found delay refined
 on the exact model (:func:`_refine_delays`), the findings' parameters as the final fit gives
-them (:func:`_update_parameters`) and the findings whose sign that fit turns
-(:func:`_sign_reversed`).
+them (:func:`_update_parameters`), the findings whose sign that fit turns
+(:func:`_sign_reversed`) and what is left of one (:func:`_coulomb_level`: a Stribeck or
+load term held at 0 leaves its Coulomb level; :func:`_merge_offset_into_spring`).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .diagnosis_candidates import DISSIPATIVE, DISSIPATIVE_PARAMETER
+from .diagnosis_candidates import DISSIPATIVE, DISSIPATIVE_PARAMETER, Candidate
 from .diagnosis_report import Finding
 from .identification import IdentificationResult, IdentifyOptions, identify
 from .preprocess import Prepared
@@ -185,3 +186,26 @@ def _update_parameters(found: list[Finding], result: IdentificationResult) -> No
         for e in result.effects:  # the Coulomb smoothing chosen on the data
             if e.effect == f.effect and e.joint == f.joint and e.setting and f.effect == "coulomb_friction":
                 f.parameters.update({k: float(v) for k, v in e.setting})
+
+
+def _coulomb_level(f: Finding) -> Finding | None:
+    """A Stribeck or load-dependent friction finding whose peak or load term the final fit holds
+    at 0, as the Coulomb friction it brings (its ``fc``); None for any other (or no Coulomb level)."""
+    if f.effect not in ("stribeck_friction", "load_dependent_coulomb") or f.parameters.get("fc", 0.0) <= 0.0:
+        return None
+    return Finding("coulomb_friction", f.joint, {"fc": f.parameters["fc"]}, f.explained, f.error_before, f.error_after)
+
+
+def _merge_offset_into_spring(found: list[Finding], chosen: list[Candidate]) -> tuple[list[Finding], list[Candidate]]:
+    """An offset found first and a spring on the same joint later are one spring off zero."""
+    drop = set()
+    for k, f in enumerate(found):
+        if f.effect != "spring":
+            continue
+        for m, g in enumerate(found[:k]):
+            if g.effect == "torque_offset" and g.joint == f.joint:
+                f.error_before, f.explained = g.error_before, 1.0 - (1.0 - g.explained) * (1.0 - f.explained)
+                drop.add(m)
+    keep = [k for k in range(len(found)) if k not in drop]
+    # the offset's columns stay in the model (the spring's parameters include them)
+    return [found[k] for k in keep], chosen
