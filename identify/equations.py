@@ -111,8 +111,7 @@ def _through(filt: ParallelFilter, x: Array, keep: bool = True) -> Array:
 
 def _into_system(system: Array, start: int, m: Array, seg: Segment, n_rigid: int, rigid: list[Array] | None = None) -> tuple[int, list[Array]]:
     """Joint by joint, the segment's equations ``m`` (n, N, p+1) through its parallel filter
-    into ``system[j, :, start:]`` (no intermediate copy of all joints), transposed in blocks of
-    512 samples that stay in cache. The first ``n_rigid`` columns (the rigid body's) are
+    into ``system[j, :, start:]`` (no intermediate copy of all joints). The first ``n_rigid`` columns (the rigid body's) are
     filtered apart from the others, or taken from ``rigid`` (each joint's, filtered before).
     Returns the equations written and each joint's filtered rigid-body rows."""
     filt = seg.parallel
@@ -123,10 +122,17 @@ def _into_system(system: Array, start: int, m: Array, seg: Segment, n_rigid: int
         rows_rest = _through(filt, m[:, j, n_rigid:])
         done.append(rows_rigid)
         n = rows_rest.shape[0]
-        for first, rows in ((0, rows_rigid), (n_rigid, rows_rest)):
-            for b in range(0, n, 512):
-                system[j, first : first + rows.shape[1], start + b : start + min(b + 512, n)] = rows[b : b + 512].T
+        _write_rows(system, j, start, 0, rows_rigid)
+        _write_rows(system, j, start, n_rigid, rows_rest)
     return n, done
+
+
+def _write_rows(system: Array, j: int, start: int, first: int, rows: Array) -> None:
+    """Joint j's equations ``rows`` (n, k) into ``system[j, first : first + k, start:]``,
+    transposed in blocks of 512 samples that stay in cache."""
+    n = rows.shape[0]
+    for b in range(0, n, 512):
+        system[j, first : first + rows.shape[1], start + b : start + min(b + 512, n)] = rows[b : b + 512].T
 
 
 @dataclass
@@ -137,6 +143,7 @@ class _Reused:
 
     rigid: dict[tuple[Any, ...], list[Array]] = field(default_factory=dict)
     columns: dict[tuple[Any, ...], Array] = field(default_factory=dict)
+    joint_rest: dict[tuple[Any, ...], Array] = field(default_factory=dict)  # a joint's filtered effect columns and torque
     segments: dict[int, Segment] = field(default_factory=dict)
     bytes: int = 0
 
@@ -198,6 +205,8 @@ def _segment_into_system(system: Array, start: int, robot: Robot, effects: list[
         reused = _REUSED.get() if motion_delay is None else None  # a late report's equations: one delay's try each
         key = None if reused is None else reused.key(seg, _kinematics_key(robot))
         rigid = None if reused is None else reused.rigid.get(key)  # type: ignore[arg-type]
+        if reused is not None and rigid is not None:
+            return _reused_into_system(system, start, robot, effects, seg, scale, delay, reused, rigid)
         m = equations(robot, effects, seg, scale, delay, motion_delay, rigid=rigid is None)
         written, rows = _into_system(system, start, m, seg, robot.n_parameters, rigid)
         if reused is not None and rigid is None:
@@ -216,6 +225,61 @@ def _segment_into_system(system: Array, start: int, robot: Robot, effects: list[
             system[j, :, start + written : start + written + mine.size] = _through(filt, m[:, j, :], keep=False)[mine].T
         written += mine.size
     return written
+
+
+def _reused_into_system(system: Array, start: int, robot: Robot, effects: list[LinearEffect], seg: Segment, scale: Array | None,
+                        delay: Array | None, reused: _Reused, rigid: list[Array]) -> int:
+    """The segment's equations as :func:`_into_system` writes them, from what earlier fits
+    filtered: each joint's rigid-body rows, and its effect columns and torque, kept by the
+    effects on that joint and its torque's scale and delay. A diagnosis's fits differ by a
+    finding on one joint, so the other joints' columns are neither computed nor filtered
+    again. A joint's columns go through the filter together, as in :func:`_through` (the same
+    numbers to the bit). Returns the equations written."""
+    nj, n_rigid = robot.n_joints, robot.n_parameters
+    first = n_rigid + np.cumsum([0] + [len(e.parameter_names) for e in effects])  # each effect's first column
+    n_cols = int(first[-1])
+    tau: Array | None = None
+    n = rigid[0].shape[0]
+    for j in range(nj):
+        mine = [k for k, e in enumerate(effects) if e.joint == j]
+        key = reused.key(seg, "joint", j, tuple(_column_key(effects[k]) for k in mine),
+                         None if scale is None else float(scale[j]), None if delay is None else float(delay[j]))
+        rows = reused.joint_rest.get(key)
+        if rows is None:
+            if tau is None:
+                tau = seg.tau if scale is None and delay is None else _model_torque(seg.tau, seg.t, scale, delay)
+            rows = _joint_rest(robot, [effects[k] for k in mine], seg, tau, j)
+            reused.keep(reused.joint_rest, key, rows, rows.nbytes)
+        rest = np.zeros((n, n_cols - n_rigid + 1))
+        k0 = 0
+        for k in mine:
+            width = len(effects[k].parameter_names)
+            rest[:, first[k] - n_rigid : first[k] - n_rigid + width] = rows[:, k0 : k0 + width]
+            k0 += width
+        rest[:, -1] = rows[:, -1]
+        _write_rows(system, j, start, 0, rigid[j])
+        _write_rows(system, j, start, n_rigid, rest)
+    return n
+
+
+def _joint_rest(robot: Robot, mine: list[LinearEffect], seg: Segment, tau: Array, j: int) -> Array:
+    """(n, k + 1): joint j's effect columns (``mine``, all on joint j) and its torque, through
+    the segment's parallel filter as :func:`equations` and :func:`_through` put them."""
+    filt = seg.parallel
+    q, qd, qdd = seg.q, seg.qd, seg.qdd
+    if filt.cutoff_hz is None:
+        idx = filt.kept(seg.n_samples)
+        q, qd, qdd, tau = q[idx], qd[idx], qdd[idx], tau[idx]
+    cols = effect_columns(mine, q, qd, qdd)[:, j, :] if mine else np.zeros((q.shape[0], 0))
+    return _through(filt, np.column_stack([cols, tau[:, j]]))
+
+
+def _column_key(effect: LinearEffect) -> tuple[Any, ...]:
+    """What an effect's columns are a function of (:func:`_effect_key`), a load-dependent
+    friction's load included (its parameters and the robot whose torque it is)."""
+    if isinstance(effect, LoadFriction):
+        return (*_effect_key(effect), effect.setting, effect.load_parameters, effect.follows_coulomb, _kinematics_key(effect.robot))
+    return (*_effect_key(effect), effect.setting)
 
 
 def _system(robot: Robot, effects: list[LinearEffect], segments: list[Segment], scale: Array | None = None, delay: Array | None = None,

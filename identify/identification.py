@@ -255,6 +255,10 @@ class IdentificationResult:
     # unique while its object lives); the estimate is fixed once the result is made
     _at_stamps: dict[tuple[int, ...], tuple[list[Segment], tuple[Array, Array, Array]]] = field(default_factory=dict, repr=False, compare=False)
 
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickled without the predictions kept (they hold the segments asked about)."""
+        return {**self.__dict__, "_at_stamps": {}}
+
     def predict(self, segment: Segment) -> Array:
         """Torques (n, N) the identified model predicts for a segment's motion (its grid)."""
         return self.predict_motion(segment.q, segment.qd, segment.qdd)

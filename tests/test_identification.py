@@ -63,6 +63,32 @@ def test_noise_free_validation_error_below_1e6(tmp_path):  # type: ignore[no-unt
         assert (p["value"] is None) == (p["identifiability"] != "unique")
 
 
+def test_predictions_at_the_stamps_are_kept_read_only_and_not_pickled(tmp_path):  # type: ignore[no-untyped-def]
+    """A result computes its prediction at a list of segments' stamps once (the diagnosis's
+    gates and report read the validation's again): the same arrays each time, read-only so
+    that no caller can change what the next one reads, equal to a fresh result's, and left
+    out of a pickle (they hold the segments)."""
+    import pickle
+
+    from armid.identify.identification import identify
+    from armid.identify.preprocess import prepare
+    from armid.io.recordings import read_recording
+
+    robot = load_robot(ROBOTS / "puma560.yaml")
+    _simulate(ROBOTS / "puma560.yaml", tmp_path / "a.csv", seed=3, noise=0.01)
+    _simulate(ROBOTS / "puma560.yaml", tmp_path / "b.csv", seed=4, noise=0.01)
+    ident, valid = (prepare(read_recording(tmp_path / f"{n}.csv", robot), robot) for n in ("a", "b"))
+    result = identify(robot, [ident], [valid])
+    segments = list(valid.segments)
+    first, again = result.predict_stamps(segments), result.predict_stamps(list(valid.segments))
+    assert all(a is b for a, b in zip(first, again)) and not any(a.flags.writeable for a in first)
+    with pytest.raises(ValueError):
+        first[2][0, 0] = 0.0
+    fresh = pickle.loads(pickle.dumps(result))
+    assert fresh._at_stamps == {}
+    assert all(np.array_equal(a, b) for a, b in zip(fresh.predict_stamps(segments), first))
+
+
 @pytest.mark.parametrize("seed", [5, 6])
 def test_noisy_estimates_within_three_sigma(tmp_path, seed):  # type: ignore[no-untyped-def]
     robot_file = ROBOTS / "puma560.yaml"
@@ -408,3 +434,37 @@ def test_the_lag_window_covariance_matches_the_exact_one_where_batch_means_fall_
         batch += np.diag(batch_means_covariance(bread, a * r[:, None], 8)) / draws
     assert np.all(np.abs(lag_window / exact - 1) < 0.03), lag_window / exact
     assert np.all(batch / exact < 0.96), batch / exact  # what the single-link steps used before
+
+
+def test_fits_that_reuse_earlier_fits_equations_build_the_same_system() -> None:
+    """Within ``reused_equations`` (the diagnosis's dozen fits of one recording), a fit takes
+    each joint's filtered rigid-body rows, effect columns and torque from the fits before it
+    and computes only what changed: a finding's columns on one joint, a drive gain or delay on
+    one joint's torque, a load-dependent friction's load. Each system must be the one built
+    from nothing, to the bit, with and without a low-pass."""
+    from armid.identify import equations
+    from armid.identify import identification as ident
+    from armid.identify.effects import linear_effect, load_friction
+    from armid.identify.filtering import ParallelFilter
+    from armid.identify.preprocess import Segment
+
+    robot = load_robot(ROBOTS / "puma560.yaml")
+    rng = np.random.default_rng(4)
+    t = np.arange(3_000) * 0.002
+    w = 2 * np.pi * np.array([0.3, 0.7, 1.1])
+    a = rng.normal(0.0, 0.5, (3, robot.n_joints))
+    q, qd, qdd = np.sin(np.outer(t, w)) @ a, (np.cos(np.outer(t, w)) * w) @ a, -(np.sin(np.outer(t, w)) * w**2) @ a
+    tau = rng.normal(0.0, 1.0, q.shape)
+    declared = ident.declared_effects(robot)
+    load = load_friction(robot, 2, rng.normal(size=robot.n_parameters), smoothing=0.01)
+    fits = [(declared, None, None), (declared + [linear_effect("spring", 3)], None, None),
+            (declared + [linear_effect("spring", 3)], np.array([1, 1, 1, 0.8, 1, 1.0]), None),
+            (declared + [load], None, np.array([0, 0.004, 0, 0, 0, 0.0])), (declared + [load, linear_effect("viscous_friction", 1)], None, None),
+            (declared, None, None)]
+    for filt in (ParallelFilter(0.002, cutoff_hz=4.0, decimation=5), ParallelFilter(0.002, cutoff_hz=None, decimation=2)):
+        segs = [Segment("<a>", t[:1700], q[:1700], qd[:1700], qdd[:1700], tau[:1700], filter=filt),
+                Segment("<b>", t[1700:], q[1700:], qd[1700:], qdd[1700:], tau[1700:], filter=filt)]
+        with equations.reused_equations():
+            kept = [equations._system(robot, e, segs, scale, delay) for e, scale, delay in fits]
+        for (e, scale, delay), system in zip(fits, kept):
+            assert np.array_equal(system, equations._system(robot, e, segs, scale, delay))
