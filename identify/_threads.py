@@ -47,15 +47,13 @@ def each_shared(task: Callable[[int], None], count: int, name: str) -> None:
         return
     taken = itertools.count()  # next() is atomic under the interpreter's lock
 
-    def share(_: int) -> None:
-        for k in iter(taken.__next__, None):
-            if k >= count:
-                return
+    def share() -> None:
+        while (k := next(taken)) < count:
             task(k)
 
-    others = [pool(name).submit(share, t) for t in range(1, threads)]
+    others = [pool(name).submit(share) for _ in range(1, threads)]
     try:
-        share(0)
+        share()
     finally:
         for f in others:
             f.exception()  # waits
