@@ -3,7 +3,7 @@ process of its own, as a real chain is: the driver's process cannot stall it.
 
 This is the top layer's: the child reads the rig file (``armid.io``) and starts the simulated
 hardware on the parsed rig, so that ``sim_bus`` parses no file. Requests (``inject``,
-``status``, ``table``) go as JSON lines over the child's stdin and stdout.
+``status``, ``collector``, ``table``) go as JSON lines over the child's stdin and stdout.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from armid.sim_bus.servo_chain import SimulatedServoChain
 
 class ServoChainProcess:
     """A :class:`SimulatedServoChain` in a process of its own, like a real chain: the
-    driver's process cannot stall it. Requests (``inject``, ``status``, ``table``) go as
+    driver's process cannot stall it. Requests (``inject``, ``status``, ``collector``, ``table``) go as
     JSON lines over the child's stdin and stdout."""
 
     def __init__(self, rig_file: str, seed: int | None = None, start_timeout: float = 60.0) -> None:
@@ -56,6 +56,10 @@ class ServoChainProcess:
     def status(self) -> dict[str, Any]:
         return self._ask("status")  # type: ignore[no-any-return]
 
+    def collector(self) -> dict[str, int]:
+        """The chain process's garbage collector: objects frozen at start-up, objects a full collection walks."""
+        return self._ask("collector")  # type: ignore[no-any-return]
+
     def table(self, servo_id: int, address: int, length: int) -> bytes:
         return bytes(self._ask("table", servo_id, address, length))
 
@@ -80,6 +84,7 @@ class ServoChainProcess:
 def serve(rig_file: str, seed: int | None = None) -> None:
     """Run a chain and answer JSON-line requests on stdin until it closes (ServoChainProcess).
     The rig file is read here, in the top layer: the simulated hardware takes a parsed rig."""
+    import gc
     import json
     import sys
 
@@ -95,12 +100,14 @@ def serve(rig_file: str, seed: int | None = None) -> None:
 
     # hardware answers in hardware time: the chain's threads at real-time priority where
     # allowed, above the master's (drivers.realtime.HARDWARE_ABOVE)
-    ProcessSettings().realtime(hardware=True)  # held until this process ends
+    settings = ProcessSettings()
+    settings.realtime(hardware=True)  # held until this process ends
     try:
         chain = SimulatedServoChain(load_rig(rig_file), seed=seed)
     except Exception as err:
         say({"error": f"{type(err).__name__}: {err}"})
         return
+    settings.freeze()  # a full collection of this process took 30-34 ms: replies that long late (held until it ends)
     say({"port": chain.port})
     try:
         for line in sys.stdin:
@@ -111,6 +118,8 @@ def serve(rig_file: str, seed: int | None = None) -> None:
                     say({"value": None})
                 elif what == "status":
                     say({"value": chain.status()})
+                elif what == "collector":  # what a full collection walks, against what start-up froze
+                    say({"value": {"frozen": gc.get_freeze_count(), "walked": len(gc.get_objects())}})
                 elif what == "table":
                     servo_id, address, length = args
                     with chain._lock:
