@@ -275,7 +275,7 @@ class DynamixelDriver(Driver):
             raise
         timing = self._settings.realtime()  # the port's thread, started next, inherits it
         # a full collection of the master's process held the interpreter for 80-155 ms (the
-        # excitation command's, measured beside one busy core): 10 to 20 cycles without a read.
+        # excitation command's, measured beside one busy core): 40 to 77 periods without a read.
         # What exists after start-up is never garbage (CanopenDriver.start does the same)
         self._settings.freeze()
         self.timing_note = timing.sentence("the port's cycle thread")

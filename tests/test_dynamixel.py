@@ -267,8 +267,8 @@ def test_full_cycle_six_servos_reads_the_arm_and_commands_reach_the_servos(chain
 
 def test_full_collections_walk_only_what_came_after_start_up_on_both_ends(chain: ServoChainProcess) -> None:
     """A full collection walked every object of the process and held the interpreter for
-    30-34 ms in the chain, 80-155 ms in the excitation command: 4 to 20 cycles without a read,
-    the stop beside a busy core (issue 31). Start-up freezes what exists: a collection then
+    30-34 ms in the chain (4 reply windows of 8 ms missed), 80-155 ms in the excitation
+    command (40 to 77 periods of 2 ms without a read): the stop beside a busy core (issue 31). Start-up freezes what exists: a collection then
     walks what came after it."""
     import gc
 
