@@ -11,6 +11,7 @@ from __future__ import annotations
 import select
 from typing import Any
 
+from armid.drivers.rig import Rig
 from armid.schema.errors import SimulationError
 from armid.sim_bus.servo_chain import SimulatedServoChain
 
@@ -81,6 +82,21 @@ class ServoChainProcess:
         self.close()
 
 
+def chain_as_hardware(rig: Rig, seed: int | None = None) -> SimulatedServoChain:
+    """A chain standing in for servos in this process, which it then has to itself until the
+    process ends: hardware answers in hardware time, so its threads run at real-time priority
+    where allowed, above a master's (:data:`~drivers.realtime.HARDWARE_ABOVE`), and what exists
+    once it is built is frozen (a full collection of this process took 30-34 ms, and every
+    reply waited that long)."""
+    from armid.drivers.interface import ProcessSettings
+
+    settings = ProcessSettings()
+    settings.realtime(hardware=True)
+    chain = SimulatedServoChain(rig, seed=seed)
+    settings.freeze()
+    return chain
+
+
 def serve(rig_file: str, seed: int | None = None) -> None:
     """Run a chain and answer JSON-line requests on stdin until it closes (ServoChainProcess).
     The rig file is read here, in the top layer: the simulated hardware takes a parsed rig."""
@@ -96,18 +112,11 @@ def serve(rig_file: str, seed: int | None = None) -> None:
     # the line's thread takes the interpreter from the physics' within half a millisecond
     # of a request (the default 5 ms switch interval would hold the reply that long)
     sys.setswitchinterval(0.0001)
-    from armid.drivers.interface import ProcessSettings
-
-    # hardware answers in hardware time: the chain's threads at real-time priority where
-    # allowed, above the master's (drivers.realtime.HARDWARE_ABOVE)
-    settings = ProcessSettings()
-    settings.realtime(hardware=True)  # held until this process ends
     try:
-        chain = SimulatedServoChain(load_rig(rig_file), seed=seed)
+        chain = chain_as_hardware(load_rig(rig_file), seed)
     except Exception as err:
         say({"error": f"{type(err).__name__}: {err}"})
         return
-    settings.freeze()  # a full collection of this process took 30-34 ms: replies that long late (held until it ends)
     say({"port": chain.port})
     try:
         for line in sys.stdin:

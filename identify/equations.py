@@ -111,8 +111,9 @@ def _through(filt: ParallelFilter, x: Array, keep: bool = True) -> Array:
 
 def _into_system(system: Array, start: int, m: Array, seg: Segment, n_rigid: int, rigid: list[Array] | None = None) -> tuple[int, list[Array]]:
     """Joint by joint, the segment's equations ``m`` (n, N, p+1) through its parallel filter
-    into ``system[j, :, start:]`` (no intermediate copy of all joints). The first ``n_rigid`` columns (the rigid body's) are
-    filtered apart from the others, or taken from ``rigid`` (each joint's, filtered before).
+    into ``system[j, :, start:]`` (no intermediate copy of all joints). The first ``n_rigid``
+    columns (the rigid body's) are filtered apart from the others, or taken from ``rigid``
+    (each joint's, filtered before).
     Returns the equations written and each joint's filtered rigid-body rows."""
     filt = seg.parallel
     n = 0

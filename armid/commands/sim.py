@@ -50,13 +50,9 @@ def _sim_arm(rig: Any, args: argparse.Namespace, stop: Any) -> int:
 def _sim_chain(rig: Any, args: argparse.Namespace, stop: Any) -> int:
     """A Dynamixel rig: the simulated servo chain on a pty; the driver opens the printed port."""
 
-    from armid.drivers.interface import ProcessSettings
-    from armid.sim_bus.servo_chain import SimulatedServoChain
+    from armid.chain_process import chain_as_hardware
 
-    settings = ProcessSettings()
-    settings.realtime(hardware=True)  # hardware answers in hardware time, above its master (until this process ends)
-    chain = SimulatedServoChain(rig, seed=args.seed)
-    settings.freeze()  # see armid.chain_process.serve: no full collection of the start-up's objects while serving
+    chain = chain_as_hardware(rig, args.seed)
     print(f"armid sim: {rig.name}: {rig.n_joints} Dynamixel servos (ids {', '.join(str(d.node_id) for d in rig.drives)}) "
           f"at {rig.bus.bitrate:,} baud on {chain.port}", file=sys.stderr, flush=True)
     print(chain.port, flush=True)
