@@ -120,7 +120,10 @@ def _settled(robot: Robot, result: IdentificationResult) -> Robot:
     out = []
     for e in robot.effects:
         for j in range(1, robot.n_joints + 1) if e.joint is None else [e.joint]:
-            out.append(DeclaredEffect(e.effect, j, {**e.options, **chosen.get((e.effect, j - 1), {})}))
+            options = {**e.options, **chosen.get((e.effect, j - 1), {})}
+            if isinstance(options.get("modeled"), list):  # one value per joint, for ``joint: null``
+                options["modeled"] = options["modeled"][j - 1]
+            out.append(DeclaredEffect(e.effect, j, options))
     return replace(robot, effects=tuple(out))
 
 

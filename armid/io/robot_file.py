@@ -265,6 +265,8 @@ def _effects(doc: Any, n_joints: int, src: str) -> list[DeclaredEffect]:
         joint = e.get("joint")
         if joint is not None and (isinstance(joint, bool) or not isinstance(joint, int) or not 1 <= joint <= n_joints):
             raise RobotFileError(src, _field(where, "joint"), f"must be a joint number 1..{n_joints} or null (all joints), got {joint!r}")
+        if "modeled" in e:
+            _modeled_effect(e["modeled"], name, n_joints if joint is None else 1, src, _field(where, "modeled"))
         out.append(DeclaredEffect(name, joint, {k2: v for k2, v in e.items() if k2 not in ("effect", "joint")}))
     gains = {j for e in out if e.effect in PROFILED for j in (range(1, n_joints + 1) if e.joint is None else [e.joint])}
     if n_joints > 0 and len(gains) == n_joints:
@@ -273,6 +275,26 @@ def _effects(doc: Any, n_joints: int, src: str) -> list[DeclaredEffect]:
                              "motion alone (every torque and every parameter scaled alike fit equally); declare it on at most "
                              f"{n_joints - 1} joints (the others' torque constants set the scale), or use a torque reference")
     return out
+
+
+MODELED_EFFECTS = {"viscous_friction": True, "coulomb_friction": True, "rotor_inertia": True, "torque_offset": False, "spring": False}
+"""Effects that may carry a modeled value (one parameter each: a datasheet's reflected rotor
+inertia, a known friction), and whether it must be >= 0. The single-link sequence takes it
+for what an experiment cannot separate (identify.single_link.held_motion_torque)."""
+
+
+def _modeled_effect(value: Any, name: str, count: int, src: str, where: str) -> None:
+    """An effect's modeled value: one number (one joint), or one per joint for ``joint: null``."""
+    if name not in MODELED_EFFECTS:
+        raise RobotFileError(src, where, f"{name} takes no modeled value (one is read for: {', '.join(MODELED_EFFECTS)})")
+    values = value if isinstance(value, list) else [value]
+    if len(values) != count:
+        raise RobotFileError(src, where, f"needs {'one number' if count == 1 else f'a number per joint ({count})'}, got {value!r}")
+    for v in values:
+        if isinstance(v, bool) or not isinstance(v, int | float) or not np.isfinite(v):
+            raise RobotFileError(src, where, f"must be finite numbers, got {v!r}")
+        if MODELED_EFFECTS[name] and v < 0:
+            raise RobotFileError(src, where, f"must be >= 0 (no friction or inertia is negative), got {v!r}")
 
 
 def _joint_axis(jm: Any, revolute: bool) -> np.ndarray:
