@@ -54,6 +54,7 @@ SIMULATED_PRODUCT_CODE = 0x41524D53  # 0x1018:2 of armid's simulated drive ("ARM
 CONTROLWORD_REFRESH = 25
 PACE_WAIT_S = 0.05
 STALL_S = 0.05  # a watchdog call this late means this process (not the bus) was stalled
+STALL_WAIT_S = 10.0  # co-simulation: how long a read waits on through stalls of this process
 BUS_SILENT_S = 1.0  # nothing at all read from the bus for this long: every drive is lost (or this process's reader is)
 TARGET_POSITION = (0x607A, 0, 32)
 EMCY_BYTES = 8  # CiA 301: error code (2), error register (1), manufacturer data (5)
@@ -679,9 +680,43 @@ class CanopenDriver(Driver):
             self._ack.notify_all()
 
     def read(self, timeout: float | None = None) -> Sample:
+        """The next cycle's sample. With the arm simulated in this process (co-simulation), a
+        wait that ends while this process itself was not running (its SYNC thread silent as
+        long) waits on, up to :data:`STALL_WAIT_S` in all: the arm waited too, and nothing is
+        lost (a demo beside two busy loops stopped on "no cycle within 1.0 s" after 1.7-1.8 s in
+        which no thread of the process ran). Otherwise the timeout names the stall when there
+        was one."""
         if self._faults.empty() and self.network is not None:
             self.network.check()
-        return self._next_sample(timeout, "is SYNC running and the bus up?")
+        started = time.monotonic()
+        wait = timeout if timeout is not None else 10 * self.period_s + 1.0
+        while True:
+            began, cycle = time.monotonic(), self._cycle
+            try:
+                return self._next_sample(timeout, "is SYNC running and the bus up?")
+            except DriveFault:
+                raise
+            except DriverError as err:
+                stall = self._own_silence(wait, time.monotonic() - began, self._cycle - cycle)
+                if not stall or self._stop.is_set():
+                    raise
+                if not (self.paced_by_consumer and self._thread is not None and self._thread.is_alive()
+                        and time.monotonic() - started < STALL_WAIT_S):
+                    raise DriverError(f"{err}; {stall_sentence(stall)}") from None
+                self._event("stall", f"no cycle for {time.monotonic() - started:.2f} s: {stall_sentence(stall)}; the simulated arm waited")
+
+    def _own_silence(self, wait: float, waited: float, syncs: int) -> float:
+        """How long this process's SYNC thread did not run, where that explains ``waited``
+        seconds without a cycle (0 where it ran): fewer SYNCs sent meanwhile than even a paced
+        thread sends (one per :data:`PACE_WAIT_S`), silent still, or back from a stall it measured.
+        A SYNC the bus itself sends (SocketCAN's broadcast manager) tells nothing of this process."""
+        if self._thread is None:
+            return 0.0
+        now = time.monotonic()
+        when, stall = self.last_stall
+        longest = max(now - self.last_sync_sent, stall if now - when < wait + 0.5 else 0.0,
+                      waited - syncs * PACE_WAIT_S if syncs < 0.5 * waited / PACE_WAIT_S else 0.0)
+        return longest if longest > 0.5 * wait else 0.0
 
     def command_torque(self, torque: Array) -> None:
         tau = np.asarray(torque, float)
