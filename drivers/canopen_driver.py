@@ -42,7 +42,7 @@ from ..resources import config_file
 from .cia_codes import NMT_OPERATIONAL, NMT_STATES, OPERATION_ENABLED, PDO_FORMATS, STATE_MASK, emcy_meaning, is_signed
 from .interface import CycleClock, CycleHeartbeat, Driver, ProcessSettings, bus_time
 from .pdo_plan import PLANS, PdoSpec, check_bus_budget
-from .realtime import stall_sentence
+from .realtime import silent_for, stall_sentence
 from .rig import Rig, current_of, open_bus, permille_of
 from .udp_filter import drop_own_frames, master_frames
 
@@ -680,16 +680,12 @@ class CanopenDriver(Driver):
             self._ack.notify_all()
 
     def read(self, timeout: float | None = None) -> Sample:
-        """The next cycle's sample. With the arm simulated in this process (co-simulation), a
-        wait that ends while this process itself was not running (its SYNC thread silent as
-        long) waits on, up to :data:`STALL_WAIT_S` in all: the arm waited too, and nothing is
-        lost (a demo beside two busy loops stopped on "no cycle within 1.0 s" after 1.7-1.8 s in
-        which no thread of the process ran). Otherwise the timeout names the stall when there
-        was one."""
+        """The next cycle's sample. With the arm simulated in this process, a wait that ends while
+        this process's SYNC thread was as silent waits on (up to :data:`STALL_WAIT_S`): the arm
+        waited too (:func:`~drivers.realtime.silent_for`). Elsewhere the timeout names the stall."""
         if self._faults.empty() and self.network is not None:
             self.network.check()
         started = time.monotonic()
-        wait = timeout if timeout is not None else 10 * self.period_s + 1.0
         while True:
             began, cycle = time.monotonic(), self._cycle
             try:
@@ -697,26 +693,14 @@ class CanopenDriver(Driver):
             except DriveFault:
                 raise
             except DriverError as err:
-                stall = self._own_silence(wait, time.monotonic() - began, self._cycle - cycle)
-                if not stall or self._stop.is_set():
+                wait = timeout if timeout is not None else 10 * self.period_s + 1.0
+                thread = self._thread  # None: the bus sends SYNC itself, and tells nothing of this process
+                stall = 0.0 if thread is None else silent_for(self.last_sync_sent, self.last_stall, wait, began, self._cycle - cycle, PACE_WAIT_S)
+                if thread is None or not stall or self._stop.is_set():
                     raise
-                if not (self.paced_by_consumer and self._thread is not None and self._thread.is_alive()
-                        and time.monotonic() - started < STALL_WAIT_S):
+                if not (self.paced_by_consumer and thread.is_alive() and time.monotonic() - started < STALL_WAIT_S):
                     raise DriverError(f"{err}; {stall_sentence(stall)}") from None
                 self._event("stall", f"no cycle for {time.monotonic() - started:.2f} s: {stall_sentence(stall)}; the simulated arm waited")
-
-    def _own_silence(self, wait: float, waited: float, syncs: int) -> float:
-        """How long this process's SYNC thread did not run, where that explains ``waited``
-        seconds without a cycle (0 where it ran): fewer SYNCs sent meanwhile than even a paced
-        thread sends (one per :data:`PACE_WAIT_S`), silent still, or back from a stall it measured.
-        A SYNC the bus itself sends (SocketCAN's broadcast manager) tells nothing of this process."""
-        if self._thread is None:
-            return 0.0
-        now = time.monotonic()
-        when, stall = self.last_stall
-        longest = max(now - self.last_sync_sent, stall if now - when < wait + 0.5 else 0.0,
-                      waited - syncs * PACE_WAIT_S if syncs < 0.5 * waited / PACE_WAIT_S else 0.0)
-        return longest if longest > 0.5 * wait else 0.0
 
     def command_torque(self, torque: Array) -> None:
         tau = np.asarray(torque, float)

@@ -27,6 +27,7 @@ import ctypes
 import ctypes.util
 import os
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -234,6 +235,20 @@ def stall_sentence(seconds: float) -> str:
     except OSError:
         load = f"{os.cpu_count()} cores"
     return f"this process was not scheduled for {seconds:.2f} s ({load})"
+
+
+def silent_for(last_sent: float, last_stall: tuple[float, float], wait: float, began: float, sent: int, least_period_s: float) -> float:
+    """How long a cycle thread did not run, where that explains a wait of ``wait`` begun at
+    ``began`` that saw no cycle (0 where it ran): fewer cycles ``sent`` meanwhile than even a
+    paced thread sends (one per ``least_period_s``), silent still since ``last_sent``, or back
+    from a stall it measured (``last_stall``: when, how long). A demo beside two busy loops stopped
+    on "no cycle within 1.0 s" after 1.7-1.8 s in which no thread of its process ran."""
+    now = time.monotonic()
+    when, stall = last_stall
+    waited = now - began
+    longest = max(now - last_sent, stall if now - when < wait + 0.5 else 0.0,
+                  waited - sent * least_period_s if sent < 0.5 * waited / least_period_s else 0.0)
+    return longest if longest > 0.5 * wait else 0.0
 
 
 def _task_ids() -> list[int]:
