@@ -536,9 +536,9 @@ def test_a_read_waits_through_a_stall_of_the_whole_process_when_the_arm_is_simul
     """Co-simulation: the process, its simulated arm included, not scheduled for 1.5 s (SIGSTOP,
     then SIGCONT from another process) while a consumer waits in ``read(1.0)``, as the demo's
     acquisition does. The arm waited, so nothing is lost: the read goes on to the next cycle and
-    the stall is counted and said (an event naming it), where the code before ended the run with "no cycle
-    within 1.0 s" (two of three demos with a cold numba cache beside two busy loops, after
-    1.7-1.8 s in which no thread of the demo's process ran)."""
+    the stall is counted and said (an event naming it), where the code before ended the run
+    with "no cycle within 1.0 s" (three demos with a cold numba cache beside two busy loops
+    stopped so, two of them after 1.75 s and 1.84 s in which no thread of the process ran)."""
     import signal
 
     bench.hold(20)
