@@ -214,10 +214,7 @@ def single_link_sequence(robot: Robot, experiments: dict[int, list[Prepared]], m
         base = base_parameters(w_new_ideal[:, cols], [names[c] for c in cols], [position[c] for c in order_all if c in position], rtol=1e-7)
         indep = [cols[j] for j in base.independent]
         a = w_new[:, indep]
-        rows = np.zeros((len(indep), p))
-        rows[np.arange(len(indep)), indep] = 1.0
-        if base.dependent.size:
-            rows[:, [cols[d] for d in base.dependent]] += base.regrouping
+        rows = base.projection()  # each combination's row over every column (``cols`` is all of them)
         y_new = y - g @ beta - held_motion_torque(w_new, a, rows, phi0)
         b_new, *_ = np.linalg.lstsq(a, y_new, rcond=None)
         resid = y_new - a @ b_new
