@@ -99,18 +99,20 @@ class BaseParameters:
         return out
 
 
-def base_parameters(w: Array, names: list[str] | tuple[str, ...], order: list[int] | None = None, rtol: float = 1e-8) -> BaseParameters:
+def base_parameters(w: Array, names: list[str] | tuple[str, ...], order: list[int] | None = None, rtol: float = 1e-8,
+                    zero_rtol: float = 1e-10) -> BaseParameters:
     """Base parameters of the stacked regressor ``w`` (rows, n_params).
 
     ``order`` is the preference in which columns are offered to the base set (default:
-    as given). Columns are scaled to unit norm first so that units do not decide.
+    as given). Columns are scaled to unit norm first so that units do not decide; a column
+    under ``zero_rtol`` of the largest is zero (scaled, its rounding would look independent).
     """
     w = np.asarray(w, dtype=float)
     p = w.shape[1]
     order = list(range(p)) if order is None else list(order)
     norms = np.linalg.norm(w, axis=0)
     scale = norms.max() if norms.size and norms.max() > 0 else 1.0
-    zero = np.flatnonzero(norms <= 1e-10 * scale)
+    zero = np.flatnonzero(norms <= zero_rtol * scale)
     live = [c for c in order if c not in set(zero.tolist())]
     if not live:
         return BaseParameters(tuple(names), np.array([], int), np.array([], int), np.zeros((0, 0)), zero)

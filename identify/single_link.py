@@ -211,7 +211,10 @@ def single_link_sequence(robot: Robot, experiments: dict[int, list[Prepared]], m
             null, g = np.eye(p), np.zeros((w.shape[0], 0))
         w_new, w_new_ideal = w @ null, w_ideal @ null
         position = {c: j for j, c in enumerate(cols)}
-        base = base_parameters(w_new_ideal[:, cols], [names[c] for c in cols], [position[c] for c in order_all if c in position], rtol=1e-7)
+        # earlier steps' rows hold their regrouping to 1e-10 (``base_parameters`` rounds below
+        # it), so what they leave of a direction they took is zero here, not a new combination:
+        # on the KUKA's link 1, Izz5 and Izz6 at 1.2e-10 of the largest column came out at -5e7
+        base = base_parameters(w_new_ideal[:, cols], [names[c] for c in cols], [position[c] for c in order_all if c in position], rtol=1e-7, zero_rtol=1e-7)
         indep = [cols[j] for j in base.independent]
         a = w_new[:, indep]
         rows = base.projection()  # each combination's row over every column (``cols`` is all of them)
