@@ -148,6 +148,7 @@ def test_a_direction_an_earlier_link_took_is_not_offered_again_from_its_rounding
                                   PrepareOptions(lowpass_hz=None, torque_hold=True))]
     seq = single_link_sequence(kuka, experiments)
     assert seq.steps[-1]["link"] == 1 and seq.steps[-1]["identified"] == 4, [fn.expression for fn in seq.functionals if fn.link == 0]
+    assert np.all(seq.std > 0), [fn.expression for fn, s in zip(seq.functionals, seq.std) if not s > 0]  # the torques nearly noise-free
     phi = true_parameters(rig, seq.names)
     link1 = [j for j, fn in enumerate(seq.functionals) if fn.link == 0]
     error = seq.beta[link1] - np.array([seq.functionals[j].row @ phi for j in link1])

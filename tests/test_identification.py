@@ -441,6 +441,29 @@ def test_the_lag_window_covariance_matches_the_exact_one_where_batch_means_fall_
     assert np.all(batch / exact < 0.96), batch / exact  # what the single-link steps used before
 
 
+def test_the_lag_window_covariance_is_never_zero_where_the_residual_correlations_sum_below_zero() -> None:
+    """A twice-differentiated quantised position leaves residuals correlated -0.3 and -0.6 at
+    lags 1 and 2 where torques are nearly noise-free (the simulated KUKA): a flat window's meat
+    is then negative definite, and clipped, it made every standard deviation of the step 0.
+    The Bartlett window (Newey-West) is used there: positive, and not below the exact variance."""
+    from armid.identify.estimation import bartlett_meat, lag_window_covariance
+
+    rng = np.random.default_rng(5)
+    n = 1500
+    t = np.linspace(0.0, 4.0, n)
+    a = np.column_stack([np.sin(2 * np.pi * 0.5 * t + 0.3), np.cos(2 * np.pi * 1.5 * t), np.ones(n)])
+    bread = np.linalg.inv(a.T @ a)
+    w = rng.normal(size=n + 3)
+    e = w[3:] - w[2:-1] - w[1:-2] + w[:-3]  # correlated -0.25 and -0.5 at lags 1 and 2, summing to zero at 3
+    r = e - a @ (bread @ a.T @ e)
+    sigma = sum(g * (np.eye(n, k=k) + np.eye(n, k=-k)) for g, k in ((-1.0, 1), (-2.0, 2), (1.0, 3))) + 4.0 * np.eye(n)
+    exact = np.diag(bread @ a.T @ sigma @ a @ bread)
+    got = np.diag(lag_window_covariance(bread, a, r, 2))
+    assert np.all(got > exact), (got, exact)
+    scores = a * r[:, None]
+    brute = sum((1 - abs(k) / 3) * scores[max(0, -k): n - max(0, k)].T @ scores[max(0, k): n - max(0, -k)] for k in range(-2, 3))
+    assert np.allclose(bartlett_meat(scores, 2), brute, rtol=1e-12, atol=0.0)
+
 def test_fits_that_reuse_earlier_fits_equations_build_the_same_system() -> None:
     """Within ``reused_equations`` (the diagnosis's dozen fits of one recording), a fit takes
     each joint's filtered rigid-body rows, effect columns and torque from the fits before it
