@@ -162,17 +162,13 @@ def _estimate(args: argparse.Namespace) -> int:
         # background by a shell inherits SIGINT ignored, and a stop sent to it (the demo's,
         # a supervisor's) went unheard until it was killed 30 s later. Installed before it says
         # it listens: a stop sent on that line found SIGTERM's default (beside two busy loops)
-        import threading
+        from .rig import _run_until, stopped_by_signals
 
-        from .rig import _run_until, _stop_on_signals
-
-        stop = threading.Event()
-        restore = _stop_on_signals(stop)
-        print(f"armid estimate: listening on armid/{robot.name}/joint_state (Ctrl-C stops)", file=sys.stderr, flush=True)
         try:
-            _run_until(stop, args.duration)
+            with stopped_by_signals() as stop:
+                print(f"armid estimate: listening on armid/{robot.name}/joint_state (Ctrl-C stops)", file=sys.stderr, flush=True)
+                _run_until(stop, args.duration)
         finally:
-            restore()
             service.close()
             session.close()
         if service.running:  # the executable ends without finalization (armid.cli.run), which would abort it

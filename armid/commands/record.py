@@ -9,12 +9,11 @@ from typing import Any
 
 from .arguments import _positive
 from .output import _inputs_read
-from .rig import _open_driver, _rig, _stop_on_signals
+from .rig import _open_driver, _rig, stopped_by_signals
 from .session import _zenoh_arguments, open_zenoh
 
 
 def _record(args: argparse.Namespace) -> int:
-    import threading
     import time
 
     from armid.daq.acquisition import Acquisition, Sink
@@ -28,89 +27,87 @@ def _record(args: argparse.Namespace) -> int:
     driver, sim = _open_driver(rig, args)
     # an arm simulated here or by `armid sim` never runs ahead of what records it (SYNC waits
     # for the consumer or the drives); --duration is then the arm's time, whatever the wall clock does
-    stop = threading.Event()
-    restore = _stop_on_signals(stop)
     session = stream = None
     can_log = None
-    try:
-        driver.start()
-        if not rig.is_serial:
-            assert driver.network is not None and driver.network.notifier is not None
-            from armid.daq.canlog import BusLog
+    with stopped_by_signals() as stop:
+        try:
+            driver.start()
+            if not rig.is_serial:
+                assert driver.network is not None and driver.network.notifier is not None
+                from armid.daq.canlog import BusLog
 
-            can_log = BusLog(driver, out / "can.log")  # every frame on the bus, the master's included
-        metadata = {
-            "robot": rig.robot.name, "rig": rig.name, "rig_file": rig.source, "period_s": rig.period_s,
-            "bus": f"dynamixel {driver.port_name} at {rig.bus.bitrate} baud" if rig.is_serial else f"{rig.bus.interface}:{rig.bus.channel}",
-            "pdo_plan": None if rig.is_serial else rig.pdo_plan,
-            "driver": rig.driver, "drives": driver.drive_configuration, "excitation": "none (armid record)",
-            "versions": versions("python-can"),
-        }
-        recorder = McapRecorder(out / "run.mcap", [j.name for j in rig.robot.joints], metadata)
-        sinks = [Sink("recorder", recorder.write, bounded=False)]
-        acq: Acquisition  # made below, once its sinks are; the stream's status reads it
-        if not args.no_zenoh:
-            from armid.daq.stream import Stream
+                can_log = BusLog(driver, out / "can.log")  # every frame on the bus, the master's included
+            metadata = {
+                "robot": rig.robot.name, "rig": rig.name, "rig_file": rig.source, "period_s": rig.period_s,
+                "bus": f"dynamixel {driver.port_name} at {rig.bus.bitrate} baud" if rig.is_serial else f"{rig.bus.interface}:{rig.bus.channel}",
+                "pdo_plan": None if rig.is_serial else rig.pdo_plan,
+                "driver": rig.driver, "drives": driver.drive_configuration, "excitation": "none (armid record)",
+                "versions": versions("python-can"),
+            }
+            recorder = McapRecorder(out / "run.mcap", [j.name for j in rig.robot.joints], metadata)
+            sinks = [Sink("recorder", recorder.write, bounded=False)]
+            acq: Acquisition  # made below, once its sinks are; the stream's status reads it
+            if not args.no_zenoh:
+                from armid.daq.stream import Stream
 
-            session = open_zenoh(args)
-            stream = Stream(session, rig.robot.name, "recorder", lambda: {"records": acq.sequence, "invalid": acq.invalid.tolist(),
-                                                                          "dropped_by_stream": sinks[-1].dropped})
-            sinks.append(Sink("zenoh", stream.publish, bounded=True, capacity=5000))
-        from armid.daq.supervision import Supervision
+                session = open_zenoh(args)
+                stream = Stream(session, rig.robot.name, "recorder", lambda: {"records": acq.sequence, "invalid": acq.invalid.tolist(),
+                                                                              "dropped_by_stream": sinks[-1].dropped})
+                sinks.append(Sink("zenoh", stream.publish, bounded=True, capacity=5000))
+            from armid.daq.supervision import Supervision
 
-        supervision = Supervision(lambda text: print(f"armid record: {text}", file=sys.stderr, flush=True), stream)
-        faults: list[Any] = []
+            supervision = Supervision(lambda text: print(f"armid record: {text}", file=sys.stderr, flush=True), stream)
+            faults: list[Any] = []
 
-        def on_fault(f: Any) -> None:
-            faults.append(f)
-            supervision.fault(f)
+            def on_fault(f: Any) -> None:
+                faults.append(f)
+                supervision.fault(f)
 
-        acq = Acquisition(driver, sinks, on_fault=on_fault)
-        from armid.daq.experiment_stream import experiment_description
+            acq = Acquisition(driver, sinks, on_fault=on_fault)
+            from armid.daq.experiment_stream import experiment_description
 
-        run_name = out.name or "record"
-        experiment = experiment_description(run_name, None, rig.n_joints, metadata)
-        if stream:
-            stream.event("start", rig=rig.name, run=run_name, experiment=experiment)
-        from ..live import LiveLine, acquisition_line
+            run_name = out.name or "record"
+            experiment = experiment_description(run_name, None, rig.n_joints, metadata)
+            if stream:
+                stream.event("start", rig=rig.name, run=run_name, experiment=experiment)
+            from ..live import LiveLine, acquisition_line
 
-        live = LiveLine(lambda: acquisition_line(acq, driver, len(faults), rig.period_s))
-        acq.start()
-        start = time.monotonic()
-        print(f"armid record: {rig.name} -> {out / 'run.mcap'} (Ctrl-C stops)", file=sys.stderr, flush=True)
-        print(f"armid record: timing: {driver.timing_note}", file=sys.stderr, flush=True)
-        with live:
-            while not stop.wait(0.1):
-                supervision.events(driver.events())
-                elapsed = acq.sequence * rig.period_s if driver.paced_by_consumer or driver.paced_by_drives else time.monotonic() - start
-                if args.duration and elapsed >= args.duration:
-                    break
-                if acq.error:
-                    break
-        acq.stop()
-        supervision.events(driver.events())
-        recorder.close()
-        if can_log is not None:
-            can_log.stop()
-        if stream:
-            stream.event("stop", rig=rig.name, run=run_name, experiment=experiment, records=recorder.count, completed=acq.error is None,
-                         reason=acq.error, first_sequence=0, last_sequence=acq.sequence - 1, first_cycle=0, window_s=None)
-        print(f"armid record: {acq.sequence} records, invalid per joint {acq.invalid.tolist()}, lost cycles per joint "
-              f"{driver.lost_cycles.tolist()}" + (f", dropped by the stream {sinks[-1].dropped}" if stream else ""), file=sys.stderr)
-        for line in supervision.summary():
-            print(f"armid record: {line}", file=sys.stderr)
-        if supervision.failed:
-            print(f"armid record: {supervision.verdict()} ({out / 'run.mcap'} holds every record)", file=sys.stderr)
-        return 1 if acq.error or supervision.failed else 0
-    finally:
-        driver.close()
-        if stream:
-            stream.close()
-        if session is not None:
-            session.close()
-        if sim is not None:
-            sim.close()
-        restore()
+            live = LiveLine(lambda: acquisition_line(acq, driver, len(faults), rig.period_s))
+            acq.start()
+            start = time.monotonic()
+            print(f"armid record: {rig.name} -> {out / 'run.mcap'} (Ctrl-C stops)", file=sys.stderr, flush=True)
+            print(f"armid record: timing: {driver.timing_note}", file=sys.stderr, flush=True)
+            with live:
+                while not stop.wait(0.1):
+                    supervision.events(driver.events())
+                    elapsed = acq.sequence * rig.period_s if driver.paced_by_consumer or driver.paced_by_drives else time.monotonic() - start
+                    if args.duration and elapsed >= args.duration:
+                        break
+                    if acq.error:
+                        break
+            acq.stop()
+            supervision.events(driver.events())
+            recorder.close()
+            if can_log is not None:
+                can_log.stop()
+            if stream:
+                stream.event("stop", rig=rig.name, run=run_name, experiment=experiment, records=recorder.count, completed=acq.error is None,
+                             reason=acq.error, first_sequence=0, last_sequence=acq.sequence - 1, first_cycle=0, window_s=None)
+            print(f"armid record: {acq.sequence} records, invalid per joint {acq.invalid.tolist()}, lost cycles per joint "
+                  f"{driver.lost_cycles.tolist()}" + (f", dropped by the stream {sinks[-1].dropped}" if stream else ""), file=sys.stderr)
+            for line in supervision.summary():
+                print(f"armid record: {line}", file=sys.stderr)
+            if supervision.failed:
+                print(f"armid record: {supervision.verdict()} ({out / 'run.mcap'} holds every record)", file=sys.stderr)
+            return 1 if acq.error or supervision.failed else 0
+        finally:
+            driver.close()
+            if stream:
+                stream.close()
+            if session is not None:
+                session.close()
+            if sim is not None:
+                sim.close()
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

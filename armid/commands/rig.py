@@ -4,6 +4,9 @@ hardware when simulating), and stopping on SIGINT/SIGTERM or after a duration.""
 from __future__ import annotations
 
 import argparse
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 
@@ -37,20 +40,24 @@ def _open_driver(rig: Any, args: argparse.Namespace) -> tuple[Any, Any]:
     return open_driver(rig, **kwargs), None
 
 
-def _stop_on_signals(stop: Any) -> Any:
-    """SIGINT and SIGTERM set ``stop`` until the returned function puts the previous handlers back."""
+@contextmanager
+def stopped_by_signals() -> Iterator[threading.Event]:
+    """An event that SIGINT and SIGTERM set while the block runs; the handlers before are put
+    back after it. A command started in the background by a shell inherits SIGINT ignored, and
+    one stopped only by ``KeyboardInterrupt`` heard no stop at all. Off the main thread (where
+    handlers cannot be set) the event is only set by the caller."""
     import signal
-    import threading
 
+    stop = threading.Event()
     if threading.current_thread() is not threading.main_thread():
-        return lambda: None
+        yield stop
+        return
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
-
-    def restore() -> None:
+    try:
+        yield stop
+    finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-
-    return restore
 
 
 def _run_until(stop: Any, duration: float | None) -> None:

@@ -11,20 +11,14 @@ import numpy as np
 
 from .arguments import _positive, _seed
 from .output import _inputs_read
-from .rig import _rig, _run_until, _stop_on_signals
+from .rig import _rig, _run_until, stopped_by_signals
 
 
 def _sim(args: argparse.Namespace) -> int:
-    import threading
-
     rig = _rig(args)
     _inputs_read()
-    stop = threading.Event()
-    restore = _stop_on_signals(stop)
-    try:
+    with stopped_by_signals() as stop:
         return _sim_chain(rig, args, stop) if rig.is_serial else _sim_arm(rig, args, stop)
-    finally:
-        restore()
 
 
 def _sim_arm(rig: Any, args: argparse.Namespace, stop: Any) -> int:

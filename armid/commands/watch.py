@@ -6,7 +6,7 @@ import argparse
 import sys
 
 from .arguments import _positive
-from .rig import _stop_on_signals
+from .rig import stopped_by_signals
 from .session import _zenoh_arguments, open_zenoh
 
 
@@ -14,18 +14,12 @@ def _watch(args: argparse.Namespace) -> int:
     """Until ``--duration`` or SIGINT/SIGTERM: a viewer started from a script in the background
     inherits SIGINT ignored, and stopped only on Ctrl-C's ``KeyboardInterrupt`` it heard
     neither (as ``armid estimate live`` did)."""
-    import threading
-
     from ..watch import watch
 
-    stop = threading.Event()
-    with open_zenoh(args) as session:
-        restore = _stop_on_signals(stop)  # before the line that says it watches: a signal on that line stops it
-        try:
-            print(f"armid watch: watching armid/{args.robot}/ (Ctrl-C or SIGTERM stops)", file=sys.stderr, flush=True)
-            state = watch(session, args.robot, args.duration, stop=stop)
-        finally:
-            restore()
+    # the handlers before the line that says it watches: a signal on that line stops it
+    with open_zenoh(args) as session, stopped_by_signals() as stop:
+        print(f"armid watch: watching armid/{args.robot}/ (Ctrl-C or SIGTERM stops)", file=sys.stderr, flush=True)
+        state = watch(session, args.robot, args.duration, stop=stop)
     print(f"armid watch: {state.received} records, {state.gaps} gaps ({state.missing} missing), {state.bad} unreadable", file=sys.stderr)
     return 0
 
