@@ -119,11 +119,9 @@ def _settled(robot: Robot, result: IdentificationResult) -> Robot:
     chosen = {(e.effect, e.joint): dict(e.setting) for e in result.effects}
     out = []
     for e in robot.effects:
-        for j in range(1, robot.n_joints + 1) if e.joint is None else [e.joint]:
-            options = {**e.options, **chosen.get((e.effect, j - 1), {})}
-            if isinstance(options.get("modeled"), list):  # one value per joint, for ``joint: null``
-                options["modeled"] = options["modeled"][j - 1]
-            out.append(DeclaredEffect(e.effect, j, options))
+        for one in e.per_joint(robot.n_joints):
+            assert one.joint is not None
+            out.append(replace(one, options={**one.options, **chosen.get((one.effect, one.joint - 1), {})}))
     return replace(robot, effects=tuple(out))
 
 

@@ -81,6 +81,14 @@ class DeclaredEffect:
     joint: int | None
     options: dict[str, Any] = field(default_factory=dict)
 
+    def per_joint(self, n_joints: int) -> list[DeclaredEffect]:
+        """One effect per joint it applies to (``joint: null``: every joint), a ``modeled`` list
+        (a value per joint, in the order of those joints) resolved to that joint's value."""
+        joints = range(1, n_joints + 1) if self.joint is None else [self.joint]
+        modeled = self.options.get("modeled")
+        return [DeclaredEffect(self.effect, j, {**self.options, "modeled": modeled[k]} if isinstance(modeled, list) else dict(self.options))
+                for k, j in enumerate(joints)]
+
 
 @dataclass(frozen=True, eq=False)
 class Robot:

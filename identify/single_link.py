@@ -144,12 +144,8 @@ def _ideal(q: Array, moving: Array) -> Array:
 def modeled_effect_values(robot: Robot) -> Array:
     """Each declared effect column's modeled value, in :func:`declared_effects`' order: the
     robot file's ``modeled`` (a datasheet's reflected rotor inertia, a known friction), else 0."""
-    given: dict[tuple[str, int], float] = {}
-    for eff in robot.effects:
-        if "modeled" in eff.options:
-            joints = range(robot.n_joints) if eff.joint is None else [eff.joint - 1]
-            value = eff.options["modeled"]
-            given.update({(eff.effect, j): float(value[k] if isinstance(value, list) else value) for k, j in enumerate(joints)})
+    given = {(one.effect, int(one.joint or 0) - 1): float(one.options["modeled"])
+             for eff in robot.effects if "modeled" in eff.options for one in eff.per_joint(robot.n_joints)}
     return np.array([v for e in declared_effects(robot) for v in [given.get((e.effect, e.joint), 0.0)] + [0.0] * (len(e.parameter_names) - 1)])
 
 

@@ -141,6 +141,29 @@ def test_malformed_robot_file_names_file_and_field(tmp_path, text, field):  # ty
     assert str(err.value).startswith(f"{path}: {field}")
 
 
+def test_a_modeled_value_reaches_its_joint_from_a_number_or_a_list(tmp_path):  # type: ignore[no-untyped-def]
+    """``modeled`` on one joint may be written ``0.3`` or ``[0.3]`` (the file's check takes
+    both), on ``joint: null`` one value per joint. The diagnosis's per-joint copy of the effects
+    read a list by the joint's number: ``[0.3]`` on joint 2 stopped ``armid diagnose`` with an
+    IndexError."""
+    from armid.identify.diagnosis_refit import _settled
+    from armid.identify.identification import declared_effects
+    from armid.identify.single_link import modeled_effect_values
+
+    path = tmp_path / "r.yaml"
+    path.write_text("name: x\njoints:\n  - {a: 0, alpha: 0, d: 0, theta: 0}\n  - {a: 1, alpha: 0, d: 0, theta: 0}\neffects:\n"
+                    "  - {effect: rotor_inertia, joint: 2, modeled: [0.3]}\n  - {effect: viscous_friction, joint: null, modeled: [0.1, 0.2]}\n")
+    robot = load_robot(path)
+    expected = {("rotor_inertia", 1): 0.3, ("viscous_friction", 0): 0.1, ("viscous_friction", 1): 0.2}
+    got = dict(zip([(e.effect, e.joint) for e in declared_effects(robot)], modeled_effect_values(robot)))
+    assert got == expected, got
+
+    class Unsettled:  # an identification that chose no effect settings
+        effects: list[object] = []
+
+    settled = _settled(robot, Unsettled())  # type: ignore[arg-type]
+    assert {(e.effect, e.joint): e.options["modeled"] for e in settled.effects} == {(k, j + 1): v for (k, j), v in expected.items()}
+
 def test_a_torque_constant_is_known_to_5_percent_unless_the_file_says_and_a_sensor_exactly(tmp_path):  # type: ignore[no-untyped-def]
     path = tmp_path / "r.yaml"
     path.write_text("name: x\njoints:\n  - {a: 0, alpha: 0, d: 0, theta: 0, torque_constant: 2}\n"
