@@ -227,6 +227,8 @@ def _reads(driver: DynamixelDriver, n: int) -> list:  # type: ignore[type-arg]
     return out
 
 
+@pytest.mark.alone  # beside another worker's hardware-in-the-loop session at SCHED_FIFO, its replies came alternately
+# 0.7 and 2.4 ms apart (median period 1.71 ms, CI on 7336699); alone, and beside two busy loops, 2.000 ms (14 of 14)
 def test_full_cycle_six_servos_reads_the_arm_and_commands_reach_the_servos(chain: ServoChainProcess) -> None:
     d = _driver(chain)
     try:
