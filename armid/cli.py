@@ -12,7 +12,7 @@ import warnings
 from armid import __version__, extras
 from armid.schema.errors import ArmidError, InputError
 
-from .commands import demo, diagnose, estimate, excite, identify, record, serve, sim, watch
+from .commands import check, demo, diagnose, estimate, excite, identify, record, serve, sim, watch
 from .commands.arguments import ROBOT_HELP, load_robot_argument
 from .commands.excite import load_trajectory
 from .commands.output import _WARNINGS, _one_line, strict_json
@@ -22,7 +22,7 @@ from .fleet import command as fleet
 __all__ = ["ROBOT_HELP", "build_parser", "load_robot_argument", "load_trajectory", "main", "open_zenoh", "strict_json"]
 """The command line's names; each command lives in ``armid/commands/`` (its options and what it runs)."""
 
-COMMANDS = (identify, diagnose, record, excite, serve, watch, estimate, demo, sim, fleet)
+COMMANDS = (identify, diagnose, check, record, excite, serve, watch, estimate, demo, sim, fleet)
 """The commands in the order ``armid --help`` lists them."""
 
 

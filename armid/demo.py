@@ -70,27 +70,33 @@ def _z_scores(values: np.ndarray, stds: np.ndarray, truth: np.ndarray) -> np.nda
         return (values - truth) / stds
 
 
-def _truth_test(values: np.ndarray, covariance: np.ndarray, truth: np.ndarray) -> dict[str, Any]:
+def _truth_test(values: np.ndarray, covariance: np.ndarray, truth: np.ndarray, names: list[str]) -> dict[str, Any]:
     """Each combination's z = (estimate - truth) / std, and all of them together: the
     Mahalanobis distance ``d' C^-1 d`` is chi-square with as many degrees of freedom as
     combinations when the covariance is right. With 28 combinations one beyond 3 sigma comes
     in 7 % of noise draws (1 - 0.9973^28) even so; the joint test's p-value says whether the
-    draw as a whole is unusual."""
+    draw as a whole is unusual. ``misses``: the combinations beyond 3 sigma, named, with
+    value, truth, std and z, the largest |z| first."""
     from scipy.stats import chi2
 
     d = values - truth
-    z = _z_scores(values, np.sqrt(np.maximum(np.diag(covariance), 0.0)), truth)
+    std = np.sqrt(np.maximum(np.diag(covariance), 0.0))
+    z = _z_scores(values, std, truth)
     distance = float(d @ np.linalg.lstsq(covariance, d, rcond=None)[0])
+    misses = [{"name": names[k], "value": float(values[k]), "truth": float(truth[k]), "std": float(std[k]), "z": float(z[k])}
+              for k in sorted(np.flatnonzero(~(np.abs(z) <= 3)), key=lambda k: -abs(float(np.nan_to_num(z[k], nan=np.inf))))]
     return {"combinations": int(z.size), "within_3_sigma": int(np.sum(np.abs(z) <= 3)), "max_abs_z": float(np.max(np.abs(z))),
-            "chi2": distance, "chi2_p": float(chi2.sf(distance, z.size)), "z": z.tolist()}
+            "chi2": distance, "chi2_p": float(chi2.sf(distance, z.size)), "z": z.tolist(), "truth": truth.tolist(), "misses": misses}
 
 
 def check_against_truth(rig: Rig, seq: SequenceResult, whole: IdentificationResult) -> dict[str, Any]:
     """Every identified combination against its true value, one by one and together."""
     phi_seq = true_parameters(rig, seq.names)
     phi_whole = true_parameters(rig, whole.names)
-    return {"single_link": _truth_test(seq.beta, seq.covariance, np.array([fn.row @ phi_seq for fn in seq.functionals])),
-            "whole_arm": _truth_test(whole.estimate.beta, whole.estimate.covariance, whole.base.base_values(phi_whole))}
+    return {"single_link": _truth_test(seq.beta, seq.covariance, np.array([fn.row @ phi_seq for fn in seq.functionals]),
+                                       [f"link {fn.link + 1}: {fn.expression}" for fn in seq.functionals]),
+            "whole_arm": _truth_test(whole.estimate.beta, whole.estimate.covariance, whole.base.base_values(phi_whole),
+                                     whole.base.expressions())}
 
 
 class Phases:
@@ -221,7 +227,7 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
                "service": agreement,
                "diagnosis": diagnosis.to_json(), "payload": payload, "runs": [r.to_json() for r in reports]}
         write_json(out / "demo.json", doc)
-        _write_report(out, rig, experiments, reports, seq, whole, comparison, truth, diagnosis, payload)
+        _write_report(out, rig, experiments, reports, seq, whole, whole_doc, comparison, truth, diagnosis, payload)
     s, w = truth["single_link"], truth["whole_arm"]
     console.print(f"single-link sequence: {s['within_3_sigma']} of {s['combinations']} combinations within 3 sigma of the truth "
                   f"(max |z| {s['max_abs_z']:.2f}; together chi2 {s['chi2']:.1f} on {s['combinations']} dof, p {s['chi2_p']:.2f}); "
@@ -246,16 +252,20 @@ def analyse(robot: Robot, whole: IdentificationResult, run: Prepared, validation
     from armid.identify.feasible import feasible_estimate
 
     from .pipeline import Inputs, diagnose
-    from .report import write_diagnosis_report, write_report
+    from .report import feasible_at_stamps, write_diagnosis_report, write_report
     from .urdf_export import effect_values, write_urdf
 
     diagnosis = diagnose(robot, Inputs([run], [validation]))
     feasible = feasible_estimate(whole, [validation])
     whole_doc = whole.to_json()
     whole_doc["feasible"] = feasible.to_json()
+    # the consistent model's errors measured as the least-squares ones are (every stamp, raw torque)
+    whole_doc["feasible"]["at_stamps"] = {"fit": feasible_at_stamps(whole, whole_doc["feasible"], list(run.segments)),
+                                          "validation": feasible_at_stamps(whole, whole_doc["feasible"], list(validation.segments))}
     write_urdf(out / "identified.urdf", robot, feasible.phi, effect_values(whole_doc["feasible"]))
-    write_report(whole, whole_doc, list(validation.segments), out / "whole_arm", "validation run whole_b")
-    write_diagnosis_report(diagnosis, robot.name, out / "diagnosis")
+    write_report(whole, whole_doc, list(validation.segments), out / "whole_arm", "validation run", identification=list(run.segments),
+                 identified_on="whole_a", validated_on="whole_b")
+    write_diagnosis_report(diagnosis, robot, out / "diagnosis", identified_on="whole_a", validated_on="whole_b")
     return diagnosis, feasible.summary_line(), whole_doc
 
 
@@ -395,7 +405,20 @@ def run_payload(rig: Rig, link: PeerLink, design: Any, out: Path) -> dict[str, A
             "attach_record_time": t_on, "removal_record_time": t_off, "on_for_s": t_off - t_on,
             "negative_mass_published": int(sum(1 for e in estimates if e["mass"] is not None and e["mass"] < 0)),
             "after_attach_1s": at(t_on, 1.0), "after_attach_2s": at(t_on, 2.0), "after_removal_2s": at(t_off, 2.0),
+            "converged_after_attach_s": _converged_after(t, estimates, t_on, t_off),
+            "converged_after_removal_s": _converged_after(t, estimates, t_off, float("inf")),
             "report": report.to_json()}
+
+
+def _converged_after(t: np.ndarray, estimates: list[dict[str, Any]], t_event: float, t_next: float) -> float | None:
+    """Seconds from an event (record time ``t_event``) to the first estimate after it from which
+    every estimate up to the next event (``t_next``) says converged; None if none does."""
+    k = np.flatnonzero((t >= t_event) & (t < t_next))
+    if k.size == 0 or not estimates[int(k[-1])]["converged"]:
+        return None
+    unsettled = [int(i) for i in k if not estimates[int(i)]["converged"]]
+    first = int(k[0]) if not unsettled else unsettled[-1] + 1
+    return float(t[first] - t_event)
 
 
 def _wait_for_estimates(estimates: list[dict[str, Any]], until_time: float, estimator: Peer, timeout_s: float = 30.0) -> None:
@@ -410,6 +433,10 @@ def _wait_for_estimates(estimates: list[dict[str, Any]], until_time: float, esti
         elif time.monotonic() - quiet_since > 2.0:
             return
         time.sleep(0.05)
+
+
+def _fmt(x: float | None, digits: int = 5) -> str:
+    return "—" if x is None else f"{x:.{digits}g}"
 
 
 def _num(x: float | None, scale: float, digits: int) -> str:
@@ -436,7 +463,7 @@ def _plot_payload(out: Path, t: np.ndarray, estimates: list[dict[str, Any]], tru
         a2.hlines(100 * truth.com[k], t_on, t_off, color="k", lw=0.8, ls="--")
     a2.set_ylim(-30, 30)
     a2.set_ylabel("centre of mass [cm]")
-    a2.set_xlabel("t [s]")
+    a2.set_xlabel("time from the payload run's first estimate [s]")
     a2.legend(loc="upper right")
     fig.suptitle("on-line payload estimate (published at 50 Hz over Zenoh) against the truth")
     fig.tight_layout()
@@ -444,48 +471,119 @@ def _plot_payload(out: Path, t: np.ndarray, estimates: list[dict[str, Any]], tru
     plt.close(fig)
 
 
-def _write_report(out: Path, rig: Rig, experiments: list[Any], reports: list[Any], seq: SequenceResult, whole: IdentificationResult,
-                  comparison: list[dict[str, Any]], truth: dict[str, Any], diagnosis: Any, payload: dict[str, Any]) -> None:
-    def f(x: float | None, d: int = 5) -> str:
-        return "—" if x is None else f"{x:.{d}g}"
+def truth_lines(what: str, test: dict[str, Any]) -> list[str]:
+    """A truth check (:func:`_truth_test`) as a report says it: the joint test first (chi-square
+    per degree of freedom and its p), then the count within 3 sigma, then every combination
+    beyond 3 sigma by name with its estimate, truth, std and z."""
+    from math import sqrt
 
+    n, chi2, p = test["combinations"], test["chi2"], test["chi2_p"]
+    ratio = chi2 / n
+    if p < 0.05:
+        verdict = (f"**the joint test rejects the standard deviations (p < 0.05)**: together the errors are about "
+                   f"{sqrt(ratio):.2f}x what the standard deviations say, or an estimate is biased")
+    elif p > 0.95:
+        verdict = (f"together the errors are about {sqrt(ratio):.2f}x what the standard deviations say: "
+                   "the standard deviations are larger than these errors need (p > 0.95)")
+    else:
+        verdict = "consistent with the standard deviations"
+    expected = 100 * (1 - 0.9973**n)
+    p_text = "p < 0.001" if p < 0.001 else "p > 0.999" if p > 0.999 else f"p = {p:.2g}"
+    out = [f"{what}: all {n} together chi-square {chi2:.1f} on {n} degrees of freedom (chi2/dof {ratio:.2f}), {p_text}: {verdict}. "
+           f"{test['within_3_sigma']} of {n} within 3 sigma (max |z| {test['max_abs_z']:.2f}; one or more beyond 3 sigma comes in "
+           f"{expected:.0f} % of noise draws when every standard deviation is right)"
+           + (": every one within." if not test.get("misses") else "; beyond 3 sigma:"), ""]
+    if test.get("misses"):
+        out += ["| combination | estimate | truth | std | z |", "|---|---|---|---|---|"]
+        out += [f"| `{m['name']}` | {_fmt(m['value'])} | {_fmt(m['truth'])} | {_fmt(m['std'], 3)} | {m['z']:+.2f} |" for m in test["misses"]]
+        out.append("")
+    return out
+
+
+def _write_report(out: Path, rig: Rig, experiments: list[Any], reports: list[Any], seq: SequenceResult, whole: IdentificationResult,
+                  whole_doc: dict[str, Any], comparison: list[dict[str, Any]], truth: dict[str, Any], diagnosis: Any,
+                  payload: dict[str, Any]) -> None:
+    from armid.identify.payload import COM_STD_M, MASS_STD_KG, MASS_STD_REL
+
+    from .report import percent
+
+    f = _fmt
+    whole_run = next(e for e in experiments if e.name == "whole_a")
     lines = [f"# armid demo: {rig.name}", "",
              f"Simulated {rig.robot.name} on a {rig.bus.interface} CAN bus, {len(rig.drives)} CiA 402 drives, {rig.period_s * 1000:g} ms SYNC. "
              "Every trajectory was designed (D-optimal finite Fourier series) and checked against every limit before any drive was enabled.", "",
-             "## Runs", "", "| run | moving joints | duration s | records | max tracking error mrad | peak torque % of limit | condition number |",
-             "|---|---|---|---|---|---|---|"]
+             "## Runs", "", "| run | moving joints | duration s | records | max tracking error mrad | peak torque % of limit | "
+             "design's condition number |", "|---|---|---|---|---|---|---|"]
     for e, r in zip(experiments, reports):
         lines.append(f"| {r.name} | {', '.join(str(j + 1) for j in e.design.moving)} | {e.plan.duration_s:.1f} | {r.records} | "
                      f"{1000 * max(r.max_tracking_error):.1f} | {100 * max(r.peak_torque_fraction):.0f} | {e.design.condition_number:.3g} |")
+    lines += ["", "A design's condition number is its planned motion's (the base regressor of the run's moving joints, columns scaled "
+                  f"to unit norm, before any drive moved). The whole-arm model's is that of whole_a as recorded and identified "
+                  f"({len(whole.base.expressions())} base parameters, weighted): {whole.excitation.condition_number:.3g} "
+                  f"(its design's: {whole_run.design.condition_number:.3g})."]
+    # the errors: one per model and data, each named
+    v = whole.validation or {}
+    at_stamps = (whole_doc.get("feasible") or {}).get("at_stamps") or {}
+    fe_fit, fe_val = at_stamps.get("fit"), at_stamps.get("validation")
+    b, a = diagnosis.before, diagnosis.after
+    n_found = len(diagnosis.found)
+    floor = (diagnosis.noise_floor or {}).get("relative_error")
+    lines += ["", "## Errors of each model", "",
+              "Relative error |tau - tau_hat| / |tau| over every joint, each sample at its own time stamp against the raw measured torque. "
+              f"Every model is identified on whole_a ({whole.samples} samples) and validated on whole_b ({whole.validation_samples} samples"
+              + (f"; its noise floor, the torque above the low-pass cut-off that no model of the motion removes: {percent(floor)}" if floor is not None else "")
+              + ").", "",
+              "| model | fit error (on whole_a) | validation error (on whole_b) |", "|---|---|---|",
+              f"| whole-arm model: least squares, the `drives` recipe (the samples beside a velocity reversal left out) | "
+              f"{percent(whole.fit['relative_error'])} | {percent(v.get('relative_error'))} |",
+              f"| whole-arm model, physically consistent (`identified.urdf`) | {percent(fe_fit and fe_fit['relative_error'])} | "
+              f"{percent(fe_val and fe_val['relative_error'])} |",
+              "| the diagnosis's declared model: the same robot file, least squares with `armid identify`'s defaults "
+              f"(every sample) | — | {percent(b['relative_error'])} |",
+              (f"| the diagnosis's model with its {n_found} finding{'' if n_found == 1 else 's'} | — | {percent(a['relative_error'])} |" if n_found
+               else f"| the diagnosis's model with its findings (none: the same model) | — | {percent(a['relative_error'])} |")]
     s, w = truth["single_link"], truth["whole_arm"]
     lines += ["", "## Against the simulator's known parameters", "",
-              f"- single-link sequence (links {', '.join(str(st['link']) for st in seq.steps)}): **{s['within_3_sigma']} of {s['combinations']}** "
-              f"identified combinations within 3 sigma (max |z| {s['max_abs_z']:.2f}); all together chi-square {s['chi2']:.1f} on "
-              f"{s['combinations']} degrees of freedom, p = {s['chi2_p']:.2f} (at least one of {s['combinations']} beyond 3 sigma comes in "
-              f"{100 * (1 - 0.9973 ** s['combinations']):.0f} % of noise draws when every std is right)",
-              f"- whole-arm run: **{w['within_3_sigma']} of {w['combinations']}** base parameters within 3 sigma (max |z| {w['max_abs_z']:.2f}; "
-              f"chi-square {w['chi2']:.1f} on {w['combinations']}, p = {w['chi2_p']:.2f}); "
-              f"condition number {whole.excitation.condition_number:.3g}; validation error on whole_b {100 * whole.validation['relative_error']:.2f} %",  # type: ignore[index]
-              "", "## Single-link sequence (Khosla Tables 2-4)", "", "| link | parameter | initial (modeled) | estimate | std | z vs truth |", "|---|---|---|---|---|---|"]
-    for row, z in zip(seq.table(), s["z"]):
-        lines.append(f"| {row['link']} | `{row['parameter']}` | {f(row['modeled'])} | {f(row['estimate'])} | {f(row['std'], 3)} | {z:+.2f} |")
+              "z = (estimate - truth) / std for each identified combination; chi-square: all of them together, with their covariance.", ""]
+    lines += truth_lines(f"**Single-link sequence** (links {', '.join(str(st['link']) for st in seq.steps)}, {s['combinations']} combinations)", s)
+    lines += truth_lines(f"**Whole-arm model** (identified on whole_a, {w['combinations']} base parameters)", w)
+    lines += ["## Single-link sequence (Khosla Tables 2-4)", "", "| link | parameter | initial (modeled) | estimate | std | z vs truth |", "|---|---|---|---|---|---|"]
+    for fn, k, z in zip(seq.functionals, range(len(s["z"])), s["z"]):
+        lines.append(f"| {fn.link + 1} | `{fn.expression}` | {f(fn.modeled)} | {f(float(seq.beta[k]))} | {f(float(seq.std[k]), 3)} | {z:+.2f} |")
+    z_whole = dict(zip(whole.base.expressions(), w["z"]))
     lines += ["", "## Whole-arm base parameters beside the single-link sequence", "",
-              "| base parameter | whole arm | std | single-link sequence | std |", "|---|---|---|---|---|"]
+              "| base parameter | whole arm | std | z vs truth | single-link sequence | std |", "|---|---|---|---|---|---|"]
     for c in comparison:
-        lines.append(f"| `{c['expression']}` | {f(c['whole_arm'])} | {f(c['whole_arm_std'], 3)} | {f(c['single_link'])} | {f(c['single_link_std'], 3)} |")
-    b, a = diagnosis.before, diagnosis.after
-    lines += ["", "## Diagnosis of the residual", "", f"Validation error {100 * b['relative_error']:.3g} % -> {100 * a['relative_error']:.3g} %.", ""]
-    lines += [f"- {fd.sentence()}" for fd in diagnosis.found] or ["- nothing significant: the declared model explains the data to its noise"]
+        z = z_whole.get(c["expression"])
+        lines.append(f"| `{c['expression']}` | {f(c['whole_arm'])} | {f(c['whole_arm_std'], 3)} | {'—' if z is None else f'{z:+.2f}'} | "
+                     f"{f(c['single_link'])} | {f(c['single_link_std'], 3)} |")
+    lines += ["", "## Diagnosis of the residual", "", "Its validation errors: the table under Errors of each model.", ""]
+    lines += [f"- {fd.sentence()}" for fd in diagnosis.found] or [f"- {diagnosis.verdict()}"]
     p1, p2, p3 = payload["after_attach_1s"], payload["after_attach_2s"], payload["after_removal_2s"]
+
+    def status(p: dict[str, Any]) -> str:
+        return "converged" if p.get("converged") else f"**{p.get('status') or 'not converged'}**: provisional"
+
+    def settled(key: str, event: str) -> str:
+        x = payload.get(key)
+        return f"converged {x:.2f} s after the {event}" if x is not None else f"never said converged after the {event}"
+
+    unsettled = [when for when, p in (("1 s after the attach", p1), ("2 s after the attach", p2), ("2 s after the removal", p3)) if not p.get("converged")]
     lines += ["", "## On-line payload estimation", "",
               f"The identified arm (whole_a) worked through a whole-arm trajectory; a {payload['true_mass']} kg payload with its centre "
               f"of mass at {[round(100 * c, 1) for c in payload['true_com']]} cm in the last link's frame was attached 3 s in and "
               f"removed 4 s later. The estimator listened to the live Zenoh stream and published {payload['estimates']} estimates "
               f"(50 Hz; skipped records: {payload['skipped']}).", "",
-              "| when | mass kg | std | centre of mass error mm |", "|---|---|---|---|",
-              f"| 1 s after the attach | {_num(p1['mass'], 1, 3)} | {p1['mass_std']:.3f} | {_num(p1['com_error_m'], 1000, 1)} |",
-              f"| 2 s after the attach | {_num(p2['mass'], 1, 3)} | {p2['mass_std']:.3f} | {_num(p2['com_error_m'], 1000, 1)} |",
-              f"| 2 s after the removal | {_num(p3['mass'], 1, 3)} | {p3['mass_std']:.3f} | — |", "", "![payload](payload.png)"]
+              "| when | mass kg | std | centre of mass error mm | estimator's status |", "|---|---|---|---|---|",
+              f"| 1 s after the attach | {_num(p1['mass'], 1, 3)} | {p1['mass_std']:.3f} | {_num(p1['com_error_m'], 1000, 1)} | {status(p1)} |",
+              f"| 2 s after the attach | {_num(p2['mass'], 1, 3)} | {p2['mass_std']:.3f} | {_num(p2['com_error_m'], 1000, 1)} | {status(p2)} |",
+              f"| 2 s after the removal | {_num(p3['mass'], 1, 3)} | {p3['mass_std']:.3f} | — | {status(p3)} |", "",
+              (f"Still converging {' and '.join(unsettled)}: the estimate was still moving there, so those figures are provisional (the "
+               f"estimator says converged once the data's part of the mass's std is at most {MASS_STD_KG:g} kg + {100 * MASS_STD_REL:g} % "
+               f"of the mass, that of the centre of mass at most {1000 * COM_STD_M:g} mm per axis, and its residual is consistent with the noise). "
+               if unsettled else "Every figure above is converged. ")
+              + f"The estimate {settled('converged_after_attach_s', 'attach')} and {settled('converged_after_removal_s', 'removal')}.",
+              "", "![payload](payload.png)"]
     lines += ["", "Details: [whole_arm/report.md](whole_arm/report.md), [diagnosis/diagnosis.md](diagnosis/diagnosis.md), `demo.json`, `designs.json`, "
               "recordings in `runs/*/run.mcap` (Foxglove, PlotJuggler, `armid identify`)."]
     (out / "report.md").write_text("\n".join(lines) + "\n")

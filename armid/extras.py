@@ -40,7 +40,7 @@ EXTRAS: dict[str, Extra] = {
 
 NEEDS: dict[str, str] = {
     "record": "daq", "excite": "daq", "sim": "daq",
-    "identify": "identify", "diagnose": "identify", "estimate": "identify", "serve": "identify", "fleet": "identify",
+    "identify": "identify", "diagnose": "identify", "check": "identify", "estimate": "identify", "serve": "identify", "fleet": "identify",
     "demo": "all",
 }
 """Command -> the extra it needs (a DAQ PC beside the arm installs ``daq``; the machine that

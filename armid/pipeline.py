@@ -13,7 +13,10 @@ between them is said by a named :class:`Recipe`, never by options written at the
   a velocity reversal left out. ``armid demo`` and ``armid serve --whole-arm drives``.
 
 Warnings come back as strings (the caller decides where they are printed); a recording that
-cannot be identified raises :class:`~armid.schema.errors.RecordingError`.
+cannot be identified raises :class:`~armid.schema.errors.RecordingError`. A recording of a run
+that ended on a stop (its MCAP metadata says so, :attr:`Recording.stopped
+<armid.identify.recordings.Recording.stopped>`) is read and identified like any other, and
+:func:`read` (every command's way in) warns with :func:`stop_warning`, naming the file.
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ from armid.identify.plausibility import check_against_model, check_positions, ch
 from armid.identify.preprocess import Prepared, PrepareOptions, prepare
 from armid.identify.recordings import Recording
 from armid.identify.robot import Robot
-from armid.io.recordings import read_mcap_arrays, read_recording
+from armid.io.recordings import read_mcap_arrays, read_recording, stop_line
 from armid.schema.errors import OptionError, PoorExcitationWarning, RecordingError
 
 if TYPE_CHECKING:
@@ -92,6 +95,18 @@ class Inputs:
     validation: list[Prepared] = field(default_factory=list)
     sources: list[str] = field(default_factory=list)  # experiments', then validation's
     warnings: list[str] = field(default_factory=list)
+    stopped: dict[str, str] = field(default_factory=dict)  # source -> the line that stopped its run (Recording.stopped)
+
+    def recordings(self) -> list[dict[str, str | None]]:
+        """Each recording read, its role and how its run ended (the JSON outputs' ``recordings``)."""
+        n = len(self.experiments)
+        return [{"path": s, "role": "identification" if k < n else "validation", "stopped": self.stopped.get(s)}
+                for k, s in enumerate(self.sources)]
+
+
+def stop_warning(source: str, line: str) -> str:
+    """What every command says of a recording whose run ended on a stop."""
+    return f"{source}: the run ended on a stop: {line}"
 
 
 def plausibility(source: str, robot: Robot, t: np.ndarray, q: np.ndarray, qd: np.ndarray | None, tau: np.ndarray,
@@ -105,7 +120,8 @@ def plausibility(source: str, robot: Robot, t: np.ndarray, q: np.ndarray, qd: np
 def read(path: str | Path, robot: Robot, need_motion: bool = True, window: Window | None = None) -> tuple[Recording, list[str]]:
     """Read and check one recording (cut to ``window`` when given); its warnings."""
     rec = read_recording(path, robot)
-    found = plausibility(rec.source, robot, rec.t, rec.q, rec.qd, rec.tau, need_motion)
+    found = [stop_warning(rec.source, rec.stopped)] if rec.stopped else []
+    found += plausibility(rec.source, robot, rec.t, rec.q, rec.qd, rec.tau, need_motion)
     return (rec if window is None else cut_to_window(rec, window)), found
 
 
@@ -154,14 +170,14 @@ def prepare_checked(recordings: Sequence[tuple[Recording, list[str]]], robot: Ro
     found = [w for _, ws in recordings for w in ws]
     for name, prep in zip(names, prepared):
         found += model_warnings(robot, prep, name)
-    return Inputs(prepared, [], names, found)
+    return Inputs(prepared, [], names, found, {name: r.stopped for name, r in zip(names, recs) if r.stopped})
 
 
 def load(robot: Robot, recipe: Recipe, data: Sequence[str | Path], validate: Sequence[str | Path] = ()) -> Inputs:
     """Read, check and prepare the identification and validation recordings of a command."""
     paths = [str(p) for p in [*data, *validate]]
     inputs = prepare_checked([read(p, robot) for p in paths], robot, recipe, paths)
-    return Inputs(inputs.experiments[: len(data)], inputs.experiments[len(data) :], paths, inputs.warnings)
+    return Inputs(inputs.experiments[: len(data)], inputs.experiments[len(data) :], paths, inputs.warnings, inputs.stopped)
 
 
 def load_run(path: str | Path, robot: Robot, recipe: Recipe, window: Window | None = None, need_motion: bool = True) -> tuple[Prepared, list[str]]:
@@ -199,7 +215,7 @@ def replay_records(path: str | Path, robot: Robot) -> tuple[tuple[np.ndarray, ..
         return records, list(rec.notes), found
     if not path.exists():
         raise RecordingError(str(path), "no such file")
-    a, _, notes = read_mcap_arrays(path)
+    a, metadata, notes = read_mcap_arrays(path)
     if not a:
         raise RecordingError(str(path), "no joint_state record could be read" + (f": {notes[0]}" if notes else ""))
     if a["position"].shape[1] != robot.n_joints:
@@ -208,7 +224,9 @@ def replay_records(path: str | Path, robot: Robot) -> tuple[tuple[np.ndarray, ..
     torque = a["torque"] if "torque" in a else a["measured_current"] * np.array([j.torque_constant for j in robot.joints])
     records = (np.asarray(a["sequence"], np.int64), t, np.asarray(a["valid"], bool).reshape(t.size, -1),
                np.asarray(a["position"], float), np.asarray(torque, float))
-    found = plausibility(str(path), robot, t, records[3], None, records[4], need_motion=False)
+    stopped = stop_line(metadata)
+    found = [stop_warning(str(path), stopped)] if stopped else []
+    found += plausibility(str(path), robot, t, records[3], None, records[4], need_motion=False)
     return records, notes, found
 
 

@@ -330,6 +330,7 @@ class ExcitationSession:
         self._switch.first_sequence = self._switch.last_sequence = None
         self._switch.recorder = recorder
         written_before = self._switch.count
+        interrupted: BaseException | None = None
         try:
             if not self.enabled:
                 # enable first, holding the pose: the plan's clock starts once the drives follow
@@ -357,10 +358,13 @@ class ExcitationSession:
             deadline = time.monotonic() + 10.0
             while self._sink.handled < target and time.monotonic() < deadline:
                 time.sleep(0.01)
+        except BaseException as err:  # the run ends here too: its recording says so
+            interrupted = err
+            raise
         finally:
             self._switch.recorder = None
             time.sleep(0.005)
-            recorder.close()
+            recorder.close(self._run_end(interrupted))
             if can_log is not None:
                 can_log.stop()
         c = self.control
@@ -372,6 +376,16 @@ class ExcitationSession:
         return RunReport(name, c.stop_reason is None, c.stop_reason, c.stop_cycle, active.cycles, self._switch.count - written_before,
                          active.first_cycle or 0, c.max_error.tolist(), c.peak_torque.tolist(), c.saturated.tolist(), str(out / "run.mcap"),
                          plan.excitation_window)
+
+    def _run_end(self, interrupted: BaseException | None) -> dict[str, Any]:
+        """How the run ended, for its recording's ``armid.run_end`` metadata: the stop line
+        (``RunReport.stop_reason``, what ``armid excite`` prints after ``STOPPED:``), or what
+        interrupted this process's run of the plan."""
+        c = self.control
+        reason = c.stop_reason
+        if reason is None and interrupted is not None:
+            reason = f"interrupted: {type(interrupted).__name__}" + (f": {interrupted}" if str(interrupted) else "")
+        return {"completed": reason is None, "stop": reason, "stop_cycle": c.stop_cycle if c.stop_reason else None}
 
     def close(self) -> None:
         try:

@@ -11,7 +11,11 @@ writes), one message each per cycle with the same log time and MCAP sequence num
 
 The schemas are :data:`armid.schema.joint_state.ROS2_MSGDEFS`. Metadata ``armid.run`` holds
 robot, rig, drive configuration read back from the drives, excitation parameters and
-software versions. Chunks are zstd-compressed; the summary indexes them.
+software versions. Metadata ``armid.run_end``, written when a run that says how it ended is
+closed (``armid excite``), holds ``completed`` (``true``/``false``), ``stop`` (the line that
+stopped the run: a drive fault, lost frames, a safety stop; absent when it completed),
+``stop_cycle`` and ``records``: every reader says the stop. Chunks are zstd-compressed; the
+summary indexes them.
 
 Crash safety: a chunk is closed after about 16 KiB of messages (about 35 cycles, 0.07 s at
 2 ms), never between a cycle's two messages, and at least every 0.25 s; each closed chunk is
@@ -41,6 +45,8 @@ from armid.schema.joint_state import (
 CHUNK_BYTES = 16 * 1024
 FLUSH_S = 0.25
 TOPIC = JOINT_STATES_TOPIC
+RUN_END = "armid.run_end"
+"""The metadata record of how the run ended (see the module docstring)."""
 _RECORD_OVERHEAD = 9 + 22  # an MCAP message record's opcode, length and fixed fields
 
 
@@ -81,6 +87,13 @@ class McapRecorder:
             self._chunk_bytes = 0
             self._last_flush = now
 
-    def close(self) -> None:
+    def close(self, end: dict[str, Any] | None = None) -> None:
+        """Write the summary and close the file. ``end``: how the run ended (``completed``,
+        ``stop``, ``stop_cycle``; ``records`` is this recorder's count unless given), written
+        first as metadata :data:`RUN_END` after the last chunk."""
+        if end is not None:
+            self._writer.flush()  # the last records' chunk first: the end record comes after them
+            doc = {"records": self.count, **{k: v for k, v in end.items() if v is not None}}
+            self._writer.add_metadata(RUN_END, {k: v if isinstance(v, str) else json.dumps(v) for k, v in doc.items()})
         self._writer.finish()
         self._file.close()

@@ -273,3 +273,30 @@ def family_wise(p: Array, candidates: Array) -> Array:
     p = np.asarray(p, float)
     total = float(np.sum(candidates))
     return np.where(np.isfinite(p), np.minimum(1.0, p * max(total, 1.0)), np.nan)
+
+
+def step_at(values: Array, stds: Array, first: int, prior_variance: float, prior_df: float, wanders: Array) -> tuple[Array, Array, Array]:
+    """Each quantity's step at recording ``first`` (0-based), whether or not it changed there:
+    ``(b, se, df)`` (Q,) the fitted step ``x_i = a + b z_i`` (``z`` the step's), its standard
+    error on the moderated scatter ``sqrt(lambda~ v_b)`` (the module's docstring, with the
+    arm's prior ``prior_variance``, ``prior_df`` and the quantities that ``wanders``, as
+    :func:`scan` found them) and its degrees of freedom. NaN where a quantity has fewer than
+    :data:`MIN_SEGMENT` estimates on either side."""
+    x_raw = np.asarray(values, float)
+    n = x_raw.shape[0]
+    valid = np.isfinite(x_raw)
+    w = _weights(np.asarray(stds, float), valid)
+    count = valid.sum(0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        centre = np.where(count > 0, (w * np.where(valid, x_raw, 0.0)).sum(0) / w.sum(0), 0.0)
+    x = np.where(valid, x_raw - centre, 0.0)
+    z = (np.arange(n) >= first).astype(float)
+    _, b, rss, vb = _solve(_sums(x, w, z[:, None]).sum(1))
+    d0 = np.where(np.asarray(wanders, bool), 0.0, prior_df)
+    df = (count - 2).astype(float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        pooled = np.where(np.isinf(d0), prior_variance, (np.where(np.isinf(d0), 0.0, d0) * prior_variance + rss) / np.maximum(d0 + df, 1e-300))
+        se = np.sqrt(pooled * vb)
+    usable = _usable(valid, first) & np.isfinite(se)
+    nan = np.full(b.shape, np.nan)
+    return np.where(usable, b, nan), np.where(usable, se, nan), np.where(usable, df + d0, nan)

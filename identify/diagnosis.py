@@ -45,7 +45,9 @@ spring's stiffness at 0 (physics), does not hold the finding's there: it would e
 nothing. Then refit and repeat, until nothing passes. The findings are fitted with the prior as
 wide as the declared model's fit or the last accepted finding's found it, whichever is less. A candidate whose columns lie in the span of the model is
 absorbed (rotor inertia of a first joint with a vertical axis joins ``Izz1``), and is
-reported as such. When a look-alike (Coulomb/Stribeck, torque gain/rotor inertia,
+reported as such. An offset is judged as the smaller of a nested pair: the spring on its joint
+(``q`` and an offset) is named where its stiffness is a finding beside it (:meth:`_Search._nesting`).
+When a look-alike (Coulomb/Stribeck, torque gain/rotor inertia,
 delay/viscous) explains nearly as much, both are named with the experiment that would
 separate them.
 
@@ -65,7 +67,8 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from .diagnosis_candidates import LOOKALIKES, SEPARATE, STRIBECK_VELOCITIES, Candidate, _candidates, _parameters, coulomb
+from .check import where_it_does_not_hold
+from .diagnosis_candidates import LOOKALIKES, NESTING, SEPARATE, STRIBECK_VELOCITIES, Candidate, _candidates, _parameters, coulomb
 from .diagnosis_data import _blocks, _Data, _joint_noise_floors, _noise_floor, _noise_levels, _rel, _stack
 from .diagnosis_refit import (
     _coulomb_level,
@@ -88,7 +91,7 @@ from .diagnosis_report import (
     negligible_sentence,
     set_aside_sentence,
 )
-from .diagnosis_scoring import _Absorbed, _fit_round, _phi_hat, _Round, _score, _Scored, joint_power_after, round_moments
+from .diagnosis_scoring import _Absorbed, _fit_round, _phi_hat, _Round, _score, _Scored, f_sf, joint_power_after, round_moments
 from .diagnosis_validation import VETO_BLOCKS, _joint_errors, _material_drop, _validation_error, _worse_on_validation
 from .equations import reused_equations
 from .errors import PoorExcitationWarning
@@ -167,7 +170,9 @@ def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepare
         for _ in range(search.opts.max_findings):
             if not search.add_one():
                 break
-        return search.report()
+        diagnosis = search.report()
+    diagnosis.differs = where_it_does_not_hold(search.final_fit, validation)
+    return diagnosis
 
 
 @dataclass(eq=False)
@@ -354,7 +359,8 @@ class _Search:
         effect); None when none of the first ``ranked`` does."""
         for ranked in scored[: self.opts.ranked]:
             shape = self._friction_shape(rnd, scored, ranked)
-            for s in [shape] + ([ranked] if shape is not ranked else []):  # the Stribeck term named, else the Coulomb itself
+            shape = self._nesting(rnd, scored, shape)
+            for s in [shape] + ([ranked] if shape is not ranked else []):  # the Stribeck term or spring named, else the Coulomb or offset itself
                 pick = self._gated(rnd, s)
                 if pick is not None:
                     return pick
@@ -407,6 +413,29 @@ class _Search:
             cv = _score(both, rnd, self.ident, self.held, self.wt_i, self.wt_v, self.n_used, self.sample_period)
             rival = min(rival, joint_power_after(cv, rnd, self.held, self.wt_v)) if isinstance(cv, _Scored) else rival
         return shape if left[id(shape)] < rival else s
+
+    def _nesting(self, rnd: _Round, scored: list[_Scored], s: _Scored) -> _Scored:
+        """A joint's offset named by the one effect that holds it: the spring (``q`` and an offset,
+        :data:`NESTING`) where its stiffness passes an F-test at ``alpha`` against the offset's
+        refit and removes ``min_gain_joint`` of what the offset leaves on its joint's held-out
+        rows (the flat penalty per parameter had preferred the offset where the spring's rest
+        lies beyond its motion: blind spring seed 6306). Returns the spring, else ``s``."""
+        c = s.candidate
+        bigger = NESTING.get(c.effect)
+        if bigger is None or c.joint is None or c.block is None:
+            return s
+        big = next((x for x in scored if x.candidate.effect == bigger and x.candidate.joint == c.joint
+                    and set(c.labels) < set(x.candidate.labels)), None)
+        if big is None or not np.isfinite(big.rss) or not np.isfinite(s.rss):
+            return s
+        extra = len(big.candidate.labels) - len(c.labels)
+        dof = self.n_used - rnd.a_i.shape[1] - len(big.candidate.labels)
+        f_stat = ((s.rss - big.rss) / extra) / max(big.rss / dof, 1e-300)
+        if f_sf(f_stat, extra, dof) > self.opts.alpha:
+            return s
+        left_small = joint_power_after(s, rnd, self.held, self.wt_v)
+        left_big = joint_power_after(big, rnd, self.held, self.wt_v)
+        return big if left_small - left_big >= self.opts.min_gain_joint * left_small else s
 
     def _refit_prediction(self, rnd: _Round, s: _Scored) -> tuple[Array | None, Array]:
         """The candidate's held-out columns (None for one fitted exactly) and the held-out
@@ -672,6 +701,7 @@ class _Search:
                 found = [g for g in (_coulomb_level(f) if f in reversed_sign else f for f in found) if g is not None]
                 result1 = self._fit_findings(found)
             found, result1, negligible = self._material(found, result1)
+        self.final_fit = result1
         diagnosis = self._measured(found, result1)
         diagnosis.negligible, diagnosis.notes = negligible, self.notes
         return diagnosis

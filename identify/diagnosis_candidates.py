@@ -36,6 +36,12 @@ LOOKALIKES = {
 }
 
 
+NESTING = {"torque_offset": "spring"}
+"""A one-joint effect and the one that holds it (its columns and one more): an offset is a
+spring's torque at its rest position (``spring``: ``q`` and an offset). The diagnosis names
+the larger where its extra term is a finding beside the smaller (``_Search._nesting``)."""
+
+
 SEPARATE = {
     frozenset(("coulomb_friction", "stribeck_friction")): "slow constant-velocity moves of joint {j} at several speeds "
     "between 0.01 and 0.5 rad/s: Stribeck friction falls with speed, Coulomb friction does not",

@@ -25,13 +25,25 @@ from .spatial import Array
 
 FIXED_OPTIONS = ("velocity", "period_rad")
 
+STRIBECK_LEVEL = {"velocity": 0.0}
+"""The Coulomb level a Stribeck finding brings, as declared: a sharp ``sign(qd)``, as the search
+scored it (diagnosis_candidates._stribeck_columns), not a smoothing searched on the data. The
+smoothing of the sign and the Stribeck velocity both shape the friction below a few times
+``v_s`` alone: on one trajectory the two trade against each other, and the settings' search,
+free to move the smoothing beside a peak held at its velocity, lands where they cancel (blind
+Stribeck seed 6206: smoothing 0.086 rad/s beside ``v_s`` 0.075, the peak fitted 1.41 for the
+true 0.39, the fit's own error above the sharp level's, 0.43 % for 0.37 %, and the validation's
+0.61 % for 0.49 %: the peak was judged negligible and named Coulomb friction)."""
+
 
 def findings_model(robot: Robot, found: list[Finding]) -> tuple[Robot, IdentifyOptions]:
     """The declared model with every finding added, as `identify` takes it: a joint's
     friction, offset, rotor inertia, spring or cogging as a declared effect (its searched
     setting kept), friction on every joint as three declared effects per joint, a tilt of
     gravity as the tilted gravity vector, a drive gain as the torque's scale, a delay of the
-    torque channel as its lag, a joint's late position as its motion's lag (IdentifyOptions). Declaring the same in the robot file gives the same fit."""
+    torque channel as its lag, a joint's late position as its motion's lag (IdentifyOptions).
+    A found Coulomb level on a joint with a Stribeck finding is a sharp ``sign(qd)``
+    (:data:`STRIBECK_LEVEL`). Declaring the same in the robot file gives the same fit."""
     nj = robot.n_joints
     declared: list[DeclaredEffect] = []
     gravity = np.asarray(robot.gravity, float)
@@ -40,6 +52,7 @@ def findings_model(robot: Robot, found: list[Finding]) -> tuple[Robot, IdentifyO
     motion_delay = np.zeros(nj)
     have = {(e.effect, j) for e in robot.effects for j in (range(1, nj + 1) if e.joint is None else [e.joint])}
     nonnegative: list[str] = []
+    stribeck = {f.joint for f in found if f.effect == "stribeck_friction"}
     for f in found:
         nonnegative += _bounded_columns(f, have)
         if f.effect == "coulomb_friction" and f.joint is None:  # friction on every joint it covers
@@ -55,13 +68,18 @@ def findings_model(robot: Robot, found: list[Finding]) -> tuple[Robot, IdentifyO
         elif f.effect == "time_delay" and f.joint is not None:
             motion_delay[f.joint] += f.parameters["delay_s"]
         elif f.joint is not None:
-            # a found Coulomb's smoothing is chosen on the data, as for a declared one
+            # a found Coulomb's smoothing is chosen on the data, as for a declared one, unless a
+            # Stribeck peak on its joint shapes its low speeds (:data:`STRIBECK_LEVEL`)
             fixed = {k: v for k, v in f.parameters.items() if k in FIXED_OPTIONS and f.effect != "coulomb_friction"}
+            if f.effect == "coulomb_friction" and f.joint in stribeck:
+                fixed = dict(STRIBECK_LEVEL)
             declared.append(DeclaredEffect(f.effect, f.joint + 1, fixed))
             if f.effect == "spring" and "rest_position" in f.parameters and ("torque_offset", f.joint + 1) not in have:
                 declared.append(DeclaredEffect("torque_offset", f.joint + 1))
             if f.effect in ("stribeck_friction", "load_dependent_coulomb") and "fc" in f.parameters and ("coulomb_friction", f.joint + 1) not in have:
-                declared.append(DeclaredEffect("coulomb_friction", f.joint + 1))  # found with its Coulomb level
+                # found with its Coulomb level; a Stribeck peak's level is the sharp sign(qd) it
+                # was scored with (:data:`STRIBECK_LEVEL`)
+                declared.append(DeclaredEffect("coulomb_friction", f.joint + 1, dict(STRIBECK_LEVEL) if f.effect == "stribeck_friction" else {}))
     model = replace(robot, gravity=gravity, effects=tuple(robot.effects) + tuple(declared))
     return model, IdentifyOptions(torque_scale=tuple(scale) if np.any(scale != 1.0) else None,
                                   delay_s=tuple(delay) if np.any(delay != 0.0) else None,

@@ -85,9 +85,25 @@ class Diagnosis:
     # findings below the materiality (MATERIALITY): not found, with their size
     negligible: list[dict[str, Any]] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)  # what was not tested, and why
+    # identify.check's CheckResult of the validation data against the final model, where it
+    # does not hold on them (the validation data differ from the identification data)
+    differs: Any = None
+
+    def verdict(self) -> str | None:
+        """The sentence where nothing was found: what the error stands at against the floor
+        (never that the model explains data it does not: see :attr:`differs`)."""
+        if self.found:
+            return None
+        floor = (self.noise_floor or {}).get("relative_error")
+        e = self.after["relative_error"]
+        if self.differs is None and floor is not None and e**2 <= (1.0 + EXPLAINS_RISE) * floor**2:
+            return f"nothing significant found: the declared model explains the data to its noise ({100 * e:.3g} % against a floor of {100 * floor:.3g} %)"
+        floor_text = "no noise floor" if floor is None else f"a noise floor of {100 * floor:.3g} %"
+        return (f"nothing significant found in the identification data's residual; the declared model's validation error {100 * e:.3g} % "
+                f"stands above {floor_text}: what remains is not in the catalogue" + (" or lies in the validation data alone (below)" if self.differs else ""))
 
     def to_json(self) -> dict[str, Any]:
-        return {"found": [f.to_json() for f in self.found], "absorbed": self.absorbed, "declared": self.base_effects,
+        return {"validation_differs": None if self.differs is None else self.differs.to_json(), "found": [f.to_json() for f in self.found], "absorbed": self.absorbed, "declared": self.base_effects,
                 "set_aside": self.conflicting, "extrapolated": self.extrapolated, "negligible": self.negligible,
                 "materiality": {"min_validation_drop": MATERIALITY, "how": MATERIALITY_HOW}, "notes": self.notes,
                 "before": self.before, "after": self.after, "noise_floor": self.noise_floor,
@@ -95,6 +111,11 @@ class Diagnosis:
                              "raises its joint's error on the validation data consistently (over its tenths) is set aside (a veto, never a ranking)",
                 "measured_on": "the validation data (before and after), at every sample's own stamp against the raw torque"}
 
+
+EXPLAINS_RISE = 0.5
+"""The model explains data to their noise while its error's power is within this fraction
+above the noise floor's (``e^2 <= 1.5 f^2``: the error at most 1.22 times the floor), as
+``armid check`` holds a model (identify.check.CheckOptions.rise)."""
 
 MATERIALITY = 0.02
 """A finding must remove at least this fraction of the validation error's power above the

@@ -173,7 +173,7 @@ def _fit_round(wi: Array, wv: Array, extra_i: Array, extra_v: Array, yi: Array, 
 @dataclass(eq=False)
 class _Scored:
     """A candidate scored against a round: the held-out RSS of the refit with it, the F-test's
-    p-value on the fit, its parameters ``gamma``, and what rebuilding the refit needs: its
+    p-value on the fit (and the fit's RSS), its parameters ``gamma``, and what rebuilding the refit needs: its
     columns' projection on the model (None when fitted exactly), the held-out prediction of an
     exactly fitted one, the per-joint held-out residual power an arm-wide one leaves."""
 
@@ -184,6 +184,7 @@ class _Scored:
     projection: Array | None
     exact_prediction: Array | None
     power_after: Array | None
+    rss: float = float("nan")  # the whitened identification RSS of the refit with it (a nested pair's F-test)
 
 
 @dataclass(eq=False)
@@ -234,7 +235,7 @@ def _score(c: Candidate, rnd: _Round, ident: _Data, held: _Data, wt_i: Array, wt
     if cv_full is not None:  # the held-out residual power it leaves on each joint
         res_c = rnd.res_v + rnd.g_mat @ u - cv_full @ gamma
         power_after = np.bincount(rnd.joint_of_row, res_c**2, rnd.n_joints)
-    return _Scored(rss_v1, p_value, c, gamma, proj, None, power_after)
+    return _Scored(rss_v1, p_value, c, gamma, proj, None, power_after, rss1)
 
 
 def joint_power_after(s: _Scored, rnd: _Round, held: _Data, wt_v: Array) -> float:
@@ -258,7 +259,7 @@ def _score_gain(c: Candidate, rnd: _Round, n_used: int) -> _Scored | None:
     scale, rss1, rss_v1, pred_exact = exact
     dof = n_used - rnd.a_i.shape[1] - 1
     f_stat = (rnd.rss - rss1) / max(rss1 / dof, 1e-300)
-    return _Scored(rss_v1, f_sf(f_stat, 1, dof), c, np.array([scale - 1.0]), None, pred_exact, None)
+    return _Scored(rss_v1, f_sf(f_stat, 1, dof), c, np.array([scale - 1.0]), None, pred_exact, None, rss1)
 
 
 Moments = tuple[Array, Array, Array, Array, Array, Array, Array | None]

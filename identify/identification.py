@@ -31,7 +31,7 @@ from .estimation import (
     solve_factors,
     with_prior,
 )
-from .identifiability import UNIQUE, BaseParameters, Excitation, base_parameters, excitation, preferred_order
+from .identifiability import UNIQUE, BaseParameters, Excitation, base_parameters, excitation, identified_ranges, preferred_order
 from .metrics import summary
 from .preprocess import Prepared, Segment
 from .prior import RELATIVE_STD, Prior, base_prior, link_scales, scaled, widened
@@ -307,11 +307,13 @@ class IdentificationResult:
         return self.base.classes()
 
     def to_json(self) -> dict[str, Any]:
-        """The ``identify --json`` document of INTERFACES.md (plus a few extra fields)."""
+        """The ``identify --json`` document of INTERFACES.md (plus a few extra fields; ``identified``:
+        :func:`~identify.identifiability.identified_ranges`, the values and stds the estimate's whatever it says)."""
         nj = self.robot.n_joints
         value, std = self.parameter_values()
         modeled = self.robot.modeled_parameters()
         classes = self.classes
+        column_range, column_ok, base_range, base_ok = identified_ranges(self.robot, self.names, self.base, std, self.estimate.std)
         params = []
         for k in range(self.robot.n_parameters):
             params.append(
@@ -322,6 +324,7 @@ class IdentificationResult:
                     "std": _num(std[k]),
                     "identifiability": classes[k],
                     "modeled": _num(modeled[k]),
+                    "identified": bool(column_ok[k]), "physical_range": _num(column_range[k]),
                 }
             )
         base = []
@@ -335,6 +338,7 @@ class IdentificationResult:
                     "std": float(self.estimate.std[k]),
                     "relative_std_percent": _num(self.estimate.relative_std[k]),
                     "modeled": _num(modeled_base[k]),
+                    "identified": bool(base_ok[k]), "physical_range": _num(base_range[k]),
                 }
             )
         effects = []

@@ -34,6 +34,9 @@ class Recording:
     # gain is in question); False, joint torque given directly (a torque sensor: no drive gain
     # between it and the model); None, not said (arrays made in memory, a simulated drive's)
     torque_from_current: bool | None = None
+    # the line that stopped the run the recording holds (a drive fault, lost frames, a safety
+    # stop: what its metadata says), None for a run that completed or a file that does not say
+    stopped: str | None = None
 
     @property
     def n_samples(self) -> int:

@@ -31,7 +31,7 @@ import numpy as np
 
 from .estimation import correlation_length, lag_window_covariance
 from .excitation import experiment_columns, experiment_regressor
-from .identifiability import base_parameters, preferred_order
+from .identifiability import base_parameters, combination_ranges, identified_by_data, physical_ranges, preferred_order
 from .identification import IdentificationResult, declared_effects
 from .preprocess import Prepared
 from .robot import Robot
@@ -106,11 +106,28 @@ class SequenceResult:
         w = experiment_regressor(self.robot, tuple(range(n)), q, qd, qdd)
         return np.asarray((w @ self.parameters()).reshape(-1, n))
 
+    def physical_ranges(self) -> Array:
+        """Each combination's physical range: its coefficients applied to its columns' ranges
+        (:func:`~identify.identifiability.combination_ranges`), or its modeled magnitude."""
+        if not self.functionals:
+            return np.zeros(0)
+        columns = physical_ranges(self.robot, self.names, self.modeled)
+        rows = np.array([fn.row for fn in self.functionals])
+        return combination_ranges(rows, columns, np.array([fn.modeled for fn in self.functionals]))
+
+    def identified(self) -> Array:
+        """Whether these data identify each combination: three of its standard deviations
+        within its physical range (:func:`~identify.identifiability.identified_by_data`)."""
+        return identified_by_data(self.std, self.physical_ranges())
+
     def table(self) -> list[dict[str, Any]]:
-        """Khosla's Tables 2-4: link, parameter (or combined entry), initial value, estimate, std."""
-        std = self.std
+        """Khosla's Tables 2-4: link, parameter (or combined entry), initial value, estimate, std,
+        and whether the data identify it against its physical range."""
+        std, ranges = self.std, self.physical_ranges()
+        ok = identified_by_data(std, ranges)
         return [{"link": fn.link + 1, "parameter": fn.expression, "modeled": fn.modeled, "estimate": float(self.beta[k]),
-                 "std": float(std[k])} for k, fn in enumerate(self.functionals)]
+                 "std": float(std[k]), "identified": bool(ok[k]), "physical_range": float(ranges[k])}
+                for k, fn in enumerate(self.functionals)]
 
     def compare(self, whole: IdentificationResult) -> list[dict[str, Any]]:
         """Each base parameter of a whole-arm identification beside the single-link sequence's value of it."""

@@ -221,3 +221,89 @@ def test_a_finding_whose_final_fit_turns_its_sign_is_set_aside() -> None:
     assert _sign_reversed([*kept, stribeck, pushing, held]) == [stribeck, pushing, held]
     text = set_aside_sentence({"effect": "stribeck_friction", "joint": 6, "parameters": stribeck.parameters, "reason": "sign"})
     assert "fs came out -0.6926" in text and "not physical" in text
+
+
+# issue 62: a Stribeck curve named Coulomb friction, a spring named an offset (and a cogging).
+# Ten seeds of each on the generator's own sweep (sensors and sizes rotating: whole-arm effect
+# 1.5-25 times the noise), nothing declared, and ten springs beside declared Coulomb and viscous
+# friction on every joint: each is named as found, on its joint
+NAMED_AS_FOUND = blindgen.blind_specs("effects", 10, seed0=6200, effects=["stribeck_friction", "spring"])
+_FRICTION = {"declare": [{"effect": "coulomb_friction", "joint": None}, {"effect": "viscous_friction", "joint": None}],
+             "extra_effects": [{"effect": "coulomb_friction", "joint": "all", "size": 0.1},
+                               {"effect": "viscous_friction", "joint": "all", "size": 0.1}]}
+SPRINGS = blindgen.blind_specs("effects", 10, seed0=6300, effects=["spring"])
+SPRINGS_BESIDE_FRICTION = [{**s, **_FRICTION} for s in blindgen.blind_specs("effects", 10, seed0=6400, effects=["spring"])]
+
+
+def _named_as_found(spec: dict, tmp_path: Path) -> dict:
+    case, doc, after = _diagnose(spec, tmp_path)
+    found = [(f["effect"], f["joint"]) for f in doc["found"]]
+    assert (case.expected, case.effect_joint) in found, f"expected {case.expected} on joint {case.effect_joint}, found {found}"
+    before, floor = doc["before"]["relative_error"], case.noise_floor
+    assert before - after >= 0.5 * (before - floor), f"before {100 * before:.3f} %, after {100 * after:.3f} %, floor {100 * floor:.3f} %"
+    return doc
+
+
+# seed 6308 (a spring of 0.08 N*m/rad on the light joint 4 of a 100 Hz high-noise arm): ranked
+# first and significant, it fixes its joint's held-out error (0.18 of it) but moves the arm's by
+# under the 0.5 % gate (b) asks; nothing is named (validation 3.40 % for a 3.31 % floor)
+_BELOW_THE_ARM_GATE = pytest.mark.xfail(reason="below gate (b)'s arm drop, nothing named", strict=True)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("spec", NAMED_AS_FOUND + [pytest.param(s, marks=_BELOW_THE_ARM_GATE) if s["seed"] == 6308 else s for s in SPRINGS]
+                         + SPRINGS_BESIDE_FRICTION, ids=lambda s: _name(s) + ("-friction" if "declare" in s else ""))
+def test_stribeck_and_spring_are_named_as_found(spec: dict, tmp_path: Path) -> None:
+    _named_as_found(spec, tmp_path)
+
+
+# seed 6206: a Stribeck peak (v_s 0.083 rad/s, fs - fc 0.39 N*m) on joint 2 of a 500 Hz current
+# log; the final fit searched its Coulomb level's smoothing on the data (0.086 rad/s beside
+# v_s 0.075), fitted the peak 1.41, and the peak was judged negligible: named Coulomb friction
+STRIBECK_SMOOTHED_AWAY = NAMED_AS_FOUND[6]
+# seed 6306: a spring (rest 0.10 m) on the prismatic joint 3, moving over -0.06..0.09 m: mostly a
+# constant torque; the offset ranked first by a hair, and the stiffness left over cleared no gate
+SPRING_MOSTLY_CONSTANT = SPRINGS[6]
+
+
+def test_a_stribeck_peak_keeps_the_sharp_level_it_was_found_with(tmp_path: Path) -> None:
+    """Named as found, nothing negligible, its peak the generator's (within 25 %) and the
+    validation error at the noise floor (within 5 %)."""
+    assert STRIBECK_SMOOTHED_AWAY["effect"] == "stribeck_friction" and STRIBECK_SMOOTHED_AWAY["seed"] == 6206
+    case, doc, after = _diagnose(STRIBECK_SMOOTHED_AWAY, tmp_path)
+    assert [(f["effect"], f["joint"]) for f in doc["found"]] == [("stribeck_friction", case.effect_joint)], doc["found"]
+    assert doc["negligible"] == [], doc["negligible"]
+    got, true = doc["found"][0]["parameters"], {k: v[0] for k, v in case.params.items()}
+    assert abs(got["fs"] - (true["fs"] - true["fc"])) < 0.25 * (true["fs"] - true["fc"]), (got, true)
+    assert after < 1.05 * case.noise_floor, (after, case.noise_floor)
+
+
+def test_a_spring_mostly_constant_is_a_spring(tmp_path: Path) -> None:
+    assert SPRING_MOSTLY_CONSTANT["effect"] == "spring" and SPRING_MOSTLY_CONSTANT["seed"] == 6306
+    doc = _named_as_found(SPRING_MOSTLY_CONSTANT, tmp_path)
+    assert [f["effect"] for f in doc["found"]] == ["spring"], doc["found"]
+
+
+def test_a_stribeck_findings_coulomb_level_is_declared_sharp() -> None:
+    """findings_model declares a Stribeck finding's Coulomb level (found with it, or found
+    before it on its joint) as sign(qd), not a smoothing the settings' search would choose."""
+    from armid.identify.diagnosis import findings_model
+    from armid.identify.robot import DeclaredEffect
+
+    robot = _bare_puma()
+    stribeck = Finding("stribeck_friction", 1, {"fc": 0.4, "fs": 0.5, "velocity": 0.075}, 0.1, 0.02, 0.01)
+    model, _ = findings_model(robot, [stribeck])
+    assert DeclaredEffect("coulomb_friction", 2, {"velocity": 0.0}) in model.effects
+    level, peak = Finding("coulomb_friction", 2, {"fc": 0.4}, 0.1, 0.02, 0.01), Finding("stribeck_friction", 2, {"fs": 0.5, "velocity": 0.1}, 0.1, 0.02, 0.01)
+    model, _ = findings_model(robot, [level, peak])
+    assert DeclaredEffect("coulomb_friction", 3, {"velocity": 0.0}) in model.effects
+    model, _ = findings_model(robot, [level])  # alone: its smoothing chosen on the data, as a declared one's
+    assert DeclaredEffect("coulomb_friction", 3, {}) in model.effects
+
+
+def _bare_puma():  # the PUMA 560 without its declared effects
+    from dataclasses import replace
+
+    from armid.commands.arguments import load_robot_argument
+
+    return replace(load_robot_argument(str(Path(__file__).resolve().parent.parent / "config" / "robots" / "puma560.yaml")), effects=())

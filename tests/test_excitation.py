@@ -240,6 +240,7 @@ def test_excitation_on_the_bus_runs_records_and_holds(tmp_path: Path) -> None:
     assert report.completed, report.stop_reason
     arrays, metadata, notes = read_mcap_arrays(report.recording)
     assert not notes and np.all(np.diff(arrays["sequence"]) == 1)  # session-wide numbers, no gap
+    assert metadata["completed"] == "true" and "stop" not in metadata  # a completed run says so
     assert np.all(np.diff(arrays["cycle"]) == 1)
     assert report.records == arrays["sequence"].size and report.cycles >= p.duration_s / s.rig.period_s - 1
     assert json.loads(metadata["excitation"])["design"]["moving_joints"] == [6]
@@ -256,8 +257,11 @@ def test_a_drive_that_stops_following_ends_in_a_quick_stop_within_3_cycles_and_n
         states = [dr.state.name for dr in s.arm.drives]
     assert not report.completed and report.stop_reason is not None and "joint 3" in report.stop_reason, report.stop_reason
     assert all(st in ("QUICK_STOP_ACTIVE", "SWITCH_ON_DISABLED") for st in states), states  # stopping, or stopped
-    arrays, _, notes = read_mcap_arrays(report.recording)
+    arrays, metadata, notes = read_mcap_arrays(report.recording)
     assert not notes and np.all(np.diff(arrays["sequence"]) == 1)  # session-wide numbers, no gap
+    # the recording says how the run ended (issue 62): the line armid excite prints after STOPPED
+    assert metadata["completed"] == "false" and metadata["stop"] == report.stop_reason, metadata
+    assert metadata["stop_cycle"] == str(report.stop_cycle) and metadata["records"] == str(report.records)
     cycles = arrays["cycle"]
     assert cycles[-1] >= report.stop_cycle  # everything up to the stop is in the file
     stopped_at = cycles[np.all((arrays["status"] & 0x6F) != 0x27, axis=1)]  # CiA 402: no drive operation enabled

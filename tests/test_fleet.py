@@ -1,7 +1,8 @@
 """``armid fleet`` on a lab of six arms recorded ten days each (tests/fleetgen.py, which shares
-no code with armid): the friction step, the drive-gain drift and the 1 kg tool are found at
-the recording where they began (+-1), on the right joint, with the right sign (the tool's by
-the truth of each base parameter it moved); the other arms report nothing. A corrupt
+no code with armid): the friction step and the drive-gain drift are found at the recording
+where they began (+-1), on the right joint, with the right sign, and the 1 kg tool as one load
+on the last link, in kg, at the recording it began (its centre within 1 cm); the other arms
+report nothing. A corrupt
 recording, one of another robot and one of NaN are rows with their one-line errors and the
 rest completes. Ray (a local cluster of 2 CPUs) gives what the local engine gives. The
 unchanged arms' own estimates, shuffled in time, raise few false alarms.
@@ -68,12 +69,38 @@ def test_each_planted_change_is_found_where_it_began(fleet: fleetgen.Fleet, loca
         elif p["kind"] == "gain_drift":
             assert [(c["parameter"], c["joint"]) for c in mine] == [("torque_gain", p["joint"])]
             assert mine[0]["after"] > mine[0]["before"] and mine[0]["kind"] == "drift"
-        else:  # the tool: base parameters with the last link's terms, each moved as the truth says
-            assert mine and any(c["joint"] == 4 for c in mine)
-            for c in mine:
-                assert "4" in c["parameter"] and c["quantity"] == "base"
-                truth = fleetgen.truth_change(fleet.root, arm, c["parameter"], p["index"] - 1, p["index"])
-                assert np.sign(c["after"] - c["before"]) == np.sign(truth), f"{c['parameter']}: moved {c['after'] - c['before']:.3g}, truth {truth:.3g}"
+        else:  # the tool: one load on the last link, in kg, at the recording it began
+            assert [(c["parameter"], c["quantity"], c["joint"], c["unit"], c["kind"]) for c in mine] == [("load_mass", "load", 4, "kg", "step")]
+            assert _index(fleet, mine[0]) == p["index"]
+            _check_load(fleet, mine[0], p)
+
+
+def _check_load(fleet: fleetgen.Fleet, load: dict[str, Any], planted: dict[str, Any]) -> None:
+    """The 1 kg tool: 1.0 +- 0.15 kg, its std below that, its centre within 1 cm of the truth
+    (fleetgen's offset in the last link's frame); every base parameter it explains moved as the
+    truth says, by the sign of its step between the two days."""
+    tool = fleetgen.CHANGES[load["arm"]]
+    mass = load["after"] - load["before"]
+    print(f"\n{load['arm']}: load {mass:.4f} +- {load['load_mass_std']:.2g} kg (truth {tool['mass_kg']}), centre "
+          f"{load['load_com']} m (truth {list(tool['offset_m'])}), {load['load_model']}, fit {load['load_fit']}", end="")
+    assert load["before"] == 0.0 and mass == pytest.approx(tool["mass_kg"], abs=0.15) and 0 < load["load_mass_std"] < 0.15
+    assert load["load_com"] == pytest.approx(list(tool["offset_m"]), abs=0.01)
+    assert load["explains"] and load["significance"] < ALPHA
+    for expression in load["explains"]:
+        assert "4" in expression
+        truth = fleetgen.truth_change(fleet.root, load["arm"], expression, planted["index"] - 1, planted["index"])
+        assert abs(truth) > 0, f"{expression}: explained, but the tool did not move it"
+
+
+def test_the_load_is_a_sentence_in_kilograms_and_the_base_parameters_stay_in_the_table(fleet: fleetgen.Fleet, local: dict[str, Any]) -> None:
+    load = next(c for c in local["changes"] if c["quantity"] == "load")
+    assert f"a load of {load['after'] - load['before']:.2f} ± {load['load_mass_std']:.2f} kg on link 4 (the last)" in local["report"]
+    assert "centre of mass [" in local["report"] and "the last link's load changed" not in local["report"]
+    arm_rows = [r for r in local["rows"] if r["arm"] == load["arm"] and r["status"] == "ok"]
+    for expression in load["explains"]:  # each explained base parameter still has its row per recording
+        assert sum(r["parameter"] == expression and r["quantity"] == "base" for r in arm_rows) == len(fleet.recordings[load["arm"]])
+    friction = next(c for c in local["changes"] if c["parameter"] == "coulomb_friction.fc")
+    assert f"{friction['after'] / friction['before']:.3g} times what it was" in local["report"]
 
 
 def test_a_bad_recording_is_a_row_with_its_error_and_the_rest_completes(fleet: fleetgen.Fleet, local: dict[str, Any]) -> None:

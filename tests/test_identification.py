@@ -205,6 +205,32 @@ def test_kuka_lwr4_real_data_identifies_and_validates(tmp_path):  # type: ignore
     # the identified model must beat the CAD model with friction reported for this data
     published_rms = [0.36, 1.55, 0.49, 0.98, 0.63, 0.49, 0.27]
     assert np.all(np.array(doc["validation"]["rms"]) < published_rms)
+    # well excited: every base parameter identified, three sigmas inside its physical range (issue 62)
+    base = doc["base_parameters"]
+    assert all(b["identified"] for b in base) and max(3 * b["std"] / b["physical_range"] for b in base) < 0.1
+    assert all(p["identified"] == (p["identifiability"] == "unique") for p in doc["parameters"])
+
+
+def test_a_barely_excited_link_s_combinations_are_not_identified_by_these_data(tmp_path, capsys):  # type: ignore[no-untyped-def]
+    """Issue 62: a combination whose three sigmas exceed its physical range (the arm's mass,
+    mass x reach, mass x reach^2; a joint's torque over its speed for viscous friction) is
+    printed and written as not identified by these data; its value and std are unchanged.
+    The Dynamixel arm: link 5's run moves 0.06 rad for 3 s with 0.2 N*m of torque noise."""
+    kw = {"robot_file": "dxl_arm6.yaml", "rig_file": "sim_dynamixel.yaml"}
+    runs = [str(_single_joint_run(tmp_path / f"link{j + 1}.csv", j, 0.4, j, **kw,
+                                  **({"amplitude": 0.06, "noise_nm": 0.2, "duration": 3.0} if j == 4 else {}))) for j in range(6)]
+    out = tmp_path / "seq.json"
+    assert main(["identify", *runs, "--robot", str(ROBOTS / "dxl_arm6.yaml"), "--single-link", "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    table = json.loads(out.read_text())["single_link"]["table"]
+    weak = [row for row in table if not row["identified"]]
+    assert [(row["link"], row["parameter"]) for row in weak] == [(5, "fv5")], weak
+    [row] = weak
+    assert 3 * row["std"] > row["physical_range"] and row["physical_range"] == pytest.approx(3.5 / 4.5)  # torque / speed limit
+    assert f"link 5: fv5: not identified by these data (+-{3 * row['std']:.3g} at 3 sigma against a physical range of 0.778)" in printed
+    assert "dxl_arm6: single-link sequence over links 6, 5, 4, 3, 2, 1: 23 combinations identified, 1 not identified by these data" in printed
+    # the well-excited links stay identified
+    assert all(row["identified"] for row in table if row["link"] != 5)
 
 
 @pytest.mark.skipif(not (SHARED / "data" / "kuka_lwr4" / "measurements_1.npz").exists(), reason="shared KUKA data not beside the repository")
@@ -387,23 +413,28 @@ def test_every_torque_negated_is_warned_about_where_no_single_joint_shows_it(tmp
         assert ("the torques of all joints together run opposite" in err) == said, err
 
 
-def _single_joint_run(path, joint, frequency_hz, seed, duration=8.0):  # type: ignore[no-untyped-def]
-    """Joint ``joint`` (0-based) alone moving (two sines), the others held at the simulated
-    rig's start pose; torques from Pinocchio's RNEA plus the declared friction, 1 % noise."""
+def _single_joint_run(path, joint, frequency_hz, seed, duration=8.0, robot_file="puma560.yaml", rig_file="sim.yaml",  # type: ignore[no-untyped-def]
+                      amplitude=1.0, noise_nm=None):
+    """Joint ``joint`` (0-based) alone moving (two sines, ``amplitude`` times 0.4 and 0.15 rad),
+    the others held at the simulated rig's start pose; torques from Pinocchio's RNEA plus the
+    declared friction, 1 % noise (or white noise of ``noise_nm`` N*m)."""
     from armid.io.rig_file import load_rig
 
-    robot = load_robot(ROBOTS / "puma560.yaml")
+    robot = load_robot(ROBOTS / robot_file)
     model = to_pinocchio(robot)
     data = model.createData()
-    q0 = np.asarray(load_rig(ROOT / "config" / "rigs" / "sim.yaml").simulation["initial_position"], float)
+    q0 = np.asarray(load_rig(ROOT / "config" / "rigs" / rig_file).simulation["initial_position"], float)
     t = np.arange(0.0, duration, 0.002)
     w1, w2 = 2 * np.pi * frequency_hz, 2 * np.pi * 2.3 * frequency_hz
-    q, qd, qdd = np.tile(q0, (t.size, 1)), np.zeros((t.size, 6)), np.zeros((t.size, 6))
-    q[:, joint] += 0.4 * np.sin(w1 * t) + 0.15 * np.sin(w2 * t)
-    qd[:, joint] = 0.4 * w1 * np.cos(w1 * t) + 0.15 * w2 * np.cos(w2 * t)
-    qdd[:, joint] = -0.4 * w1**2 * np.sin(w1 * t) - 0.15 * w2**2 * np.sin(w2 * t)
+    n = robot.n_joints
+    q, qd, qdd = np.tile(q0, (t.size, 1)), np.zeros((t.size, n)), np.zeros((t.size, n))
+    q[:, joint] += amplitude * (0.4 * np.sin(w1 * t) + 0.15 * np.sin(w2 * t))
+    qd[:, joint] = amplitude * (0.4 * w1 * np.cos(w1 * t) + 0.15 * w2 * np.cos(w2 * t))
+    qdd[:, joint] = amplitude * (-0.4 * w1**2 * np.sin(w1 * t) - 0.15 * w2**2 * np.sin(w2 * t))
     tau = np.array([pin.rnea(model, data, q[k], qd[k], qdd[k]) for k in range(t.size)]) + 0.5 * qd + 0.8 * np.sign(qd)
-    tau += 0.01 * np.random.default_rng(seed).normal(size=tau.shape) * np.maximum(np.std(tau, axis=0), 1e-3)
+    rng = np.random.default_rng(seed)
+    tau += (0.01 * rng.normal(size=tau.shape) * np.maximum(np.std(tau, axis=0), 1e-3) if noise_nm is None
+            else noise_nm * rng.normal(size=tau.shape))
     write_csv(path, t, {"q": q, "qd": qd, "qdd": qdd, "tau": tau})
     return path
 
@@ -421,6 +452,8 @@ def test_khoslas_single_link_sequence_from_the_users_recordings(tmp_path):  # ty
     doc = json.loads(out.read_text())
     assert doc["single_link"]["order"] == [6, 5, 4, 3, 2, 1]
     assert all(row["std"] > 0 for row in doc["single_link"]["table"])
+    # every link well excited: every combination identified, well inside its physical range
+    assert all(row["identified"] and 3 * row["std"] < 0.01 * row["physical_range"] for row in doc["single_link"]["table"])
     [v] = doc["validation"]
     assert v["joint"] == 2 and v["relative_error"] < 0.03, v  # 1 % noise on the torque
     header = predictions.read_text().splitlines()[0].split(",")

@@ -46,11 +46,12 @@ def _diagnose(args: argparse.Namespace) -> int:
     if args.report:
         from ..report import write_diagnosis_report
 
-        write_diagnosis_report(diag, robot.name, Path(args.report), doc.get("feasible"))
+        write_diagnosis_report(diag, robot, Path(args.report), doc.get("feasible"), identified_on=", ".join(Path(d).name for d in args.data),
+                               validated_on=", ".join(Path(d).name for d in args.validate))
     for f in diag.found:
         print(f.sentence())
-    if not diag.found:
-        print("nothing significant found: the declared model explains the data to its noise")
+    if diag.verdict():
+        print(diag.verdict())
     for x in diag.negligible:
         print(f"not a finding: {negligible_sentence(x)}")
     for note in diag.notes:
@@ -61,10 +62,29 @@ def _diagnose(args: argparse.Namespace) -> int:
         print(f"set aside (not a finding): {set_aside_sentence(c)}")
     for x in diag.extrapolated:
         print(f"extrapolated: {extrapolation_sentence(x)}")
+    if diag.differs is not None:
+        for line in differs_lines(robot.name, diag.differs):
+            print(line)
     print(f"{robot.name}: validation error {100 * doc['before']['relative_error']:.3g} % -> {100 * doc['after']['relative_error']:.3g} %")
     if feasible_line:
         print(feasible_line)
     return 0
+
+
+def differs_lines(name: str, differs: Any) -> list[str]:
+    """The validation data the final model does not explain: the figures, and what changed
+    there (``armid check``'s search on them, the final model held fixed)."""
+    floor = differs.noise_floor["relative_error"]
+    lines = [f"{name}: the validation data differ from the identification data: the final model's validation error "
+             f"{100 * differs.before['relative_error']:.3g} % against {100 * differs.reference.relative_error:.3g} % on the identification "
+             f"data" + ("" if floor is None else f" and a noise floor of {100 * floor:.3g} %") + "; what changed there (armid check):"]
+    lines += [f"  {c.sentence()}" for c in differs.found] + [f"  {n}" for n in differs.notes]
+    if not differs.found:
+        lines.append("  nothing in the catalogue nor a load on the last link explains it")
+    else:
+        lines.append(f"  validation error {100 * differs.before['relative_error']:.3g} % -> {100 * differs.after['relative_error']:.3g} % "
+                     "with what changed (each sample predicted by the fit on the other tenths of the validation data)")
+    return lines
 
 
 def _diagnosed_feasible(args: argparse.Namespace, robot: Any, diag: Any, experiments: list[Any], validation: list[Any], doc: dict[str, Any]) -> str | None:

@@ -59,6 +59,10 @@ def _identify(args: argparse.Namespace) -> int:
     for message in excitation:
         print(f"warning: {message}", file=sys.stderr)
     doc = result.to_json()
+    doc["recordings"] = inputs.recordings()
+    from armid.identify.check import motion_ranges
+
+    doc["motion"] = motion_ranges(experiments)  # what the model was identified on: armid check says where new data go beyond it
     feasible_line = _feasible(args, robot, result, validation, doc)
     for path, prep in zip(inputs.sources, experiments + validation):
         for note in prep.notes:
@@ -78,6 +82,9 @@ def _identify(args: argparse.Namespace) -> int:
         from ..report import write_report
 
         write_report(result, doc, segments, Path(args.report), "validation data" if validation else "identification data")
+    for b in doc["base_parameters"]:
+        if not b["identified"]:
+            print(f"base parameter {b['expression']}: {not_identified(b['std'], b['physical_range'])}")
     v = doc["validation"]
     print(
         f"{robot.name}: {doc['samples']} samples, {len(doc['base_parameters'])} base parameters, "
@@ -101,14 +108,20 @@ def _identify_single_link(args: argparse.Namespace, robot: Any, recipe: Any) -> 
         raise UsageError("--single-link gives Khosla's tables and predictions: --feasible, --urdf, --bounding-box and --report "
                          "are for a whole-arm identification")
     runs: dict[int, list[Any]] = {}
+    recordings = []
     for path in args.data:
         rec, link = _single_joint_run(path, robot)
         runs.setdefault(link, []).append(prepare(rec, robot, recipe.prepare))
+        recordings.append({"path": path, "role": "identification", "stopped": rec.stopped})
     checked = [(path, *_single_joint_run(path, robot)) for path in args.validate or []]
+    recordings += [{"path": path, "role": "validation", "stopped": rec.stopped} for path, rec, _ in checked]
     _inputs_read()
     seq = single_link_sequence(robot, runs)
-    for row in seq.table():
-        print(f"link {row['link']}: {row['parameter']} = {row['estimate']:.6g} +- {row['std']:.3g} (modeled {row['modeled']:.6g})")
+    table = seq.table()
+    for row in table:
+        value = (f" = {row['estimate']:.6g} +- {row['std']:.3g}" if row["identified"]
+                 else f": {not_identified(row['std'], row['physical_range'])}")
+        print(f"link {row['link']}: {row['parameter']}{value} (modeled {row['modeled']:.6g})")
     validation, predicted = [], []
     for path, rec, link in checked:
         prep = prepare(rec, robot, recipe.prepare)
@@ -121,16 +134,28 @@ def _identify_single_link(args: argparse.Namespace, robot: Any, recipe: Any) -> 
         print(f"{path}: joint {link + 1} predicted with relative error {100 * error:.3g} %")
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(strict_json({"single_link": seq.to_json(), "validation": validation}, indent=1) + "\n")
+        Path(args.json).write_text(strict_json({"single_link": seq.to_json(), "validation": validation, "recordings": recordings},
+                                               indent=1) + "\n")
     if args.predictions:
         if not predicted:
             raise IdentificationError("--predictions needs --validate data")
         Path(args.predictions).parent.mkdir(parents=True, exist_ok=True)
         write_csv(args.predictions, np.concatenate([t for t, _ in predicted]), {"tau_hat": np.concatenate([h for _, h in predicted])})
     done = ", ".join(str(step["link"]) for step in seq.steps)
-    print(f"{robot.name}: single-link sequence over links {done}: {len(seq.functionals)} combinations identified"
+    weak = sum(not row["identified"] for row in table)
+    print(f"{robot.name}: single-link sequence over links {done}: {len(table) - weak} combinations identified"
+          + (f", {weak} not identified by these data" if weak else "")
           + (f"; validation error {100 * float(np.mean([v['relative_error'] for v in validation])):.3g} % (mean over the runs)" if validation else ""))
     return 0
+
+
+def not_identified(std: float, physical_range: float | None) -> str:
+    """What a table prints instead of a value the data do not identify (its three sigmas
+    beyond its physical range: :func:`armid.identify.identifiability.identified_by_data`)."""
+    from armid.identify.identifiability import IDENTIFIED_SIGMAS
+
+    bound = "an unbounded range" if physical_range is None or not np.isfinite(physical_range) else f"a physical range of {physical_range:.3g}"
+    return f"not identified by these data (+-{IDENTIFIED_SIGMAS * std:.3g} at {IDENTIFIED_SIGMAS:g} sigma against {bound})"
 
 
 def _single_joint_run(path: str, robot: Any) -> tuple[Any, int]:

@@ -87,7 +87,8 @@ def _record(args: argparse.Namespace) -> int:
                         break
             acq.stop()
             supervision.events(driver.events())
-            recorder.close()
+            # how the run ended, in the recording: a run cut short says so wherever it is read
+            recorder.close({"completed": acq.error is None, "stop": acq.error})
             if can_log is not None:
                 can_log.stop()
             if stream:

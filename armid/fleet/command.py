@@ -15,7 +15,7 @@ from ..commands.arguments import _count
 from . import engine
 from .discover import find_arms, jobs_of
 from .outputs import detect, in_order, write_changes, write_parameters
-from .report import scatter_sentence, significance, when, write_report
+from .report import load_sentence, scatter_sentence, significance, when, write_report
 from .task import Result
 
 
@@ -92,6 +92,9 @@ def run(args: argparse.Namespace) -> int:
     for c in detection.changes:
         joint = f" joint {c.joint}" if c.joint is not None else ""
         unit = f" {c.unit}" if c.unit not in ("", "1") else ""
+        if c.quantity == "load":
+            print(f"{c.arm}: {load_sentence(c)[:-1]}, significance {significance(c.significance)}")
+            continue
         print(f"{c.arm}:{joint} {c.parameter}: {c.kind} {c.before:.5g} -> {c.after:.5g}{unit} from {c.recording} "
               f"({when(c.start_time)}), significance {significance(c.significance)}")
     print(f"{len(detection.changes)} change(s) at a family-wise false-alarm rate of {detection.alpha:g}; "

@@ -4,7 +4,6 @@ changed (PNG beside it), each arm's recordings, the recordings that failed and w
 from __future__ import annotations
 
 import datetime
-import re
 from pathlib import Path
 from typing import Any
 
@@ -35,10 +34,6 @@ def significance(p: float) -> str:
 
 def _pct(x: float | None) -> str:
     return "—" if x is None else f"{100 * x:.3g} %"
-
-
-def _links(expression: str) -> set[int]:
-    return {int(m) for m in re.findall(r"(?:^|[^\w.])(?:m|ms[xyz]|I[xyz]{2})(\d+)", expression)}
 
 
 def plot_change(change: Change, k: int, times: np.ndarray, values: np.ndarray, stds: np.ndarray, path: Path) -> None:
@@ -96,25 +91,53 @@ def _change_lines(detection: Detection, out_dir: Path) -> list[str]:
     counts: dict[str, int] = {}
     for c in detection.changes:
         keys, values, stds, times, recordings = detection.series[c.arm]
-        column = next(i for i, key in enumerate(keys) if key[:3] == (c.quantity, c.parameter, c.joint))
+        # a load is plotted by the strongest base parameter's step it explains
+        shown = detection.explained[(c.arm, c.recording)][0] if c.quantity == "load" else c
+        column = next(i for i, key in enumerate(keys) if key[:3] == (shown.quantity, shown.parameter, shown.joint))
         counts[c.arm] = counts.get(c.arm, 0) + 1
         name = f"{c.arm}_{counts[c.arm]:02d}.png"
-        plot_change(c, recordings.index(c.recording), times, values[:, column], stds[:, column], out_dir / name)
-        lines += [f"![{c.arm}: {c.parameter}]({name})", ""]
+        plot_change(shown, recordings.index(c.recording), times, values[:, column], stds[:, column], out_dir / name)
+        lines += [f"![{c.arm}: {c.parameter}" + (f" (its step of `{shown.parameter}`)" if shown is not c else "") + f"]({name})", ""]
     return lines
 
 
-def _last_link_notes(detection: Detection) -> list[str]:
-    """A sentence per arm whose base parameters of its last link changed together (a payload or a tool)."""
+def _cm(x: float | None, digits: str = ".1f") -> str:
+    return "?" if x is None else format(100 * x, digits)
+
+
+def load_sentence(c: Change) -> str:
+    """A load on the last link in kilograms and centimetres."""
+    mass = c.after - c.before
+    what = "a load of" if mass >= 0 else "a load removed, of"
+    text = (f"{what} {abs(mass):.2f} ± {c.load_mass_std or 0.0:.2f} kg on link {c.joint} (the last) from `{c.recording}` "
+            f"({when(c.start_time)}) on")
+    com = c.load_com or [None] * 3
+    if any(x is not None for x in com):
+        std = c.load_com_std or [None] * 3
+        text += (f", centre of mass [{', '.join(_cm(x) for x in com)}] ± [{', '.join(_cm(x, '.2g') for x in std)}] cm "
+                 "in the link's frame")
+    if c.before:
+        text += f" ({c.before:.2f} kg before, {c.after:.2f} kg after)"
+    model = "; taken as a compact load (a point mass at its centre): the base parameters leave the mass open on this arm" \
+        if c.load_model == "point mass" else ""
+    return (f"{text}{model}; it explains the steps of {len(c.explains or [])} base parameters "
+            f"({', '.join(f'`{x}`' for x in (c.explains or [])[:3])}{', ...' if len(c.explains or []) > 3 else ''}).")
+
+
+def _what_they_say(detection: Detection) -> list[str]:
+    """A sentence per load on a last link (in kg and cm), per friction or gain change (its factor
+    after/before), and per set of last-link steps that no load explains."""
     out = []
-    for arm in sorted({c.arm for c in detection.changes}):
-        keys = detection.series[arm][0]
-        last = max((max(_links(k[1]), default=0) for k in keys if k[0] == "base"), default=0)
-        moved = [c for c in detection.changes if c.arm == arm and c.quantity == "base" and last in _links(c.parameter)]
-        if len(moved) >= 2:
-            first = min(moved, key=lambda c: c.start_time)
-            out.append(f"- {arm}: {len(moved)} base parameters with link {last}'s (the last link's) inertials changed from "
-                       f"`{first.recording}` on: the last link's load changed (a payload or a tool).")
+    for c in detection.changes:
+        if c.quantity == "load":
+            out.append(f"- {c.arm}: {load_sentence(c)}")
+        elif c.quantity in ("effect", "gain") and c.before and ("friction" in c.parameter or c.quantity == "gain"):
+            what = f"drive gain of joint {c.joint}" if c.quantity == "gain" else f"`{c.parameter}` of joint {c.joint}"
+            at = " by the last recording" if c.kind == "drift" else ""
+            out.append(f"- {c.arm}: the {what} {c.kind}s from `{c.recording}` on: {c.after / c.before:.3g} times what it was "
+                       f"before{at} (after/before).")
+    for arm, notes in sorted(detection.notes.items()):
+        out += [f"- {arm}: {n}." for n in notes]
     return out
 
 
@@ -140,7 +163,7 @@ def write_report(out_dir: Path, ordered: dict[str, list[Result]], detection: Det
               f"(moderated t, identify/changes.py); designed family-wise false-alarm rate {detection.alpha:g} over all "
               f"{detection.candidates} candidates (quantities x places x kinds) of this run.", ""]
     lines += _change_lines(detection, out_dir)
-    notes = _last_link_notes(detection)
+    notes = _what_they_say(detection)
     if notes:
         lines += ["What they say together:", "", *notes, ""]
     lines += ["## Arms", ""]

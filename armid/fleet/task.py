@@ -5,7 +5,8 @@ read and check, prepare and identify by :data:`~armid.pipeline.USER_LOG`, the ro
 declared effects), then a 2-fold cross-validation over the recording's two halves in time,
 and the quantities a fleet tracks (:mod:`armid.identify.tracked`). Whatever goes wrong with a
 recording ends as its result's one-line ``error``, never as an exception: a bad file costs
-its own row, not the night.
+its own row, not the night. A recording whose run ended on a stop (its MCAP metadata says so)
+is such a row: ``error`` gives the stop's line, and its quantities are not tracked.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from armid.identify.load_change import last_link_rows
 from armid.identify.recordings import Recording
 from armid.identify.robot import Robot
 from armid.identify.tracked import Tracked, tracked_quantities
@@ -40,7 +42,10 @@ class Job:
 @dataclass
 class Result:
     """What a recording gave: its first time stamp (s), the tracked quantities, the relative
-    errors of the fit and of the cross-validation, or ``error`` (one line) when it failed."""
+    errors of the fit and of the cross-validation, or ``error`` (one line) when it failed.
+    ``load_rows``: per base parameter (its expression), its coefficients on the last link's ten
+    standard parameters (a row of ``P_N``, :func:`armid.identify.load_change.last_link_rows`),
+    to read a load on the last link out of the base parameters' steps."""
 
     arm: str
     recording: str
@@ -54,6 +59,8 @@ class Result:
     seconds: float = 0.0
     cpu_seconds: float = 0.0  # of the process that ran it: the work, whatever the machine's load
     worker: str = ""
+    load_rows: dict[str, list[float]] = field(default_factory=dict)
+    n_joints: int = 0
 
     @property
     def ok(self) -> bool:
@@ -123,10 +130,16 @@ def _identify_into(job: Job, out: Result) -> None:
     rec, found = pipeline.read(path, robot)
     stamps = rec.t[np.isfinite(rec.t)]
     out.start_time = float(stamps[0]) if stamps.size else None
+    if rec.stopped:  # a run cut short is not the arm's usual experiment: tracked, it would pass for a change
+        out.error = one_line(f"the run ended on a stop: {rec.stopped}; not tracked")
+        return
     inputs = pipeline.prepare_checked([(rec, found)], robot, pipeline.USER_LOG, [str(path)])
     result, excitation = pipeline.identify(robot, inputs.experiments, [], pipeline.USER_LOG)
     out.warnings = [one_line(w, 300) for w in [*inputs.warnings, *excitation]]
     out.quantities = tracked_quantities(result)
+    out.n_joints = robot.n_joints
+    rows = last_link_rows(result.base, robot.n_joints)
+    out.load_rows = {x: [float(v) for v in row] for x, row in zip(result.base.expressions(), rows)}
     out.fit_error = float(result.fit["relative_error"])
     out.samples = int(result.samples)
     out.cv_error = cross_validation(rec, robot, out.warnings)

@@ -49,6 +49,8 @@ def read_recording(path: str | Path, robot: Robot) -> Recording:
 
 
 MCAP_TOPIC = "/joint_state"
+RUN_END = "armid.run_end"
+"""The metadata record in which the recorder (``armid.daq.recorder``) says how the run ended."""
 
 
 def _read_mcap(path: Path, robot: Robot) -> Recording:
@@ -95,7 +97,19 @@ def _read_mcap(path: Path, robot: Robot) -> Recording:
         kt = np.array([j.torque_constant for j in robot.joints])
         tau, how = arrays["measured_current"][keep] * kt, "torque = measured current x torque_constant"
     return Recording(str(path), t, arrays["position"][keep], tau, velocity, None, None, notes + [how], torque_held=True,
-                     cycle=arrays["cycle"][keep], period_s=_period(metadata), torque_from_current=True)
+                     cycle=arrays["cycle"][keep], period_s=_period(metadata), torque_from_current=True, stopped=stop_line(metadata))
+
+
+def stop_line(metadata: dict[str, str]) -> str | None:
+    """The line that stopped the run, from its recording's metadata (``armid.run_end``, which
+    :func:`read_mcap_arrays` merges in): None when the run completed or the file does not say
+    (a recorder killed before it closed the file, a recording made before the record existed)."""
+    stop = metadata.get("stop")
+    if stop:
+        return stop
+    if metadata.get("completed") == "false":
+        return "stopped (no reason recorded)"
+    return None
 
 
 def _period(metadata: dict[str, str]) -> float | None:
@@ -308,6 +322,7 @@ class _McapScan:
         self.messages: list[tuple[int, bytes]] = []  # (file offset of the chunk or record, payload)
         self.cdr: dict[str, list[tuple[int, bytes]]] = {JOINT_STATES_TOPIC: [], EXTRA_TOPIC: []}  # (offset, whole message record)
         self.metadata: dict[str, str] = {}
+        self.end: dict[str, str] = {}  # armid.run_end: how the run ended
         self.losses: list[_Loss] = []
         self.data_end = False  # the data section ended as written (DataEnd record reached)
         self.cut_at: int | None = None  # the file ends inside a record at this offset
@@ -563,6 +578,13 @@ class _McapScan:
             return
         if rec.name == "armid.run":
             self.metadata = dict(rec.metadata)
+        elif rec.name == RUN_END:
+            self.end = dict(rec.metadata)
+
+    def run_metadata(self) -> dict[str, str]:
+        """``armid.run`` with ``armid.run_end``'s keys (``completed``, ``stop``, ``stop_cycle``,
+        ``records``) when the recorder wrote how the run ended."""
+        return {**self.metadata, **self.end}
 
 
 def _check_message(msg: Any, k: int, n: int | None, source: str) -> int:
@@ -605,7 +627,9 @@ def _check_message(msg: Any, k: int, n: int | None, source: str) -> int:
 
 
 def read_mcap_arrays(path: str | Path) -> tuple[dict[str, Array], dict[str, str], list[str]]:
-    """Arrays of the ``/joint_state`` messages, the run metadata, and notes on what was lost.
+    """Arrays of the ``/joint_state`` messages, the run metadata (``armid.run``, with
+    ``armid.run_end``'s ``completed``, ``stop``, ``stop_cycle`` and ``records`` where the
+    recorder said how the run ended: :func:`stop_line`), and notes on what was lost.
 
     Chunks that fail their CRC are left out and reading goes on after them (see
     :class:`_McapScan`); the notes say how many records and seconds each loss cost and where.
@@ -642,7 +666,7 @@ def read_mcap_arrays(path: str | Path) -> tuple[dict[str, Array], dict[str, str]
     if not rows:
         if not notes:
             notes.append("no /joint_state record in the file")
-        return {}, scan.metadata, notes
+        return {}, scan.run_metadata(), notes
     arrays = {
         "sequence": seq,
         "cycle": np.array([r["cycle"] for r in rows]),
@@ -655,7 +679,7 @@ def read_mcap_arrays(path: str | Path) -> tuple[dict[str, Array], dict[str, str]
         "measured_current": np.array([r["measured_current"] for r in rows], float),
         "status": np.array([r.get("status", [0] * len(r["position"])) for r in rows], np.int64),
     }
-    return arrays, scan.metadata, notes
+    return arrays, scan.run_metadata(), notes
 
 
 def _cdr_arrays(scan: _McapScan, src: str, size: int) -> tuple[dict[str, Array], dict[str, str], list[str]]:
@@ -687,7 +711,7 @@ def _cdr_arrays(scan: _McapScan, src: str, size: int) -> tuple[dict[str, Array],
     if not len(t):
         if not notes:
             notes.append(f"no {JOINT_STATES_TOPIC} record in the file")
-        return {}, scan.metadata, notes
+        return {}, scan.run_metadata(), notes
     arrays = {
         "sequence": cols["sequence"][:, 0].astype(np.int64),
         "cycle": cols["cycle"][:, 0].astype(np.int64),
@@ -701,7 +725,7 @@ def _cdr_arrays(scan: _McapScan, src: str, size: int) -> tuple[dict[str, Array],
         "status": cols["statusword"].astype(np.int64),
         "torque": cols["effort"].astype(float),
     }
-    return arrays, scan.metadata, notes
+    return arrays, scan.run_metadata(), notes
 
 
 def _loss_notes(scan: _McapScan, seq: Any, t: Any, offsets: Any, size: int) -> list[str]:

@@ -1,0 +1,124 @@
+"""``armid check``: does an identified model hold on new data, and if not, what changed
+(identify.check). The model is what ``armid identify --json`` wrote, held fixed."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from armid.schema.errors import RecordingError
+
+from .arguments import ROBOT_HELP, load_robot_argument
+from .identify import _recipe, preparation_arguments
+from .output import _inputs_read, _show, strict_json
+
+
+def fixed_model(robot: Any, doc: dict[str, Any], path: str) -> tuple[Any, Any]:
+    """The identification document's model (:class:`~armid.identify.check.FixedModel`) and what
+    it showed on its own data (:class:`~armid.identify.check.Reference`: its validation error
+    where it was validated, else its fit error)."""
+    from armid.identify.check import FixedModel, Reference
+    from armid.identify.payload_arm import arm_model_from_identification
+
+    arm = arm_model_from_identification(robot, doc)
+    scale = doc.get("torque_scale")
+    if scale is not None and (not isinstance(scale, list) or len(scale) != robot.n_joints):
+        raise RecordingError(path, f"torque_scale: must be {robot.n_joints} numbers or null, got {scale!r}")
+    model = FixedModel(robot, arm.effects, arm.columns, arm.beta, None if scale is None else np.asarray(scale, float),
+                       None if doc.get("joint_noise_sigma") is None else arm.joint_sigma)
+    for kind in ("validation", "fit"):
+        errors = doc.get(kind)
+        if isinstance(errors, dict) and isinstance(errors.get("relative_error"), int | float) and \
+                isinstance(errors.get("relative"), list) and len(errors["relative"]) == robot.n_joints:
+            return model, Reference(float(errors["relative_error"]), np.asarray(errors["relative"], float), kind)
+    raise RecordingError(path, "no fit or validation errors (fit.relative_error, fit.relative): is it the output of armid identify --json?")
+
+
+def _check(args: argparse.Namespace) -> int:
+    from armid.identify.check import beyond_motion, check
+    from armid.io.recordings import write_csv
+
+    from .. import pipeline
+    from .estimate import _identification_document
+
+    robot = load_robot_argument(args.robot)
+    doc = _identification_document(args.model, robot)
+    model, reference = fixed_model(robot, doc, args.model)
+    inputs = pipeline.load(robot, _recipe(args), args.data)
+    _show(inputs.warnings)
+    _inputs_read()
+    for path, prep in zip(inputs.sources, inputs.experiments):
+        for note in prep.notes:
+            print(f"{path}: {note}", file=sys.stderr)
+    result = check(model, inputs.experiments, reference)
+    motion = doc.get("motion")
+    if isinstance(motion, dict) and not result.holds:
+        try:
+            beyond = beyond_motion(motion, inputs.experiments)
+        except (KeyError, IndexError, TypeError):
+            raise RecordingError(args.model, f"motion: must hold position_low, position_high, speed and acceleration for "
+                                             f"{robot.n_joints} joints") from None
+        if beyond:
+            result.notes.insert(0, "these data move beyond the model's identification data (" + "; ".join(beyond) + "): part of the "
+                                "rise may be the model's extrapolation there, not a change of the arm")
+    out = result.to_json()
+    out["model"] = {"path": args.model, "samples": doc.get("samples"), "reference": reference.kind}
+    for path in (args.json, args.predictions):
+        if path:
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
+    if args.json:
+        Path(args.json).write_text(strict_json(out, indent=1) + "\n")
+    if args.predictions:
+        t = np.concatenate([s.at_stamps.t for p in inputs.experiments for s in p.segments])
+        write_csv(args.predictions, t, {"tau_hat": result.predictions})
+    if args.report:
+        from ..check_report import write_check_report
+
+        write_check_report(result, robot, Path(args.report))
+    for line in verdict_lines(robot.name, result):
+        print(line)
+    return 0
+
+
+def verdict_lines(name: str, result: Any) -> list[str]:
+    """What ``check`` prints: the verdict with its figures, what changed, and the errors."""
+    ref, floor = result.reference, result.noise_floor["relative_error"]
+    own = f"{100 * ref.relative_error:.3g} % on its own {'validation' if ref.kind == 'validation' else 'identification'} data"
+    floor_text = "no noise floor" if floor is None else f"a noise floor of {100 * floor:.3g} %"
+    e = result.before["relative_error"]
+    lines = []
+    if result.holds:
+        lines.append(f"{name}: the model holds on these data: error {100 * e:.3g} % against {own} and {floor_text}")
+        if floor is not None and ref.relative_error**2 > 1.5 * floor**2:
+            lines.append(f"note: its own error ({100 * ref.relative_error:.3g} %) stands above the noise floor: a misfit the model "
+                         "already had on its own data, not a change (armid diagnose looks for what it lacks)")
+        return lines
+    where = "" if not result.joints_beyond else "; joints " + ", ".join(str(j + 1) for j in result.joints_beyond) + " beyond their own"
+    lines.append(f"{name}: the model does NOT hold on these data: error {100 * e:.3g} % against {own} and {floor_text}{where}")
+    lines += [c.sentence() for c in result.found]
+    lines += result.notes
+    if not result.found:
+        lines.append("nothing in the catalogue nor a load on the last link explains the rise: re-identify on these data, "
+                     "or run armid diagnose on them")
+    lines.append(f"{name}: error {100 * e:.3g} % -> {100 * result.after['relative_error']:.3g} % with what changed "
+                 "(each sample predicted by the fit on the other tenths)")
+    return lines
+
+
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """``armid check``: its options."""
+    p = sub.add_parser("check", help="does an identified model hold on new data; if not, what changed (a load, friction, a gain ...)")
+    p.add_argument("data", nargs="+", help="the new recordings (CSV, NPZ or MCAP)")
+    p.add_argument("--robot", required=True, help=ROBOT_HELP)
+    p.add_argument("--model", required=True, metavar="IDENTIFIED.json",
+                   help="the model to check: what armid identify --json wrote (held fixed: nothing it identified is refitted)")
+    p.add_argument("--json", metavar="OUT", help="write the verdict, what changed and the errors before and after as JSON")
+    p.add_argument("--report", metavar="DIR", help="write check.md with each joint's error against the model's own and the floor")
+    p.add_argument("--predictions", metavar="CSV", help="write the predicted torques with what changed (t, tau_hat1..n), each "
+                                                        "sample from the fit on the other tenths")
+    preparation_arguments(p)
+    p.set_defaults(run=_check)
