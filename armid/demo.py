@@ -70,23 +70,34 @@ def _z_scores(values: np.ndarray, stds: np.ndarray, truth: np.ndarray) -> np.nda
         return (values - truth) / stds
 
 
-def _truth_test(values: np.ndarray, covariance: np.ndarray, truth: np.ndarray, names: list[str]) -> dict[str, Any]:
+def _truth_test(values: np.ndarray, covariance: np.ndarray, truth: np.ndarray, names: list[str], batches: int | None = None) -> dict[str, Any]:
     """Each combination's z = (estimate - truth) / std, and all of them together: the
-    Mahalanobis distance ``d' C^-1 d`` is chi-square with as many degrees of freedom as
-    combinations when the covariance is right. With 28 combinations one beyond 3 sigma comes
+    Mahalanobis distance ``T^2 = d' C^-1 d``, chi-square with as many degrees of freedom as
+    combinations when the covariance is known. A covariance estimated from ``batches`` batch
+    means (the whole arm's, :func:`identify.estimation.batch_means_covariance`) is itself
+    uncertain, and its inverse weighs the least-determined directions too much: then
+    ``T^2 (m - p) / (p (m - 1))`` is F(p, m - p) (Hotelling), whose mean is 1 where every
+    standard deviation is right (``per_dof``). With 28 combinations one beyond 3 sigma comes
     in 7 % of noise draws (1 - 0.9973^28) even so; the joint test's p-value says whether the
     draw as a whole is unusual. ``misses``: the combinations beyond 3 sigma, named, with
     value, truth, std and z, the largest |z| first."""
-    from scipy.stats import chi2
+    from scipy.stats import chi2, f
 
     d = values - truth
     std = np.sqrt(np.maximum(np.diag(covariance), 0.0))
     z = _z_scores(values, std, truth)
     distance = float(d @ np.linalg.lstsq(covariance, d, rcond=None)[0])
+    p = int(z.size)
     misses = [{"name": names[k], "value": float(values[k]), "truth": float(truth[k]), "std": float(std[k]), "z": float(z[k])}
               for k in sorted(np.flatnonzero(~(np.abs(z) <= 3)), key=lambda k: -abs(float(np.nan_to_num(z[k], nan=np.inf))))]
-    return {"combinations": int(z.size), "within_3_sigma": int(np.sum(np.abs(z) <= 3)), "max_abs_z": float(np.max(np.abs(z))),
-            "chi2": distance, "chi2_p": float(chi2.sf(distance, z.size)), "z": z.tolist(), "truth": truth.tolist(), "misses": misses}
+    if batches is not None and batches > p + 1:
+        per_dof = distance * (batches - p) / (p * (batches - 1))
+        joint = {"per_dof": per_dof, "chi2_p": float(f.sf(per_dof, p, batches - p)), "batches": int(batches),
+                 "test": f"Hotelling: T^2 (m - p) / (p (m - 1)) against F({p}, {batches - p}), the covariance from m = {batches} batch means"}
+    else:
+        joint = {"per_dof": distance / p, "chi2_p": float(chi2.sf(distance, p)), "batches": None, "test": f"chi-square on {p} degrees of freedom"}
+    return {"combinations": p, "within_3_sigma": int(np.sum(np.abs(z) <= 3)), "max_abs_z": float(np.max(np.abs(z))),
+            "chi2": distance, **joint, "z": z.tolist(), "truth": truth.tolist(), "misses": misses}
 
 
 def check_against_truth(rig: Rig, seq: SequenceResult, whole: IdentificationResult) -> dict[str, Any]:
@@ -96,7 +107,7 @@ def check_against_truth(rig: Rig, seq: SequenceResult, whole: IdentificationResu
     return {"single_link": _truth_test(seq.beta, seq.covariance, np.array([fn.row @ phi_seq for fn in seq.functionals]),
                                        [f"link {fn.link + 1}: {fn.expression}" for fn in seq.functionals]),
             "whole_arm": _truth_test(whole.estimate.beta, whole.estimate.covariance, whole.base.base_values(phi_whole),
-                                     whole.base.expressions())}
+                                     whole.base.expressions(), whole.covariance_batches)}
 
 
 class Phases:
@@ -230,9 +241,9 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
         _write_report(out, rig, experiments, reports, seq, whole, whole_doc, comparison, truth, diagnosis, payload)
     s, w = truth["single_link"], truth["whole_arm"]
     console.print(f"single-link sequence: {s['within_3_sigma']} of {s['combinations']} combinations within 3 sigma of the truth "
-                  f"(max |z| {s['max_abs_z']:.2f}; together chi2 {s['chi2']:.1f} on {s['combinations']} dof, p {s['chi2_p']:.2f}); "
-                  f"whole arm: {w['within_3_sigma']} of {w['combinations']} (max |z| {w['max_abs_z']:.2f}; chi2 {w['chi2']:.1f} "
-                  f"on {w['combinations']}, p {w['chi2_p']:.2f}); validation error {100 * whole.validation['relative_error']:.2f} %")  # type: ignore[index]
+                  f"(max |z| {s['max_abs_z']:.2f}; together {s['per_dof']:.2f} per dof, p {s['chi2_p']:.2f}); "
+                  f"whole arm: {w['within_3_sigma']} of {w['combinations']} (max |z| {w['max_abs_z']:.2f}; together {w['per_dof']:.2f} "
+                  f"per dof, p {w['chi2_p']:.2f}); validation error {100 * whole.validation['relative_error']:.2f} %")  # type: ignore[index]
     console.print(f"physically consistent whole-arm model: {feasible_line} (identified.urdf)")
     console.print(f"diagnosis: {len(diagnosis.found)} finding(s); validation error {100 * diagnosis.before['relative_error']:.2f} % -> "
                   f"{100 * diagnosis.after['relative_error']:.2f} %")
@@ -478,7 +489,7 @@ def truth_lines(what: str, test: dict[str, Any]) -> list[str]:
     from math import sqrt
 
     n, chi2, p = test["combinations"], test["chi2"], test["chi2_p"]
-    ratio = chi2 / n
+    ratio = test.get("per_dof", chi2 / n)
     if p < 0.05:
         verdict = (f"**the joint test rejects the standard deviations (p < 0.05)**: together the errors are about "
                    f"{sqrt(ratio):.2f}x what the standard deviations say, or an estimate is biased")
@@ -489,7 +500,9 @@ def truth_lines(what: str, test: dict[str, Any]) -> list[str]:
         verdict = "consistent with the standard deviations"
     expected = 100 * (1 - 0.9973**n)
     p_text = "p < 0.001" if p < 0.001 else "p > 0.999" if p > 0.999 else f"p = {p:.2g}"
-    out = [f"{what}: all {n} together chi-square {chi2:.1f} on {n} degrees of freedom (chi2/dof {ratio:.2f}), {p_text}: {verdict}. "
+    joint = (f"chi-square {chi2:.1f} on {n} degrees of freedom (chi2/dof {ratio:.2f})" if test.get("batches") is None else
+             f"T^2 {chi2:.1f} on {n} with a covariance from {test['batches']} batch means: F {ratio:.2f} per degree of freedom (Hotelling)")
+    out = [f"{what}: all {n} together {joint}, {p_text}: {verdict}. "
            f"{test['within_3_sigma']} of {n} within 3 sigma (max |z| {test['max_abs_z']:.2f}; one or more beyond 3 sigma comes in "
            f"{expected:.0f} % of noise draws when every standard deviation is right)"
            + (": every one within." if not test.get("misses") else "; beyond 3 sigma:"), ""]

@@ -61,6 +61,9 @@ def z_scores(seed: int) -> tuple[list[str], np.ndarray, dict[str, float]]:
     e_whole = whole.estimate.beta - whole.base.base_values(true_parameters(rig, whole.names))
     chi2 = {"single-link": float((seq.beta - truth) @ np.linalg.pinv(seq.covariance) @ (seq.beta - truth)) / truth.size,
             "whole-arm": float(e_whole @ np.linalg.pinv(whole.estimate.covariance) @ e_whole) / e_whole.size}
+    m, p = whole.covariance_batches, e_whole.size
+    if m is not None and m > p + 1:  # the covariance from m batch means: Hotelling's F per degree of freedom (armid.demo._truth_test)
+        chi2["whole-arm, Hotelling F"] = chi2["whole-arm"] * (m - p) / (m - 1)
     names = [f"single-link {fn.expression}" for fn in seq.functionals] + [f"whole-arm {e}" for e in whole.base.expressions()]
     return names, np.concatenate([(seq.beta - truth) / seq.std, z_whole]), chi2
 
@@ -73,7 +76,9 @@ def summary(names: list[str], zs: np.ndarray, chi2: list[dict[str, float]]) -> N
         z = zs[:, cols]
         print(f"{part}: {len(cols)} combinations over {n} seeds: mean z^2 {np.mean(z**2):.2f}, every z within 3 in "
               f"{np.mean(np.all(np.abs(z) <= 3, axis=1)):.0%} of seeds (right sigmas: {0.9973 ** len(cols):.0%}), "
-              f"chi-square per dof {np.mean([c[part] for c in chi2]):.2f}")
+              f"chi-square per dof {np.mean([c[part] for c in chi2]):.2f}"
+              + (f", Hotelling's F per dof {np.mean([c[part + ', Hotelling F'] for c in chi2 if part + ', Hotelling F' in c]):.2f}"
+                 if any(part + ", Hotelling F" in c for c in chi2) else ""))
         for k in cols:
             if abs(zs[:, k].mean()) > 2.5 / np.sqrt(n):
                 print(f"    mean z {zs[:, k].mean():+.2f} (+-{1 / np.sqrt(n):.2f})  {names[k][:100]}")

@@ -251,6 +251,7 @@ class IdentificationResult:
     delay_s: Array | None = None
     motion_delay_s: Array | None = None
     prior: dict[str, Any] | None = None  # the prior the estimate used (identify.prior), None for least squares alone
+    covariance_batches: int | None = None  # the batch-means covariance's batches (a joint test's degrees of freedom)
     # predict_stamps's answers by the segments asked about (held with them: an id is only
     # unique while its object lives); the estimate is fixed once the result is made
     _at_stamps: dict[tuple[int, ...], tuple[list[Segment], tuple[Array, Array, Array]]] = field(default_factory=dict, repr=False, compare=False)
@@ -667,7 +668,8 @@ def _identify(robot: Robot, experiments: list[Prepared], validation: list[Prepar
         est, block = _robust(system, base.independent, tau - tau_hat, est, factors, options.weighting, penalty)
         notes.append(f"standard deviations: batch-means sandwich over blocks of {block} samples (four times the residual's correlation length)")
     result = IdentificationResult(robot, names, effects, base, est, exc, sum(p.n_stamps for p in experiments), fit, notes=notes, factors=factors,
-                                  torque_scale=scale, delay_s=delay, motion_delay_s=motion_delay, prior=prior_doc)
+                                  torque_scale=scale, delay_s=delay, motion_delay_s=motion_delay, prior=prior_doc,
+                                  covariance_batches=None if options.covariance != "batch_means" else -(-int(tau.shape[0]) // block))
     result.fit["equations"] = int(tau.shape[0])
     if options.stamp_errors:
         _measure_errors(result, segments, validation, int(tau.shape[0]))
