@@ -235,6 +235,22 @@ def batch_means_covariance(bread: Array, scores: Array, block: int) -> Array:
     return bread @ meat @ bread.T
 
 
+def effective_batches(scores: Array, block: int) -> float:
+    """How many independent batches the batch-means meat is worth: ``p^2 / sum_b h_b^2`` with
+    ``h_b = U_b^T (sum U U^T)^-1 U_b`` each batch's share of it (``sum_b h_b = p``). Equal shares
+    give the batch count; a few batches that carry a direction alone give fewer (Kish's effective
+    sample size of the meat). A joint test with this covariance is Hotelling's with that many."""
+    n, p = scores.shape
+    block = max(1, min(int(block), n))
+    m = n // block
+    sums = scores[: m * block].reshape(m, block, p).sum(axis=1)
+    if n % block:
+        sums = np.vstack([sums, scores[m * block :].sum(axis=0, keepdims=True)])
+    meat = sums.T @ sums
+    h = np.einsum("bi,bi->b", sums @ np.linalg.pinv(meat), sums)
+    return float(np.sum(h)) ** 2 / max(float(np.sum(h**2)), 1e-300)
+
+
 def lag_window_covariance(bread: Array, regressor: Array, residual: Array, lag: int) -> Array:
     """Sandwich covariance of ordinary least squares ``regressor @ beta ~ y`` (``bread`` is
     ``(A^T A)^{-1}``) for residuals correlated over at most ``lag`` samples: the meat sums

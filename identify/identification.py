@@ -27,6 +27,7 @@ from .estimation import (
     batch_means_covariance,
     bounded_quadratic,
     correlation_length,
+    effective_batches,
     factor_columns,
     solve_factors,
     with_prior,
@@ -525,7 +526,7 @@ def _factors(system: Array, columns: Array) -> JointFactors:
 
 
 def _robust(system: Array, columns: Array, residual: Array, est: LeastSquares, factors: JointFactors, weighting: str,
-            penalty: Array | None = None) -> tuple[LeastSquares, int]:
+            penalty: Array | None = None) -> tuple[LeastSquares, int, float]:
     """``est`` with the batch-means sandwich covariance (:func:`batch_means_covariance`);
     the information matrix comes from the QR triangles, the scores from one pass. With a
     prior (``penalty``, in the same scale) the prior counts as observations of its own: it
@@ -545,7 +546,7 @@ def _robust(system: Array, columns: Array, residual: Array, est: LeastSquares, f
     cov = batch_means_covariance(bread, scores, block)
     if penalty is not None:
         cov = cov + bread @ penalty @ bread.T
-    return replace(est, covariance=cov, std=np.sqrt(np.maximum(np.diag(cov), 0.0))), block
+    return replace(est, covariance=cov, std=np.sqrt(np.maximum(np.diag(cov), 0.0))), block, effective_batches(scores, block)
 
 
 def _modeled_prior(robot: Robot, names: list[str], effects: list[LinearEffect], base: BaseParameters, system: Array) -> Prior | None:
@@ -665,11 +666,11 @@ def _identify(robot: Robot, experiments: list[Prepared], validation: list[Prepar
     tau = system[:, -1].T
     fit = summary(tau, tau_hat)
     if options.covariance == "batch_means":
-        est, block = _robust(system, base.independent, tau - tau_hat, est, factors, options.weighting, penalty)
+        est, block, batches = _robust(system, base.independent, tau - tau_hat, est, factors, options.weighting, penalty)
         notes.append(f"standard deviations: batch-means sandwich over blocks of {block} samples (four times the residual's correlation length)")
     result = IdentificationResult(robot, names, effects, base, est, exc, sum(p.n_stamps for p in experiments), fit, notes=notes, factors=factors,
                                   torque_scale=scale, delay_s=delay, motion_delay_s=motion_delay, prior=prior_doc,
-                                  covariance_batches=None if options.covariance != "batch_means" else -(-int(tau.shape[0]) // block))
+                                  covariance_batches=None if options.covariance != "batch_means" else int(batches))
     result.fit["equations"] = int(tau.shape[0])
     if options.stamp_errors:
         _measure_errors(result, segments, validation, int(tau.shape[0]))
