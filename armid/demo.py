@@ -75,7 +75,8 @@ def _truth_test(values: np.ndarray, covariance: np.ndarray, truth: np.ndarray, n
     Mahalanobis distance ``T^2 = d' C^-1 d``, chi-square with as many degrees of freedom as
     combinations when the covariance is known. A covariance estimated from ``batches`` batch
     means (the whole arm's, :func:`identify.estimation.batch_means_covariance`) is itself
-    uncertain, and its inverse weighs the least-determined directions too much: then
+    uncertain, and its inverse weighs the least-determined directions too much: with ``batches``
+    their effective count m (:func:`identify.estimation.effective_batches`),
     ``T^2 (m - p) / (p (m - 1))`` is F(p, m - p) (Hotelling), whose mean is 1 where every
     standard deviation is right (``per_dof``). With 28 combinations one beyond 3 sigma comes
     in 7 % of noise draws (1 - 0.9973^28) even so; the joint test's p-value says whether the
@@ -93,7 +94,7 @@ def _truth_test(values: np.ndarray, covariance: np.ndarray, truth: np.ndarray, n
     if batches is not None and batches > p + 1:
         per_dof = distance * (batches - p) / (p * (batches - 1))
         joint = {"per_dof": per_dof, "chi2_p": float(f.sf(per_dof, p, batches - p)), "batches": int(batches),
-                 "test": f"Hotelling: T^2 (m - p) / (p (m - 1)) against F({p}, {batches - p}), the covariance from m = {batches} batch means"}
+                 "test": f"Hotelling: T^2 (m - p) / (p (m - 1)) against F({p}, {batches - p}), the covariance from batch means worth m = {batches}"}
     else:
         joint = {"per_dof": distance / p, "chi2_p": float(chi2.sf(distance, p)), "batches": None, "test": f"chi-square on {p} degrees of freedom"}
     return {"combinations": p, "within_3_sigma": int(np.sum(np.abs(z) <= 3)), "max_abs_z": float(np.max(np.abs(z))),
@@ -501,7 +502,8 @@ def truth_lines(what: str, test: dict[str, Any]) -> list[str]:
     expected = 100 * (1 - 0.9973**n)
     p_text = "p < 0.001" if p < 0.001 else "p > 0.999" if p > 0.999 else f"p = {p:.2g}"
     joint = (f"chi-square {chi2:.1f} on {n} degrees of freedom (chi2/dof {ratio:.2f})" if test.get("batches") is None else
-             f"T^2 {chi2:.1f} on {n} with a covariance from {test['batches']} batch means: F {ratio:.2f} per degree of freedom (Hotelling)")
+             f"T^2 {chi2:.1f} on {n} with a covariance from batch means worth {test['batches']} independent ones: F {ratio:.2f} per degree "
+             "of freedom (Hotelling)")
     out = [f"{what}: all {n} together {joint}, {p_text}: {verdict}. "
            f"{test['within_3_sigma']} of {n} within 3 sigma (max |z| {test['max_abs_z']:.2f}; one or more beyond 3 sigma comes in "
            f"{expected:.0f} % of noise draws when every standard deviation is right)"

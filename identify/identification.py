@@ -354,6 +354,7 @@ class IdentificationResult:
                     "std": {p: _num(std[c]) for p, c in zip(e.parameter_names, cols)},
                     "identifiability": {p: classes[c] for p, c in zip(e.parameter_names, cols)},
                     **({"setting": dict(e.setting)} if e.setting else {}),
+                    **({"load": list(e.load_parameters)} if isinstance(e, LoadFriction) else {}),  # the rigid body whose torque is its load
                 }
             )
         return {

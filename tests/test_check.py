@@ -116,3 +116,18 @@ def test_kuka_model_holds_on_recording_2(tmp_path: Path, capsys) -> None:
     assert main(["check", str(KUKA / "measurements_2.npz"), "--robot", robot, "--model", str(model), "--json", str(doc_path)]) == 0
     doc = json.loads(doc_path.read_text())
     assert doc["holds"] is True and doc["found"] == []
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not KUKA.exists(), reason="the shared KUKA LWR4+ recordings are not beside the repository")
+def test_a_load_dependent_friction_is_held_with_the_load_identify_used(tmp_path: Path) -> None:
+    """With a declared load-dependent friction (its load the fit's own rigid body), check's
+    model read back from the JSON predicts exactly what identify predicted on the same data."""
+    robot = str(ROBOTS / "kuka_lwr4_load.yaml")
+    model, p_identify, p_check = tmp_path / "m.json", tmp_path / "pi.csv", tmp_path / "pc.csv"
+    assert main(["identify", str(KUKA / "measurements_1.npz"), "--robot", robot, "--validate", str(KUKA / "measurements_2.npz"),
+                 "--json", str(model), "--predictions", str(p_identify)]) == 0
+    assert main(["check", str(KUKA / "measurements_2.npz"), "--robot", robot, "--model", str(model), "--predictions", str(p_check)]) == 0
+    a = np.loadtxt(p_identify, delimiter=",", skiprows=1)
+    b = np.loadtxt(p_check, delimiter=",", skiprows=1)
+    np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-9)

@@ -25,10 +25,11 @@ def fixed_model(robot: Any, doc: dict[str, Any], path: str) -> tuple[Any, Any]:
     from armid.identify.payload_arm import arm_model_from_identification
 
     arm = arm_model_from_identification(robot, doc)
+    effects = tuple(_with_load(e, doc, path) for e in arm.effects)
     scale = doc.get("torque_scale")
     if scale is not None and (not isinstance(scale, list) or len(scale) != robot.n_joints):
         raise RecordingError(path, f"torque_scale: must be {robot.n_joints} numbers or null, got {scale!r}")
-    model = FixedModel(robot, arm.effects, arm.columns, arm.beta, None if scale is None else np.asarray(scale, float),
+    model = FixedModel(robot, effects, arm.columns, arm.beta, None if scale is None else np.asarray(scale, float),
                        None if doc.get("joint_noise_sigma") is None else arm.joint_sigma)
     for kind in ("validation", "fit"):
         errors = doc.get(kind)
@@ -36,6 +37,25 @@ def fixed_model(robot: Any, doc: dict[str, Any], path: str) -> tuple[Any, Any]:
                 isinstance(errors.get("relative"), list) and len(errors["relative"]) == robot.n_joints:
             return model, Reference(float(errors["relative_error"]), np.asarray(errors["relative"], float), kind)
     raise RecordingError(path, "no fit or validation errors (fit.relative_error, fit.relative): is it the output of armid identify --json?")
+
+
+def _with_load(effect: Any, doc: dict[str, Any], path: str) -> Any:
+    """A load-dependent friction with the load the identification used (its effect's ``load``
+    in the document: the rigid body whose torque it carries)."""
+    from dataclasses import replace
+
+    from armid.identify.effects import LoadFriction
+
+    if not isinstance(effect, LoadFriction):
+        return effect
+    entry = next((e for e in doc.get("effects", []) if isinstance(e, dict) and e.get("effect") == effect.effect
+                  and e.get("joint") == effect.joint + 1), {})
+    load = entry.get("load")
+    n = len(effect.load_parameters)
+    if not isinstance(load, list) or len(load) != n or not all(isinstance(x, int | float) and np.isfinite(x) for x in load):
+        raise RecordingError(path, f"effects: load_dependent_coulomb on joint {effect.joint + 1} needs its 'load' ({n} numbers: "
+                                   "the identification's rigid body), as armid identify --json writes it")
+    return replace(effect, load_parameters=tuple(float(x) for x in load))
 
 
 def _check(args: argparse.Namespace) -> int:
