@@ -116,8 +116,9 @@ class Change:
                 "std": self.std, "validation": {"relative_error_before": self.error_before, "relative_error_after": self.error_after},
                 "torque_rms": self.torque_rms}
 
-    def sentence(self) -> str:
-        """What changed, in words, with its size and uncertainty."""
+    def sentence(self, extrapolating: bool = False) -> str:
+        """What changed, in words, with its size and uncertainty (``extrapolating``: the data move
+        beyond the model's, so it may be the model's extrapolation instead)."""
         where = "the arm" if self.joint is None else f"joint {self.joint + 1}"
         p, s = self.parameters, self.std
         if self.effect == "payload":
@@ -129,7 +130,8 @@ class Change:
         else:
             what = f"{self.effect.replace('_', ' ')} on {where}: " + ", ".join(
                 f"{k} {v:.4g}" + (f" +- {s[k]:.2g}" if s.get(k) is not None else "") for k, v in p.items() if isinstance(v, float))
-        return f"changed: {what}; error {100 * self.error_before:.3g} % -> {100 * self.error_after:.3g} % (held out)"
+        head = "fits (beyond the model's data: a change, or its extrapolation)" if extrapolating else "changed"
+        return f"{head}: {what}; error {100 * self.error_before:.3g} % -> {100 * self.error_after:.3g} % (held out)"
 
 
 @dataclass
@@ -143,13 +145,14 @@ class CheckResult:
     notes: list[str] = field(default_factory=list)
     joints_beyond: list[int] = field(default_factory=list)  # 0-based joints whose error rose beyond the rule
     predictions: Array | None = None  # (n, N) at the stamps: the model with what changed (cross-fitted), or the model as it is
+    beyond_motion: list[str] = field(default_factory=list)  # where the data move beyond the model's identification data
 
     def to_json(self) -> dict[str, Any]:
         return {"holds": self.holds, "found": [c.to_json() for c in self.found], "before": self.before, "after": self.after,
                 "noise_floor": self.noise_floor,
                 "reference": {"relative_error": self.reference.relative_error, "relative": [float(x) for x in self.reference.relative],
                               "kind": self.reference.kind},
-                "joints_beyond": [j + 1 for j in self.joints_beyond], "notes": self.notes}
+                "joints_beyond": [j + 1 for j in self.joints_beyond], "beyond_motion": self.beyond_motion, "notes": self.notes}
 
 
 def check(model: FixedModel, data: list[Prepared], reference: Reference, options: CheckOptions | None = None) -> CheckResult:

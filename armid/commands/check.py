@@ -82,9 +82,7 @@ def _check(args: argparse.Namespace) -> int:
         except (KeyError, IndexError, TypeError):
             raise RecordingError(args.model, f"motion: must hold position_low, position_high, speed and acceleration for "
                                              f"{robot.n_joints} joints") from None
-        if beyond:
-            result.notes.insert(0, "these data move beyond the model's identification data (" + "; ".join(beyond) + "): part of the "
-                                "rise may be the model's extrapolation there, not a change of the arm")
+        result.beyond_motion = beyond
     out = result.to_json()
     out["model"] = {"path": args.model, "samples": doc.get("samples"), "reference": reference.kind}
     for path in (args.json, args.predictions):
@@ -119,7 +117,10 @@ def verdict_lines(name: str, result: Any) -> list[str]:
         return lines
     where = "" if not result.joints_beyond else "; joints " + ", ".join(str(j + 1) for j in result.joints_beyond) + " beyond their own"
     lines.append(f"{name}: the model does NOT hold on these data: error {100 * e:.3g} % against {own} and {floor_text}{where}")
-    lines += [c.sentence() for c in result.found]
+    if result.beyond_motion:
+        lines.append("these data move beyond the model's identification data (" + "; ".join(result.beyond_motion) + "): part of the "
+                     "rise may be the model's extrapolation there, not a change of the arm")
+    lines += [c.sentence(bool(result.beyond_motion)) for c in result.found]
     lines += result.notes
     if not result.found:
         lines.append("nothing in the catalogue nor a load on the last link explains the rise: re-identify on these data, "
