@@ -226,17 +226,11 @@ def scan(values: Array, stds: Array, times: Array | None = None) -> Scan:
     ``values``, ``stds``: (n, Q) estimates over the arm's ``n`` recordings in time order (NaN
     where a recording gave none); ``times`` (n,) the recordings' start times in any unit (a
     drift is a ramp in time); their index when not given or when they do not increase."""
-    x_raw = np.asarray(values, float)
-    n, q = x_raw.shape
+    n, q = np.shape(values)
     times = np.arange(n, dtype=float) if times is None else np.asarray(times, float)
     if not (np.all(np.isfinite(times)) and np.all(np.diff(times) > 0)):
         times = np.arange(n, dtype=float)  # recordings stamped from 0: a drift is per recording
-    valid = np.isfinite(x_raw)
-    w = _weights(np.asarray(stds, float), valid)
-    count = valid.sum(0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        centre = np.where(count > 0, (w * np.where(valid, x_raw, 0.0)).sum(0) / w.sum(0), 0.0)
-    x = np.where(valid, x_raw - centre, 0.0)
+    x, w, valid, count, centre = _centred(values, stds)
     null_var = (w * x * x).sum(0) / np.maximum(count - 1, 1)
     s02, d0, _ = scatter_prior(np.where(count >= 2, null_var, np.nan), (count - 1).astype(float))
     candidates = _candidates(n, times - times[0])
@@ -266,6 +260,18 @@ def scan(values: Array, stds: Array, times: Array | None = None) -> Scan:
                 wanders, s02, d0)
 
 
+def _centred(values: Array, stds: Array) -> tuple[Array, Array, Array, Array, Array]:
+    """(x, w, valid, count, centre): each quantity's estimates less their weighted mean (0 where
+    missing), the weights ``1/s^2``, which are there, how many, and that mean."""
+    x_raw = np.asarray(values, float)
+    valid = np.isfinite(x_raw)
+    w = _weights(np.asarray(stds, float), valid)
+    count = valid.sum(0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        centre = np.where(count > 0, (w * np.where(valid, x_raw, 0.0)).sum(0) / w.sum(0), 0.0)
+    return np.where(valid, x_raw - centre, 0.0), w, valid, count, centre
+
+
 def family_wise(p: Array, candidates: Array) -> Array:
     """Bonferroni: each best candidate's p-value times every candidate tried in the family
     (every quantity of every arm of the fleet run), capped at 1. A change is reported when
@@ -282,15 +288,8 @@ def step_at(values: Array, stds: Array, first: int, prior_variance: float, prior
     arm's prior ``prior_variance``, ``prior_df`` and the quantities that ``wanders``, as
     :func:`scan` found them) and its degrees of freedom. NaN where a quantity has fewer than
     :data:`MIN_SEGMENT` estimates on either side."""
-    x_raw = np.asarray(values, float)
-    n = x_raw.shape[0]
-    valid = np.isfinite(x_raw)
-    w = _weights(np.asarray(stds, float), valid)
-    count = valid.sum(0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        centre = np.where(count > 0, (w * np.where(valid, x_raw, 0.0)).sum(0) / w.sum(0), 0.0)
-    x = np.where(valid, x_raw - centre, 0.0)
-    z = (np.arange(n) >= first).astype(float)
+    x, w, valid, count, _ = _centred(values, stds)
+    z = (np.arange(x.shape[0]) >= first).astype(float)
     _, b, rss, vb = _solve(_sums(x, w, z[:, None]).sum(1))
     d0 = np.where(np.asarray(wanders, bool), 0.0, prior_df)
     df = (count - 2).astype(float)

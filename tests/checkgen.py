@@ -23,7 +23,7 @@ from pathlib import Path
 
 import blindgen as bg
 import numpy as np
-from fleetgen import _with_tool
+from fleetgen import _with_tool, random_arm_with_friction
 
 MASSES_KG = (0.5, 1.0, 2.0, 5.0)
 FAMILIES = {"dh6": ("dh", False), "mdh6": ("mdh", True)}  # convention, currents
@@ -44,23 +44,13 @@ def make_check_case(seed: int, family: str, folder: Path, duration_s: float = 20
     convention, currents = FAMILIES[family]
     rng = np.random.default_rng([seed, 0 if family == "dh6" else 1])
     folder.mkdir(parents=True, exist_ok=True)
-    arm, boxes = bg.random_arm(rng, 6, convention, None)
-    modeled = bg.modeled_links(rng, arm, boxes)
-    f0 = float(rng.uniform(0.15, 0.25))
-    probe = bg.random_fourier(rng, arm, f0)
-    t_probe = bg.stamps(rng, duration_s, rate_hz, 0.0)
-    q, qd, qdd = probe(t_probe)
-    rigid = bg.rigid_torque(bg.build_model(arm), q, qd, qdd)
-    rms = np.maximum(np.sqrt(np.mean(rigid**2, axis=0)), 1e-2)
-    speed = np.sqrt(np.mean(qd**2, axis=0))
-    n = len(arm.links)
-    effects = [bg.Effect("coulomb_friction", list(range(n)), {"fc": (rms * rng.uniform(0.05, 0.1, n)).tolist()}),
-               bg.Effect("viscous_friction", list(range(n)), {"fv": (rms * rng.uniform(0.03, 0.06, n) / speed).tolist()})]
+    a = random_arm_with_friction(rng, 6, convention, duration_s, rate_hz)
+    arm, f0, n = a.arm, a.f0, len(a.arm.links)
+    effects = [bg.Effect("coulomb_friction", list(range(n)), {"fc": a.fc}), bg.Effect("viscous_friction", list(range(n)), {"fv": a.fv})]
     offset = (float(rng.uniform(-0.05, 0.05)), float(rng.uniform(-0.05, 0.05)), float(rng.uniform(0.02, 0.08)))
-    peak = np.abs(rigid).max(axis=0) * 2.0
     declare = [{"effect": "coulomb_friction", "joint": j + 1} for j in range(n)] + [{"effect": "viscous_friction", "joint": j + 1} for j in range(n)]
     robot = folder / "robot.yaml"
-    bg._write_robot(robot, f"check_{family}_{seed}", arm, modeled, peak, declare)
+    bg._write_robot(robot, f"check_{family}_{seed}", arm, a.modeled, a.peak, declare)
 
     def run(today: bg.Arm, name: str) -> Path:
         traj = bg.random_fourier(rng, arm, float(np.clip(f0 * rng.uniform(0.85, 1.15), 0.1, 0.3)))

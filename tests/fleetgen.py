@@ -100,6 +100,35 @@ def _day_state(arm_name: str, arm: bg.Arm, day: int, friction: dict[str, list[fl
     return arm, effects, gain
 
 
+@dataclass
+class FrictionArm:
+    """A random arm, its modeled (CAD-like) links, a base frequency for its trajectories, and
+    Coulomb and viscous friction per joint sized from its torque on a probe trajectory."""
+
+    arm: bg.Arm
+    modeled: list[dict[str, Any]]
+    f0: float
+    rms: np.ndarray  # each joint's rigid-body torque rms on the probe
+    peak: np.ndarray  # twice each joint's largest rigid-body torque on the probe (the robot file's limit)
+    fc: list[float]
+    fv: list[float]
+
+
+def random_arm_with_friction(rng: np.random.Generator, n_joints: int, convention: str, duration_s: float, rate_hz: float) -> FrictionArm:
+    """:class:`FrictionArm` drawn from ``rng`` (the fleet's arms and :mod:`checkgen`'s)."""
+    arm, boxes = bg.random_arm(rng, n_joints, convention, None)
+    modeled = bg.modeled_links(rng, arm, boxes)
+    f0 = float(rng.uniform(0.15, 0.25))
+    probe = bg.random_fourier(rng, arm, f0)
+    q, qd, qdd = probe(bg.stamps(rng, duration_s, rate_hz, 0.0))
+    rigid = bg.rigid_torque(bg.build_model(arm), q, qd, qdd)
+    rms = np.maximum(np.sqrt(np.mean(rigid**2, axis=0)), 1e-2)
+    speed = np.sqrt(np.mean(qd**2, axis=0))
+    fc = (rms * rng.uniform(0.05, 0.1, n_joints)).tolist()
+    fv = (rms * rng.uniform(0.03, 0.06, n_joints) / speed).tolist()
+    return FrictionArm(arm, modeled, f0, rms, np.abs(rigid).max(axis=0) * 2.0, fc, fv)
+
+
 def make_arm(root: Path, arm_name: str, seed: int, n_recordings: int = 10, n_joints: int = 4, duration_s: float = 20.0,
              rate_hz: float = 200.0) -> list[str]:
     """One arm's folder: robot.yaml, its recordings in random sub-folders, truth.json. Returns
@@ -107,19 +136,9 @@ def make_arm(root: Path, arm_name: str, seed: int, n_recordings: int = 10, n_joi
     rng = np.random.default_rng(seed)
     folder = root / arm_name
     folder.mkdir(parents=True, exist_ok=True)
-    arm, boxes = bg.random_arm(rng, n_joints, "dh" if seed % 2 else "mdh", None)
-    modeled = bg.modeled_links(rng, arm, boxes)
-    f0 = float(rng.uniform(0.15, 0.25))
-    probe = bg.random_fourier(rng, arm, f0)
-    t_probe = bg.stamps(rng, duration_s, rate_hz, 0.0)
-    q, qd, qdd = probe(t_probe)
-    rigid = bg.rigid_torque(bg.build_model(arm), q, qd, qdd)
-    rms = np.maximum(np.sqrt(np.mean(rigid**2, axis=0)), 1e-2)
-    speed = np.sqrt(np.mean(qd**2, axis=0))
-    friction = {"fc": (rms * rng.uniform(0.05, 0.1, n_joints)).tolist(),
-                "fv": (rms * rng.uniform(0.03, 0.06, n_joints) / speed).tolist(),
-                "offset": (rms * rng.uniform(-0.03, 0.03, n_joints)).tolist()}
-    peak = np.abs(rigid).max(axis=0) * 2.0
+    a = random_arm_with_friction(rng, n_joints, "dh" if seed % 2 else "mdh", duration_s, rate_hz)
+    arm, modeled, f0, peak = a.arm, a.modeled, a.f0, a.peak
+    friction = {"fc": a.fc, "fv": a.fv, "offset": (a.rms * rng.uniform(-0.03, 0.03, n_joints)).tolist()}
     paths, truth = [], []
     for day in range(1, n_recordings + 1):
         today, effects, gain = _day_state(arm_name, arm, day, friction)

@@ -14,7 +14,7 @@ from armid.schema.errors import RecordingError
 
 from .arguments import ROBOT_HELP, load_robot_argument
 from .identify import _recipe, preparation_arguments
-from .output import _inputs_read, _show, strict_json
+from .output import _inputs_read, _show, write_json_and_predictions
 
 
 def fixed_model(robot: Any, doc: dict[str, Any], path: str) -> tuple[Any, Any]:
@@ -60,7 +60,6 @@ def _with_load(effect: Any, doc: dict[str, Any], path: str) -> Any:
 
 def _check(args: argparse.Namespace) -> int:
     from armid.identify.check import beyond_motion, check
-    from armid.io.recordings import write_csv
 
     from .. import pipeline
     from .estimate import _identification_document
@@ -85,14 +84,8 @@ def _check(args: argparse.Namespace) -> int:
         result.beyond_motion = beyond
     out = result.to_json()
     out["model"] = {"path": args.model, "samples": doc.get("samples"), "reference": reference.kind}
-    for path in (args.json, args.predictions):
-        if path:
-            Path(path).parent.mkdir(parents=True, exist_ok=True)
-    if args.json:
-        Path(args.json).write_text(strict_json(out, indent=1) + "\n")
-    if args.predictions:
-        t = np.concatenate([s.at_stamps.t for p in inputs.experiments for s in p.segments])
-        write_csv(args.predictions, t, {"tau_hat": result.predictions})
+    write_json_and_predictions(args.json, out, args.predictions,
+                               lambda: (np.concatenate([s.at_stamps.t for p in inputs.experiments for s in p.segments]), result.predictions))
     if args.report:
         from ..check_report import write_check_report
 

@@ -13,12 +13,11 @@ from armid.schema.errors import PoorExcitationWarning
 
 from .arguments import ROBOT_HELP, load_robot_argument
 from .identify import _feasible, _feasible_arguments, _recipe, preparation_arguments
-from .output import _inputs_read, _show, strict_json
+from .output import _inputs_read, _show, write_json_and_predictions
 
 
 def _diagnose(args: argparse.Namespace) -> int:
     from armid.identify.diagnosis import extrapolation_sentence, negligible_sentence, set_aside_sentence
-    from armid.io.recordings import write_csv
 
     from .. import pipeline
 
@@ -35,14 +34,9 @@ def _diagnose(args: argparse.Namespace) -> int:
     feasible_line = None
     if args.feasible or args.urdf or args.bounding_box:
         feasible_line = _diagnosed_feasible(args, robot, diag, experiments, validation, doc)
-    for out in (args.json, args.predictions):
-        if out:
-            Path(out).parent.mkdir(parents=True, exist_ok=True)
-    if args.json:
-        Path(args.json).write_text(strict_json(doc, indent=1) + "\n")
-    if args.predictions:
-        assert diag.predictions is not None
-        write_csv(args.predictions, diag.predictions[0], {"tau_hat": diag.predictions[2]})
+    assert diag.predictions is not None
+    t_stamps, _, tau_hat = diag.predictions
+    write_json_and_predictions(args.json, doc, args.predictions, lambda: (t_stamps, tau_hat))
     if args.report:
         from ..report import write_diagnosis_report
 

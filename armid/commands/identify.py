@@ -14,7 +14,7 @@ import numpy as np
 from armid.schema.errors import IdentificationError, RecordingError, UsageError
 
 from .arguments import ROBOT_HELP, _gap_factor, _lowpass, load_robot_argument
-from .output import _inputs_read, _show, strict_json
+from .output import _inputs_read, _show, strict_json, write_json_and_predictions
 
 
 def _recipe(args: argparse.Namespace, **extra: Any) -> Any:
@@ -43,7 +43,6 @@ def preparation_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _identify(args: argparse.Namespace) -> int:
-    from armid.io.recordings import write_csv
 
     from .. import pipeline
 
@@ -67,17 +66,15 @@ def _identify(args: argparse.Namespace) -> int:
     for path, prep in zip(inputs.sources, experiments + validation):
         for note in prep.notes:
             print(f"{path}: {note}", file=sys.stderr)
-    for out in (args.json, args.predictions):
-        if out:
-            Path(out).parent.mkdir(parents=True, exist_ok=True)
-    if args.json:
-        Path(args.json).write_text(strict_json(doc, indent=1) + "\n")
     segments = [s for p in (validation or experiments) for s in p.segments]
-    if args.predictions:
+
+    def predictions() -> tuple[Any, Any]:
         if not validation:
             raise IdentificationError("--predictions needs --validate data")
         t, _, tau_hat = result.predict_stamps(segments)
-        write_csv(args.predictions, t, {"tau_hat": tau_hat})
+        return t, tau_hat
+
+    write_json_and_predictions(args.json, doc, args.predictions, predictions)
     if args.report:
         from ..report import write_report
 

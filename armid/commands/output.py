@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -81,3 +82,18 @@ def _inputs_read() -> None:
 def _one_line(text: str, most: int = 600) -> str:
     line = " ".join(str(text).split())
     return line if len(line) <= most else line[: most - 3] + "..."
+
+
+def write_json_and_predictions(json_out: str | None, doc: Any, predictions_out: str | None, predictions: Callable[[], tuple[Any, Any]]) -> None:
+    """``--json OUT`` (strict) and ``--predictions CSV`` (``t``, ``tau_hat1..n`` from
+    ``predictions()``, called only when asked), their folders made: one place for the commands."""
+    from armid.io.recordings import write_csv
+
+    for out in (json_out, predictions_out):
+        if out:
+            Path(out).parent.mkdir(parents=True, exist_ok=True)
+    if json_out:
+        Path(json_out).write_text(strict_json(doc, indent=1) + "\n")
+    if predictions_out:
+        t, tau_hat = predictions()
+        write_csv(predictions_out, t, {"tau_hat": tau_hat})
