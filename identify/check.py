@@ -427,7 +427,7 @@ class _Search:
         leave_out = np.array([self._solve(gk, bk, lower)[-10:] for gk, bk, _ in self._moments(cols, [tenth_rows != k for k in range(PARTS)])])
         dev = leave_out - leave_out.mean(axis=0)
         sign = 1.0 if theta[0] >= 0 else -1.0
-        body = sign * _projected(sign * theta, (PARTS - 1) / PARTS * dev.T @ dev)  # the nearest possible body (removed: negated)
+        body = sign * _projected(sign * theta, _information_metric(g)[-10:, -10:])  # the nearest possible body (removed: negated)
         std_m = float(np.sqrt((PARTS - 1) / PARTS * np.sum(dev[:, 0] ** 2)))
         m, reach = float(body[0]), self.reach
         second = 0.5 * float(np.trace(inertia_matrix(body[4:10])))  # tr(Sigma) = tr(I) / 2
@@ -484,6 +484,7 @@ class _Search:
         leave_out = np.array([self._solve(gk, bk, lower) for gk, bk, _ in self._moments(cols, [tenth_rows != k for k in range(PARTS)])])
         dev = leave_out - leave_out.mean(axis=0)
         cov = (PARTS - 1) / PARTS * dev.T @ dev
+        metric = _information_metric(g)
         out, col = [], 0
         for k, c in enumerate(chosen):
             n = len(c.labels)
@@ -493,7 +494,7 @@ class _Search:
             change = np.sqrt(np.mean((after - prev) ** 2, axis=0))
             joint = c.joint if c.joint is not None else int(np.argmax(change))
             if c.effect == "payload":
-                params, std = _load(xc, cc, lo)
+                params, std = _load(xc, metric[col - n : col, col - n : col], cc, lo)
             else:
                 params = _parameters(c, xc)
                 sd = np.sqrt(np.maximum(np.diag(cc), 0.0))
@@ -520,18 +521,26 @@ def _same_joint_friction(c: Candidate) -> set[tuple[str, int | None]]:
     return set()
 
 
-def _projected(theta: Array, cov: Array) -> Array:
-    """The physically possible body nearest ``theta`` in the metric of its covariance."""
-    return project_feasible(theta, cov + 1e-12 * max(float(np.trace(cov)), 1e-12) * np.eye(10))
+def _information_metric(g: Array) -> Array:
+    """``(Z^T W Z)^-1`` of the weighted normal equations: the shape of least squares'
+    uncertainty, in which a projection moves the directions the data barely see (a load's
+    inertia) and keeps the ones they fix (its mass, its first moment). The jackknife's ten
+    fits cannot give it: their covariance has rank 9 at most, for ten parameters."""
+    return np.linalg.inv(g + 1e-12 * max(float(np.trace(g)) / max(g.shape[0], 1), 1e-300) * np.eye(g.shape[0]))
 
 
-def _load(theta: Array, cov: Array, leave_out: Array) -> tuple[dict[str, Any], dict[str, float]]:
+def _projected(theta: Array, metric: Array) -> Array:
+    """The physically possible body nearest ``theta`` in the metric ``metric^-1`` (:func:`_information_metric`)."""
+    return project_feasible(theta, metric)
+
+
+def _load(theta: Array, metric: Array, cov: Array, leave_out: Array) -> tuple[dict[str, Any], dict[str, float]]:
     """A load's mass, centre of mass and inertia about it from its ten parameters about the
-    last link's frame (eq. 10, Steiner), projected onto the physically possible bodies; a
-    removed load (negative mass) is projected as the body removed. Standard deviations of the
-    mass and the centre from the jackknife's fits."""
+    last link's frame (eq. 10, Steiner), projected onto the physically possible bodies in the
+    data's metric; a removed load (negative mass) is projected as the body removed. Standard
+    deviations of the mass and the centre from the jackknife's fits (``cov``, ``leave_out``)."""
     sign = 1.0 if theta[0] >= 0 else -1.0
-    body = _projected(sign * theta, cov)
+    body = _projected(sign * theta, metric)
 
     def com(phi: Array) -> Array:
         return phi[1:4] / phi[0] if abs(phi[0]) > 1e-9 else np.full(3, np.nan)

@@ -110,6 +110,9 @@ def verdict_lines(name: str, result: Any) -> list[str]:
         return lines
     where = "" if not result.joints_beyond else "; joints " + ", ".join(str(j + 1) for j in result.joints_beyond) + " beyond their own"
     lines.append(f"{name}: the model does NOT hold on these data: error {100 * e:.3g} % against {own} and {floor_text}{where}")
+    if ref.kind == "fit":
+        lines.append("note: the model's own figure is its fit on the data it was identified on, which is optimistic for a new trajectory: "
+                     "identify with --validate on a run of its own for a fairer reference")
     if result.beyond_motion:
         lines.append("these data move beyond the model's identification data (" + "; ".join(result.beyond_motion) + "): part of the "
                      "rise may be the model's extrapolation there, not a change of the arm")

@@ -8,6 +8,9 @@ Coulomb, viscous and offset only.
 
 python gen.py --arm ur5|kuka --sensor torque|current --qd yes|no --valid fourier|ptp
               --nident 1|2 --seed N [--effects all|declared] --out DIR
+--tool-kg M fixes an undeclared tool of M kg (a 6 cm cube, its centre drawn within 10 cm of the
+last joint's frame, from a stream of its own: the other draws stay the same) to the last link
+for the valid run only, as a lab that mounts a tool after identifying (``armid check``).
 --effects declared keeps only what the robot file declares (no load-dependent Coulomb, rotor
 inertia, Stribeck or torque-constant error; the same random draws otherwise): the clean case,
 where the held-out error can reach the noise floor.
@@ -172,6 +175,7 @@ def main():
     ap.add_argument("--nident", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--effects", choices=["all", "declared"], default="all")
+    ap.add_argument("--tool-kg", type=float, default=0.0)
     ap.add_argument("--out", required=True)
     A = ap.parse_args()
     rng = np.random.default_rng(A.seed)
@@ -220,6 +224,14 @@ def main():
     i_q = rng.choice([1e-3, 2e-3, 5e-3, 1e-2])
     noise_rel = rng.uniform(0.01, 0.02)
 
+    true_valid, tool = true, None
+    if A.tool_kg > 0:
+        r_tool = np.random.default_rng([A.seed, 7])
+        com = r_tool.uniform(-0.05, 0.05, 3) + np.array([0.0, 0.0, 0.05])
+        true_valid = true.copy()
+        true_valid.inertias[n] = true.inertias[n] + pin.Inertia(A.tool_kg, com, np.eye(3) * A.tool_kg * 0.06**2 / 6)
+        tool = dict(mass_kg=A.tool_kg, com_m=com.tolist(), frame="the last joint's (the URDF child link's) frame")
+
     runs = []
     f_used = []
     for r in range(A.nident):
@@ -247,7 +259,7 @@ def main():
         t[0] = 0.0
         q, qd, qdd = traj(t)
         assert (q >= lo - 1e-9).all() and (q <= hi + 1e-9).all(), name
-        tau, rig = torques(true, fr, q, qd, qdd)
+        tau, rig = torques(true_valid if name == "valid" else true, fr, q, qd, qdd)
         rms = np.sqrt((tau**2).mean(axis=0))
         qm = np.round(q / enc) * enc
         qdm = qd + rng.normal(0, v_std, qd.shape)
@@ -289,7 +301,7 @@ def main():
                  kt_wrong_joints=(wrong + 1).tolist() if A.sensor == "current" else None,
                  friction={k: v.tolist() for k, v in fr.items()}, stribeck_joints=(strib + 1).tolist(),
                  ident_f0=f_used, valid=vinfo, inertial=inert_log, runs=stats,
-                 center=center.tolist(), amp=amp.tolist())
+                 center=center.tolist(), amp=amp.tolist(), tool=tool)
     (out / "truth.json").write_text(json.dumps(truth, indent=1))
     print(json.dumps({k: truth[k] for k in ("rate", "jitter_rel", "kt_wrong_joints", "stribeck_joints",
                                             "ident_f0", "valid")}),
