@@ -518,7 +518,7 @@ def truth_lines(what: str, test: dict[str, Any]) -> list[str]:
 def _write_report(out: Path, rig: Rig, experiments: list[Any], reports: list[Any], seq: SequenceResult, whole: IdentificationResult,
                   whole_doc: dict[str, Any], comparison: list[dict[str, Any]], truth: dict[str, Any], diagnosis: Any,
                   payload: dict[str, Any]) -> None:
-    from armid.identify.payload import COM_STD_M, MASS_STD_KG, MASS_STD_REL
+    from armid.identify.payload.rls import COM_STD_M, MASS_STD_KG, MASS_STD_REL
 
     from .report import percent
 

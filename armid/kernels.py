@@ -39,7 +39,7 @@ def _compile(rig_path: Path) -> None:
     import numpy as np
 
     from armid.identify.filtering import lowpass
-    from armid.identify.payload_projection import project_feasible
+    from armid.identify.payload.projection import project_feasible
     from armid.io.rig_file import load_rig
     from armid.sim_bus.physics import ArmPhysics, simulation_config
 

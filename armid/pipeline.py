@@ -39,7 +39,7 @@ from armid.io.recordings import read_mcap_arrays, read_recording, stop_line
 from armid.schema.errors import OptionError, PoorExcitationWarning, RecordingError
 
 if TYPE_CHECKING:
-    from armid.identify.diagnosis import DiagnoseOptions, Diagnosis
+    from armid.identify.diagnosis.search import DiagnoseOptions, Diagnosis
 
 
 @dataclass(frozen=True)
@@ -197,7 +197,7 @@ def identify(robot: Robot, experiments: Sequence[Prepared], validation: Sequence
 def diagnose(robot: Robot, inputs: Inputs, options: DiagnoseOptions | None = None) -> Diagnosis:
     """The residual's diagnosis on prepared recordings (its 'before' is :func:`identify`'s fit
     with the library's defaults, which are :data:`USER_LOG`'s)."""
-    from armid.identify.diagnosis import diagnose as _diagnose
+    from armid.identify.diagnosis.search import diagnose as _diagnose
 
     return _diagnose(robot, inputs.experiments, inputs.validation, options)
 

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from armid.identify.diagnosis import extrapolation_sentence, negligible_sentence, set_aside_sentence
+from armid.identify.diagnosis.search import extrapolation_sentence, negligible_sentence, set_aside_sentence
 from armid.identify.feasible import link_list
 from armid.identify.identification import IdentificationResult
 from armid.identify.metrics import summary

@@ -427,7 +427,7 @@ class EstimatorService:
 
     def _start_payload(self, fit: Any) -> None:
         from armid.daq.payload_service import EstimateStream, PayloadService
-        from armid.identify.payload import ArmModel, PayloadRLS
+        from armid.identify.payload.rls import ArmModel, PayloadRLS
 
         arm = ArmModel(self.robot, tuple(fit.effects), fit.base.independent, fit.estimate.beta, fit.estimate.joint_sigma)
         estimator = PayloadRLS(arm)

@@ -24,10 +24,10 @@ import numpy as np
 from scipy.optimize import minimize
 
 from armid.identify import excitation as ex
-from armid.identify._regressor_lanes import regressor_rows
 from armid.identify.dynamics import _joint_constants, _out_layout, check_joint_arrays, regressor
 from armid.identify.effects import effect_columns
 from armid.identify.identification import declared_effects
+from armid.identify.kernels.regressor_lanes import regressor_rows
 from armid.identify.robot import Robot
 from armid.identify.trajectories import FourierTrajectory
 from armid.io.robot_file import load_robot

@@ -24,7 +24,7 @@ import numpy as np
 from armid.daq.payload_service import EstimateStream
 from armid.identify import excitation as ex
 from armid.identify.identification import declared_effects, structural_base
-from armid.identify.payload import ArmModel, PayloadRLS
+from armid.identify.payload.rls import ArmModel, PayloadRLS
 from armid.io.rig_file import load_rig
 from armid.sim_bus.offline import simulate
 from armid.sim_bus.physics import Payload, simulation_config

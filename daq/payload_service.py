@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from armid.identify.errors import RecordingError
-from armid.identify.payload import PayloadRLS
+from armid.identify.payload.rls import PayloadRLS
 from armid.schema import Array
 from armid.schema.joint_state import JointStateRecord, check_encoding
 

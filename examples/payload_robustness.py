@@ -21,7 +21,7 @@ import numpy as np
 from armid.daq.payload_service import EstimateStream
 from armid.identify import excitation as ex
 from armid.identify.identification import IdentifyOptions, identify
-from armid.identify.payload import ArmModel, PayloadRLS, ReferenceRun
+from armid.identify.payload.rls import ArmModel, PayloadRLS, ReferenceRun
 from armid.identify.preprocess import PrepareOptions, prepare
 from armid.io.rig_file import load_rig
 from armid.sim_bus.offline import simulate

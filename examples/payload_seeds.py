@@ -22,7 +22,7 @@ import test_payload as tp  # noqa: E402
 
 from armid.daq.payload_service import EstimateStream  # noqa: E402
 from armid.identify.identification import IdentifyOptions, identify  # noqa: E402
-from armid.identify.payload import ArmModel, PayloadRLS, ReferenceRun  # noqa: E402
+from armid.identify.payload.rls import ArmModel, PayloadRLS, ReferenceRun  # noqa: E402
 from armid.identify.preprocess import PrepareOptions, prepare  # noqa: E402
 
 seed = int(sys.argv[1])

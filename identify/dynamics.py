@@ -249,7 +249,7 @@ def regressor(robot: Robot, q: Array, qd: Array, qdd: Array, out: Array | None =
     Returns (n_samples, N, 10 N) in C order. Block ``(j, i)`` is ``s_j^T R_{j+1} ... R_i K_i``
     (eqs. 16-17): the rows ``s_j^T R^j_i`` of all joints ``j <= i`` are carried together from
     link to link and multiplied into ``K_i`` in closed form, which is :func:`regressor_blocks`
-    without the zeros of ``K_i``. A compiled kernel (:mod:`identify._regressor_lanes`) runs
+    without the zeros of ``K_i``. A compiled kernel (:mod:`identify.kernels.regressor_lanes`) runs
     it on blocks of samples in SIMD lanes, the blocks of a large call on several threads. ``out``
     (n, N, 10 N), possibly a view into a wider array, receives the result when given.
     """
@@ -264,7 +264,7 @@ def regressor(robot: Robot, q: Array, qd: Array, qdd: Array, out: Array | None =
         out[...] = regressor(robot, q, qd, qdd)
         return out
     revolute, a0, ac, a_s, p0, pc, ps, t0, u, g = _constants(robot)
-    from ._regressor_lanes import regressor_rows
+    from .kernels.regressor_lanes import regressor_rows
 
     row_stride, seg_len, seg_stride, first_aligned = layout
     regressor_rows(revolute, a0, ac, a_s, p0, pc, ps, t0, u, g,

@@ -33,12 +33,12 @@ import numpy as np
 from scipy.optimize import minimize
 from threadpoolctl import threadpool_limits
 
-from ._regressor_lanes import SERIAL_BELOW
 from .dynamics import regressor
 from .effects import effect_columns
 from .errors import TrajectoryLimitError
 from .identifiability import BaseParameters, base_parameters, preferred_order
 from .identification import declared_effects, stacked_regressor
+from .kernels.regressor_lanes import SERIAL_BELOW
 from .robot import Robot
 from .spatial import Array
 from .trajectories import FourierTrajectory

@@ -95,7 +95,7 @@ def lowpass(x: Array, period_s: float, cutoff_hz: float, order: int = 4, axis: i
     would force the curvature to zero there, which differentiation turns into large
     acceleration errors); short signals are returned unfiltered.
     """
-    from ._filter_kernel import forward_backward
+    from .kernels.filter import forward_backward
 
     nyquist = 0.5 / period_s
     if not 0.0 < cutoff_hz < nyquist:

@@ -29,7 +29,7 @@ from armid.identify.pinocchio_bridge import to_pinocchio
 from armid.identify.robot import Robot
 from armid.schema import Array
 
-from ._physics_kernel import EFFECT_ROWS, substep
+from .physics_kernel import EFFECT_ROWS, substep
 
 EFFECT_FIELDS = ("coulomb", "viscous", "stribeck", "stribeck_velocity", "rotor_inertia", "torque_gain", "cogging",
                  "cogging_period", "cogging_phase", "spring", "spring_rest", "offset", "delay_s", "load_friction")

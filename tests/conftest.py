@@ -99,7 +99,7 @@ def any_robot(request: pytest.FixtureRequest) -> Robot:
 # --- leaks -------------------------------------------------------------------------------
 _BUSES: weakref.WeakSet[Any] = weakref.WeakSet()
 _SESSIONS: list[Any] = []  # zenoh.Session takes no weak reference: closed ones are dropped after each test
-_LONG_LIVED_THREADS = ("armid-regressor", "armid-scoring")  # identify._threads pools: one each per process, by design
+_LONG_LIVED_THREADS = ("armid-regressor", "armid-scoring")  # identify.kernels.threads pools: one each per process, by design
 _THREAD_GRACE_S = 3.0
 
 

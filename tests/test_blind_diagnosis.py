@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 
 from armid.cli import main
-from armid.identify.diagnosis import Finding, _extrapolated, _sign_reversed, set_aside_sentence
+from armid.identify.diagnosis.search import Finding, _extrapolated, _sign_reversed, set_aside_sentence
 
 CATALOGUE = ["viscous_friction", "coulomb_friction", "stribeck_friction", "torque_offset", "rotor_inertia", "torque_gain",
              "time_delay", "cogging", "spring", "gravity_tilt", "friction_all", "load_coulomb"]
@@ -287,7 +287,7 @@ def test_a_spring_mostly_constant_is_a_spring(tmp_path: Path) -> None:
 def test_a_stribeck_findings_coulomb_level_is_declared_sharp() -> None:
     """findings_model declares a Stribeck finding's Coulomb level (found with it, or found
     before it on its joint) as sign(qd), not a smoothing the settings' search would choose."""
-    from armid.identify.diagnosis import findings_model
+    from armid.identify.diagnosis.search import findings_model
     from armid.identify.robot import DeclaredEffect
 
     robot = _bare_puma()

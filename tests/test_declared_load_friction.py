@@ -25,7 +25,7 @@ from conftest import ROBOTS, declare, identify_blind
 from armid.cli import main
 from armid.identify.effects import load_friction
 from armid.identify.identification import declared_effects, stacked_regressor
-from armid.identify.payload import arm_model_from_identification
+from armid.identify.payload.rls import arm_model_from_identification
 from armid.io.robot_file import load_robot
 from armid.schema.errors import RobotFileError
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from armid.identify.diagnosis import diagnose
+from armid.identify.diagnosis.search import diagnose
 from armid.identify.preprocess import PrepareOptions, prepare
 from armid.identify.robot import DeclaredEffect, Robot
 from armid.identify.trajectories import random_fourier_trajectory
@@ -150,7 +150,7 @@ def test_after_is_identify_with_the_findings_declared() -> None:
     a lab that declares what diagnose found gets the same predictions, sample for sample."""
     import warnings
 
-    from armid.identify.diagnosis import findings_model
+    from armid.identify.diagnosis.search import findings_model
     from armid.identify.identification import identify
 
     rng = np.random.default_rng(7)

@@ -20,11 +20,11 @@ import numpy as np
 import pytest
 
 from armid.cli import main
-from armid.identify import diagnosis
-from armid.identify.diagnosis import MATERIALITY, Finding, _Search, negligible_sentence, set_aside_sentence
-from armid.identify.diagnosis_candidates import Candidate
-from armid.identify.diagnosis_data import _Data
-from armid.identify.diagnosis_scoring import _fit_round, _score, _Scored
+from armid.identify.diagnosis import search as diagnosis
+from armid.identify.diagnosis.candidates import Candidate
+from armid.identify.diagnosis.data import _Data
+from armid.identify.diagnosis.scoring import _fit_round, _score, _Scored
+from armid.identify.diagnosis.search import MATERIALITY, Finding, _Search, negligible_sentence, set_aside_sentence
 from armid.identify.estimation import bounded_quadratic
 from armid.io.recordings import read_recording
 from armid.io.robot_file import load_robot
@@ -109,7 +109,7 @@ def test_the_cogging_harmonics_by_angle_addition_are_the_sines_and_cosines() -> 
     harmonic to the next by the angle-addition formulas; over 20,000 samples of a joint
     travelling 40 rad and 2 to 48 harmonics a turn they are ``np.sin``/``np.cos`` to 1e-12,
     and periods that are not consecutive harmonics are computed directly."""
-    from armid.identify.diagnosis_candidates import _cogging_columns
+    from armid.identify.diagnosis.candidates import _cogging_columns
 
     rng = np.random.default_rng(5)
     q = np.cumsum(rng.normal(scale=0.05, size=(20000, 2)), axis=0) + np.linspace(0, 40, 20000)[:, None]
@@ -125,7 +125,7 @@ def test_the_f_tests_p_value_is_scipys() -> None:
     kernel, without its 0.14 ms of argument checks a call; the same to the bit, at the edges too."""
     from scipy import stats
 
-    from armid.identify.diagnosis_scoring import f_sf
+    from armid.identify.diagnosis.scoring import f_sf
 
     rng = np.random.default_rng(0)
     cases = [(-1e-17, 1, 100), (0.0, 2, 50), (1e9, 3, 10), (0.5, 1, 0), (np.inf, 1, 10), (np.nan, 1, 10)]
@@ -355,7 +355,7 @@ def test_the_noise_floor_of_a_jittered_recording_is_the_raw_torques(index: int, 
     floor is measured on the raw torque at its own stamps (on the grid it read 0.76-0.81 of
     the true floor on these two cases). What lies below the cut-off is still not counted."""
     from armid import pipeline
-    from armid.identify.diagnosis_data import _noise_floor
+    from armid.identify.diagnosis.data import _noise_floor
 
     spec = blindgen.blind_specs("clean", 20)[index]
     assert spec["jitter"]

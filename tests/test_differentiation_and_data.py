@@ -78,7 +78,7 @@ def test_zero_phase_lowpass_keeps_slow_signal_in_phase():  # type: ignore[no-unt
 
 @pytest.mark.parametrize("shape, axis", [((3000,), 0), ((2500, 7), 0), ((3, 2000, 130), 1), ((41,), 0)])
 def test_the_compiled_lowpass_is_scipys_sosfiltfilt_to_the_bit(shape, axis):  # type: ignore[no-untyped-def]
-    """identify/_filter_kernel.py against scipy's own forward-backward filter on the same
+    """identify/kernels/filter.py against scipy's own forward-backward filter on the same
     extended signal: any difference in the recursion's arithmetic shows in the last bit."""
     from scipy.signal import butter, sosfiltfilt
 

@@ -10,7 +10,7 @@ import pinocchio as pin
 import pytest
 from conftest import ROBOTS, random_motion, random_robot
 
-from armid.identify import _threads
+from armid.identify.kernels import threads as _threads
 from armid.identify import dynamics as dyn
 from armid.identify.pinocchio_bridge import KHOSLA_TO_PINOCCHIO_ORDER, parameter_map, to_pinocchio
 from armid.identify.robot import Inertial, change_link_frame, inertial_from_parameters, link_parameters
@@ -81,7 +81,7 @@ def test_regressor_into_every_kind_of_output_array(n_joints, prismatic_at):  # t
 
 
 def test_independent_parts_are_each_done_once_across_the_threads(monkeypatch: pytest.MonkeyPatch) -> None:
-    """``identify._threads.each_shared`` (the diagnosis's joints): every task once, on this
+    """``identify.kernels.threads.each_shared`` (the diagnosis's joints): every task once, on this
     thread and the pool's side by side (two threads, as on the 2-core machine, whatever this
     one has: the first two tasks each wait for the other, which one thread alone could never
     finish; which thread takes which is the scheduler's), each task's regressor the one
@@ -221,7 +221,7 @@ def test_shape_errors_name_the_array():  # type: ignore[no-untyped-def]
 
 def test_the_regressor_kernels_sine_and_cosine_match_libm() -> None:
     """The kernel's own branch-free sincos (so that its lanes vectorise) against numpy's."""
-    from armid.identify._regressor_lanes import _sincos
+    from armid.identify.kernels.regressor_lanes import _sincos
 
     rng = np.random.default_rng(5)
     x = np.concatenate([np.linspace(-20.0, 20.0, 40_001), rng.uniform(-1e5, 1e5, 20_000),

@@ -146,7 +146,7 @@ def test_a_modeled_value_reaches_its_joint_from_a_number_or_a_list(tmp_path):  #
     both), on ``joint: null`` one value per joint. The diagnosis's per-joint copy of the effects
     read a list by the joint's number: ``[0.3]`` on joint 2 stopped ``armid diagnose`` with an
     IndexError."""
-    from armid.identify.diagnosis_refit import _settled
+    from armid.identify.diagnosis.refit import _settled
     from armid.identify.identification import declared_effects
     from armid.identify.single_link import modeled_effect_values
 

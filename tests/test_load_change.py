@@ -1,4 +1,4 @@
-"""A load on the last link read out of the base parameters' steps (identify/load_change.py,
+"""A load on the last link read out of the base parameters' steps (identify/payload/load_change.py,
 issue 62), against an independent construction: Pinocchio's own rigid-body sum (the payload
 appended to the last joint's body) and its RNEA give the torques with and without the load;
 the base parameters least squares fits to their difference are exactly ``P_N Delta phi``, and
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from armid.identify.identification import stacked_regressor, structural_base
-from armid.identify.load_change import fit_load, last_link_rows, load_parameters
+from armid.identify.payload.load_change import fit_load, last_link_rows, load_parameters
 from armid.identify.robot import Robot
 from armid.io.robot_file import load_robot
 

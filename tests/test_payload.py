@@ -27,7 +27,7 @@ from armid.demo import true_parameters
 from armid.identify import excitation as ex
 from armid.identify.differentiation import five_point_derivative
 from armid.identify.identification import declared_effects, stacked_regressor, structural_base
-from armid.identify.payload import (
+from armid.identify.payload.rls import (
     ArmModel,
     PayloadRLS,
     ReferenceRun,
@@ -538,7 +538,7 @@ def test_a_rate_change_is_counted_once_wherever_it_falls_and_jitter_never(switch
     the switch anywhere from 2 to 12 ms): one rate change, in any batching. A window across the
     switch has a median between the two rates (4 ms), which is neither. 10 ms stamps moved by
     up to +-4 ms each: no rate change and no gap."""
-    from armid.identify.payload import _Filter
+    from armid.identify.payload.rls import _Filter
 
     t = np.concatenate([np.arange(0, 3.0, 0.002), 3.0 + 0.002 * (switch // 2) + 0.001 * (switch % 2) + np.arange(0, 3.0, 0.01)])
     for batch in (1, 7, t.size):
@@ -686,7 +686,7 @@ def test_the_torque_constants_term_is_what_a_scaled_constant_does_to_least_squar
     equations ``y_j = h_j theta``, refitted with joint j's torque scaled by ``1 + s``, moves by
     ``g``; the term with std ``s`` on joint j alone is ``g g^T`` (exact: least squares is
     linear in the torque)."""
-    from armid.identify.payload_band import torque_constant_covariance
+    from armid.identify.payload.band import torque_constant_covariance
 
     rng = np.random.default_rng(5)
     h = rng.normal(size=(400, 3, 10))

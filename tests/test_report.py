@@ -134,7 +134,7 @@ def test_identification_report_names_one_error_per_model_in_percent_with_units(i
 
 def test_diagnosis_report_says_which_samples_each_plot_shows_with_units(identified: Any, tmp_path: Path,
                                                                           monkeypatch: pytest.MonkeyPatch) -> None:
-    from armid.identify.diagnosis import diagnose
+    from armid.identify.diagnosis.search import diagnose
     from armid.report import percent, write_diagnosis_report
 
     robot, ident, valid, _ = identified

@@ -3,7 +3,7 @@
 
 A function counts from its ``def`` line to its last line, docstring included (nested functions
 and methods count on their own, and inside their parent). A module counts its lines. A module
-longer than that is split where its ideas part (``identify/diagnosis_*.py``,
+longer than that is split where its ideas part (``identify/diagnosis/``,
 ``armid/commands/``); one that really is one idea could be allowed below, with the reason,
 and none is.
 """

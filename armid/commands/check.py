@@ -18,11 +18,11 @@ from .output import _inputs_read, _show, write_json_and_predictions
 
 
 def fixed_model(robot: Any, doc: dict[str, Any], path: str) -> tuple[Any, Any]:
-    """The identification document's model (:class:`~armid.identify.check.FixedModel`) and what
-    it showed on its own data (:class:`~armid.identify.check.Reference`: its validation error
+    """The identification document's model (:class:`~armid.identify.diagnosis.check.FixedModel`) and what
+    it showed on its own data (:class:`~armid.identify.diagnosis.check.Reference`: its validation error
     where it was validated, else its fit error)."""
-    from armid.identify.check import FixedModel, Reference
-    from armid.identify.payload_arm import arm_model_from_identification
+    from armid.identify.diagnosis.check import FixedModel, Reference
+    from armid.identify.payload.arm import arm_model_from_identification
 
     arm = arm_model_from_identification(robot, doc)
     effects = tuple(_with_load(e, doc, path) for e in arm.effects)
@@ -59,7 +59,7 @@ def _with_load(effect: Any, doc: dict[str, Any], path: str) -> Any:
 
 
 def _check(args: argparse.Namespace) -> int:
-    from armid.identify.check import beyond_motion, check
+    from armid.identify.diagnosis.check import beyond_motion, check
 
     from .. import pipeline
     from .estimate import _identification_document

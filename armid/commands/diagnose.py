@@ -17,7 +17,7 @@ from .output import _inputs_read, _show, write_json_and_predictions
 
 
 def _diagnose(args: argparse.Namespace) -> int:
-    from armid.identify.diagnosis import extrapolation_sentence, negligible_sentence, set_aside_sentence
+    from armid.identify.diagnosis.search import extrapolation_sentence, negligible_sentence, set_aside_sentence
 
     from .. import pipeline
 
@@ -84,7 +84,7 @@ def differs_lines(name: str, differs: Any) -> list[str]:
 def _diagnosed_feasible(args: argparse.Namespace, robot: Any, diag: Any, experiments: list[Any], validation: list[Any], doc: dict[str, Any]) -> str | None:
     """The feasible estimate of the model diagnose ends with: the declared model plus every
     finding (identify.diagnosis.findings_model), the same fit as its 'after'."""
-    from armid.identify.diagnosis import findings_model
+    from armid.identify.diagnosis.search import findings_model
     from armid.identify.identification import identify
 
     model, options = findings_model(robot, diag.found)

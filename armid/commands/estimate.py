@@ -104,7 +104,7 @@ def _estimate(args: argparse.Namespace) -> int:
     import time
 
     from armid.daq.payload_service import EstimateStream
-    from armid.identify.payload import PayloadRLS, ReferenceRun, arm_model_from_identification
+    from armid.identify.payload.rls import PayloadRLS, ReferenceRun, arm_model_from_identification
 
     if not args.replay and args.mode != "live":
         raise UsageError("say what to run on: 'live' (the Zenoh stream) or --replay DATA")

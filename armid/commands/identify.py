@@ -59,7 +59,7 @@ def _identify(args: argparse.Namespace) -> int:
         print(f"warning: {message}", file=sys.stderr)
     doc = result.to_json()
     doc["recordings"] = inputs.recordings()
-    from armid.identify.check import motion_ranges
+    from armid.identify.diagnosis.check import motion_ranges
 
     doc["motion"] = motion_ranges(experiments)  # what the model was identified on: armid check says where new data go beyond it
     feasible_line = _feasible(args, robot, result, validation, doc)

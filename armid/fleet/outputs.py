@@ -6,7 +6,7 @@ path relative to ROOT breaks ties, so recordings stamped from 0 fall back to the
 Change detection runs over each arm's recordings that were identified, by
 :mod:`armid.identify.changes`, with one family-wise false-alarm rate for the whole run. The
 base parameters that stepped at one recording of one arm and that one load on the last link
-explains (:mod:`armid.identify.load_change`) become one change, the load's mass in kg
+explains (:mod:`armid.identify.payload.load_change`) become one change, the load's mass in kg
 (``parameter`` ``load_mass``, ``quantity`` ``load``); ``parameters.csv`` keeps every base
 parameter as it is.
 """
@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from armid.identify import changes as detector
-from armid.identify import load_change
+from armid.identify.payload import load_change
 
 from .task import Result
 
@@ -165,7 +165,7 @@ def _name_loads(detection: Detection, arm: str, scan: detector.Scan, rows_of: di
     explains, replaced by that load (a :class:`Change` of ``load_mass``, in kg): at each
     recording where base parameters containing the last link's parameters stepped, every base
     parameter's step there (:func:`armid.identify.changes.step_at`) fitted by a load
-    (:func:`armid.identify.load_change.fit_load`). A fit that does not explain them leaves them
+    (:func:`armid.identify.payload.load_change.fit_load`). A fit that does not explain them leaves them
     as they are, with a note."""
     keys, values, stds, times, recordings = detection.series[arm]
     base = [c for c, key in enumerate(keys) if key[0] == "base"]

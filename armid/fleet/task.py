@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from armid.identify.load_change import last_link_rows
+from armid.identify.payload.load_change import last_link_rows
 from armid.identify.recordings import Recording
 from armid.identify.robot import Robot
 from armid.identify.tracked import Tracked, tracked_quantities
@@ -44,7 +44,7 @@ class Result:
     """What a recording gave: its first time stamp (s), the tracked quantities, the relative
     errors of the fit and of the cross-validation, or ``error`` (one line) when it failed.
     ``load_rows``: per base parameter (its expression), its coefficients on the last link's ten
-    standard parameters (a row of ``P_N``, :func:`armid.identify.load_change.last_link_rows`),
+    standard parameters (a row of ``P_N``, :func:`armid.identify.payload.load_change.last_link_rows`),
     to read a load on the last link out of the base parameters' steps."""
 
     arm: str

@@ -14,7 +14,7 @@ from contextlib import closing
 from pathlib import Path
 
 from armid.demo import DEFAULT_RIG, payload_estimator, run_payload
-from armid.identify.payload import identification_document
+from armid.identify.payload.rls import identification_document
 from armid.io.rig_file import load_rig
 
 

@@ -1,6 +1,6 @@
 """The threads that share a large computation's independent parts.
 
-Identify's regressor shares its chunks of samples (:mod:`identify._regressor_lanes`), the
+Identify's regressor shares its chunks of samples (:mod:`identify.kernels.regressor_lanes`), the
 diagnosis's scoring its joints and candidates (:func:`identify.diagnosis_scoring.round_moments`). The compiled
 kernels and numpy's large operations release the interpreter's lock, so on a machine's cores
 these parts run side by side. Each use has its own pool: a joint's task may compute a

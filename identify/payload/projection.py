@@ -4,15 +4,15 @@ an estimate onto them (the published estimate of :class:`~identify.payload.Paylo
 A body's ``m, m s, I`` exist exactly when its 4x4 pseudo-inertia is positive semidefinite
 (Wensing, Kim, Slotine 2017: :func:`pseudo_inertia`). :func:`project_feasible` finds the
 nearest such parameters in the metric of the estimate's covariance by a log-barrier interior
-point method (compiled: :mod:`identify._projection_kernel`); :func:`project_feasible_many` does it for many.
+point method (compiled: :mod:`identify.kernels.projection`); :func:`project_feasible_many` does it for many.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .robot import inertia_entries, inertia_matrix
-from .spatial import Array
+from ..robot import inertia_entries, inertia_matrix
+from ..spatial import Array
 
 
 def pseudo_inertia(phi: Array) -> Array:
@@ -41,7 +41,7 @@ def project_feasible(theta: Array, cov: Array, gap: float = 1e-5, atol: float = 
 
     Minimizes ``(x - theta)^T cov^-1 (x - theta) / 2`` subject to ``pseudo_inertia(x)``
     positive semidefinite (so mass >= 0 follows) by a log-barrier interior point method
-    (:func:`~identify._projection_kernel.project_one`, compiled): Newton steps on
+    (:func:`~identify.kernels.projection.project_one`, compiled): Newton steps on
     ``f(x) - mu log det J(x)``, ``mu`` divided by 50 until the duality gap ``4 mu`` is below
     ``gap`` of ``f`` or below ``atol``, and each centring stops once its Newton decrement is
     below ``atol / 2`` (the estimator publishes with ``atol = 1e-3``: half the Newton steps,
@@ -55,7 +55,7 @@ def project_feasible(theta: Array, cov: Array, gap: float = 1e-5, atol: float = 
     pseudo-inertia ~1e-13), where the Newton steps stall; started there, 249 of 328 published
     projections of a live run were worse than the cold start's (2.054 kg against 2.011 kg).
     """
-    from ._projection_kernel import project_one
+    from ..kernels.projection import project_one
 
     theta = np.asarray(theta, float)
     w, v = np.linalg.eigh(pseudo_inertia(theta))

@@ -47,7 +47,7 @@ information form (:func:`rls_update` is the one-sample form of the same update).
   ``[[tr(I)/2 1 - I, m s], [m s^T, m]]`` positive semidefinite; Wensing et al. 2017), in the
   metric of the estimate's covariance: directions the data pin down move least. The
   unconstrained estimate is kept beside it. Each projection is a compiled barrier method
-  (:mod:`identify._projection_kernel`), the same live and on replay.
+  (:mod:`identify.kernels.projection`), the same live and on replay.
 - **Converged** means: the mass (and, with a mass, the centre of mass) excited, their
   standard deviations below ``MASS_STD_KG + MASS_STD_REL m`` and ``COM_STD_M``, and the
   whitened innovations of the last ``CONSISTENCY_WINDOW_S`` no larger than their covariance
@@ -66,13 +66,13 @@ from typing import Any
 
 import numpy as np
 
-from .payload_arm import ArmModel, ReferenceRun, arm_model_from_identification, identification_document
-from .payload_band import MIN_BATCHES, Batches, batch_means_covariance, torque_constant_covariance
-from .payload_filter import HALF_WINDOW_S, _Filter, derivatives_on_times, local_polynomial
-from .payload_projection import _phi_of_pseudo as _phi_of_pseudo  # re-exported for tests/test_payload.py
-from .payload_projection import project_feasible, project_feasible_many, pseudo_inertia
-from .robot import inertial_from_parameters
-from .spatial import Array
+from ..robot import inertial_from_parameters
+from ..spatial import Array
+from .arm import ArmModel, ReferenceRun, arm_model_from_identification, identification_document
+from .band import MIN_BATCHES, Batches, batch_means_covariance, torque_constant_covariance
+from .filter import HALF_WINDOW_S, _Filter, derivatives_on_times, local_polynomial
+from .projection import _phi_of_pseudo as _phi_of_pseudo  # re-exported for tests/test_payload.py
+from .projection import project_feasible, project_feasible_many, pseudo_inertia
 
 __all__ = ["ArmModel", "PayloadRLS", "ReferenceRun", "arm_model_from_identification", "derivatives_on_times", "identification_document",
            "json_safe", "local_polynomial", "project_feasible", "project_feasible_many", "pseudo_inertia", "rls_update"]

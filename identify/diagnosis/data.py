@@ -17,9 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from .effects import ColumnFunction
-from .preprocess import Prepared
-from .spatial import Array
+from ..effects import ColumnFunction
+from ..preprocess import Prepared
+from ..spatial import Array
 
 
 @dataclass
@@ -166,7 +166,7 @@ def _segment_noise(prepared: list[Prepared]) -> list[tuple[Any, Array]]:
     """Each segment with its per-joint torque noise: what a low-pass at its chosen cut-off
     (without one, at a tenth of the Nyquist frequency) removes from the raw torque at the
     input's own stamps (:func:`_noise_at_stamps`), the torque every error is measured against."""
-    from .filtering import ParallelFilter
+    from ..filtering import ParallelFilter
 
     out = []
     for p in prepared:
@@ -183,7 +183,7 @@ def _noise_at_stamps(seg: Any, filt: Any) -> Array:
     neighbouring samples (linear interpolation keeps 2/3 of white noise's power on average):
     measured on the grid, its noise would read up to 18 % low (issue 33: a blind case's floor
     1.74 % for a true 2.28 %), and a finding's share of the error above it too small."""
-    from .filtering import noise_level
+    from ..filtering import noise_level
 
     st = seg.at_stamps
     if st.t.shape == seg.t.shape and np.array_equal(st.t, seg.t) and st.tau is seg.tau:

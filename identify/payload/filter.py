@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .spatial import Array
+from ..spatial import Array
 
 HALF_WINDOW_S, POLY_DEGREE, MIN_WINDOW_POINTS = 0.05, 4, 7
 """Derivatives: the degree-4 least-squares polynomial through the records within 50 ms of

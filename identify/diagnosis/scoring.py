@@ -16,12 +16,12 @@ from typing import Any
 import numpy as np
 from scipy import special
 
-from ._threads import each_shared
-from .diagnosis_candidates import Candidate, defining, lower_bounds
-from .diagnosis_data import _Data
-from .estimation import bounded_quadratic
-from .robot import Robot
-from .spatial import Array
+from ..estimation import bounded_quadratic
+from ..kernels.threads import each_shared
+from ..robot import Robot
+from ..spatial import Array
+from .candidates import Candidate, defining, lower_bounds
+from .data import _Data
 
 
 def _phi_hat(robot: Robot, base: Any, beta_base: Array, n_cols: int) -> Array:
@@ -272,7 +272,7 @@ def round_moments(candidates: list[Candidate], rnd: _Round, ident: _Data, held: 
     rows are read once a joint instead of once a candidate (hundreds a round, most of them
     cogging periods). The joints and the other candidates (a delay's prediction on each
     joint's motion shifted either way, the arm's) are independent, and share the cores
-    (identify._threads)."""
+    (identify.kernels.threads)."""
     nj = rnd.n_joints
     out: dict[int, Moments] = {}
     alone = [c for c in candidates if c.block is None and c.effect != "torque_gain"]

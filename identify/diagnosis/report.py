@@ -8,8 +8,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from .diagnosis_candidates import DISSIPATIVE_PARAMETER
-from .spatial import Array
+from ..spatial import Array
+from .candidates import DISSIPATIVE_PARAMETER
 
 
 @dataclass

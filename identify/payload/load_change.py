@@ -36,9 +36,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from .identifiability import BaseParameters
-from .robot import inertia_entries
-from .spatial import Array
+from ..identifiability import BaseParameters
+from ..robot import inertia_entries
+from ..spatial import Array
 
 FIT_ALPHA = 0.001
 """A load is named when the chance of a misfit as large as its fit's, were it the load, is at

@@ -22,7 +22,7 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-from ._threads import THREADS, pool
+from .threads import THREADS, pool
 
 LANES = 128
 CHUNK = 1024

@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .diagnosis_report import MATERIALITY
-from .identification import IdentificationResult
-from .spatial import Array
+from ..identification import IdentificationResult
+from ..spatial import Array
+from .report import MATERIALITY
 
 
 def _material_drop(before: float, after: float, floor: float) -> bool:

@@ -8,7 +8,7 @@ This kernel runs the same recursion on the (n, k) array in place, the k columns 
 in SIMD lanes. Each column sees exactly scipy's operations in scipy's order (its
 ``_sosfilt`` loop: transposed direct form II per second-order section), so the result is
 scipy's to the bit (``tests/test_differentiation_and_data.py``). It releases the interpreter's
-lock: the diagnosis filters its joints' candidates in threads side by side (identify._threads).
+lock: the diagnosis filters its joints' candidates in threads side by side (identify.kernels.threads).
 """
 
 from __future__ import annotations

@@ -14,11 +14,11 @@ from typing import Any
 
 import numpy as np
 
-from .dynamics import forward_recursion, kinematic_matrix, pseudo_rotation, selection_vector
-from .effects import LinearEffect, LoadFriction, effect_columns
-from .payload_filter import HALF_WINDOW_S, MIN_WINDOW_POINTS, local_polynomial
-from .robot import Robot
-from .spatial import Array
+from ..dynamics import forward_recursion, kinematic_matrix, pseudo_rotation, selection_vector
+from ..effects import LinearEffect, LoadFriction, effect_columns
+from ..robot import Robot
+from ..spatial import Array
+from .filter import HALF_WINDOW_S, MIN_WINDOW_POINTS, local_polynomial
 
 
 @dataclass(frozen=True)
@@ -156,7 +156,7 @@ def identification_document(arm: ArmModel, seed: int = 0) -> dict[str, Any]:
     """The fields of an ``armid identify --json`` document that
     :func:`arm_model_from_identification` reads, for an arm model on the robot's declared
     effects (an arm known otherwise, e.g. a simulator's, handed to ``armid estimate``)."""
-    from .identification import structural_base
+    from ..identification import structural_base
 
     base = structural_base(arm.robot, list(arm.effects), seed)
     if not np.array_equal(np.asarray(base.independent), np.asarray(arm.columns)):
@@ -170,8 +170,8 @@ def identification_document(arm: ArmModel, seed: int = 0) -> dict[str, Any]:
 def arm_model_from_identification(robot: Robot, doc: dict[str, Any], seed: int = 0) -> ArmModel:
     """The arm model of an ``armid identify --json`` document, checked against the robot:
     the base parameters are rebuilt from the kinematics and must read as the document's."""
-    from .errors import IdentificationError
-    from .identification import declared_effects, structural_base
+    from ..errors import IdentificationError
+    from ..identification import declared_effects, structural_base
 
     effects = declared_effects(robot)
     base = structural_base(robot, effects, seed)

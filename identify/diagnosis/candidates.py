@@ -18,10 +18,10 @@ from typing import Any
 
 import numpy as np
 
-from .diagnosis_data import _Data, _rate
-from .dynamics import regressor
-from .robot import Robot
-from .spatial import Array
+from ..dynamics import regressor
+from ..robot import Robot
+from ..spatial import Array
+from .data import _Data, _rate
 
 LOOKALIKES = {
     "coulomb_friction": "stribeck_friction",

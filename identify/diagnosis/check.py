@@ -31,17 +31,17 @@ from typing import Any
 
 import numpy as np
 
-from .diagnosis_candidates import Candidate, _candidates, _parameters, lower_bounds
-from .diagnosis_data import _Data, _joint_noise_floors, _noise_floor, _noise_levels, _stack
-from .dynamics import regressor
-from .effects import LinearEffect
-from .identifiability import ArmSize
-from .identification import IdentificationResult, base_torque
-from .metrics import summary
-from .payload_projection import project_feasible
-from .preprocess import Prepared
-from .robot import Robot, inertia_entries, inertia_matrix
-from .spatial import Array
+from ..dynamics import regressor
+from ..effects import LinearEffect
+from ..identifiability import ArmSize
+from ..identification import IdentificationResult, base_torque
+from ..metrics import summary
+from ..payload.projection import project_feasible
+from ..preprocess import Prepared
+from ..robot import Robot, inertia_entries, inertia_matrix
+from ..spatial import Array
+from .candidates import Candidate, _candidates, _parameters, lower_bounds
+from .data import _Data, _joint_noise_floors, _noise_floor, _noise_levels, _stack
 
 __all__ = ["CheckOptions", "CheckResult", "Change", "FixedModel", "Reference", "beyond_motion", "check", "motion_ranges", "where_it_does_not_hold"]
 
@@ -350,7 +350,7 @@ class _Search:
         g = g + 1e-10 * max(float(np.trace(g)) / g.shape[0], 1e-300) * np.eye(g.shape[0])
         x = np.linalg.solve(g, b)
         if np.any(x < lower):
-            from .estimation import bounded_quadratic
+            from ..estimation import bounded_quadratic
 
             x = bounded_quadratic(g, b, lower)
         return x

@@ -67,10 +67,27 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
+from ..equations import reused_equations
+from ..errors import PoorExcitationWarning
+from ..identification import (
+    IdentificationResult,
+    base_torque,
+    column_count,
+    declared_effects,
+    declared_gains,
+    identify,
+    rigid_parameters,
+    stacked_regressor,
+    structural_base,
+)
+from ..metrics import masked_summary, summary
+from ..preprocess import Prepared
+from ..robot import Robot
+from ..spatial import Array
+from .candidates import LOOKALIKES, NESTING, SEPARATE, STRIBECK_VELOCITIES, Candidate, _candidates, _parameters, coulomb
 from .check import where_it_does_not_hold
-from .diagnosis_candidates import LOOKALIKES, NESTING, SEPARATE, STRIBECK_VELOCITIES, Candidate, _candidates, _parameters, coulomb
-from .diagnosis_data import _blocks, _Data, _joint_noise_floors, _noise_floor, _noise_levels, _rel, _stack
-from .diagnosis_refit import (
+from .data import _blocks, _Data, _joint_noise_floors, _noise_floor, _noise_levels, _rel, _stack
+from .refit import (
     _coulomb_level,
     _merge_offset_into_spring,
     _refine_delays,
@@ -82,7 +99,7 @@ from .diagnosis_refit import (
     _widening,
     findings_model,
 )
-from .diagnosis_report import (
+from .report import (
     MATERIALITY,
     Diagnosis,
     Finding,
@@ -91,25 +108,8 @@ from .diagnosis_report import (
     negligible_sentence,
     set_aside_sentence,
 )
-from .diagnosis_scoring import _Absorbed, _fit_round, _phi_hat, _Round, _score, _Scored, f_sf, joint_power_after, round_moments
-from .diagnosis_validation import VETO_BLOCKS, _joint_errors, _material_drop, _validation_error, _worse_on_validation
-from .equations import reused_equations
-from .errors import PoorExcitationWarning
-from .identification import (
-    IdentificationResult,
-    base_torque,
-    column_count,
-    declared_effects,
-    declared_gains,
-    identify,
-    rigid_parameters,
-    stacked_regressor,
-    structural_base,
-)
-from .metrics import masked_summary, summary
-from .preprocess import Prepared
-from .robot import Robot
-from .spatial import Array
+from .scoring import _Absorbed, _fit_round, _phi_hat, _Round, _score, _Scored, f_sf, joint_power_after, round_moments
+from .validation import VETO_BLOCKS, _joint_errors, _material_drop, _validation_error, _worse_on_validation
 
 __all__ = ["MATERIALITY", "DiagnoseOptions", "Diagnosis", "Finding", "diagnose", "extrapolation_sentence", "findings_model",
            "negligible_sentence", "set_aside_sentence"]

@@ -16,12 +16,12 @@ from dataclasses import replace
 
 import numpy as np
 
-from .diagnosis_candidates import DISSIPATIVE, DISSIPATIVE_PARAMETER, Candidate
-from .diagnosis_report import Finding
-from .identification import IdentificationResult, IdentifyOptions, identify
-from .preprocess import Prepared
-from .robot import DeclaredEffect, Robot
-from .spatial import Array
+from ..identification import IdentificationResult, IdentifyOptions, identify
+from ..preprocess import Prepared
+from ..robot import DeclaredEffect, Robot
+from ..spatial import Array
+from .candidates import DISSIPATIVE, DISSIPATIVE_PARAMETER, Candidate
+from .report import Finding
 
 FIXED_OPTIONS = ("velocity", "period_rad")
 

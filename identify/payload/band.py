@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .spatial import Array
+from ..spatial import Array
 
 BATCH_S = 0.5
 """The final answer's equations are kept in batches of this much moving time (doubled as a
