@@ -10,8 +10,8 @@ import pinocchio as pin
 import pytest
 from conftest import ROBOTS, random_motion, random_robot
 
-from armid.identify.kernels import threads as _threads
 from armid.identify import dynamics as dyn
+from armid.identify.kernels import threads as _threads
 from armid.identify.pinocchio_bridge import KHOSLA_TO_PINOCCHIO_ORDER, parameter_map, to_pinocchio
 from armid.identify.robot import Inertial, change_link_frame, inertial_from_parameters, link_parameters
 from armid.io.robot_file import load_robot
