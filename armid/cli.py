@@ -15,9 +15,10 @@ from armid.schema.errors import ArmidError, InputError
 from .commands import check, demo, diagnose, estimate, excite, identify, record, serve, sim, watch
 from .commands.arguments import ROBOT_HELP, load_robot_argument
 from .commands.excite import load_trajectory
-from .commands.output import _WARNINGS, _one_line, strict_json
+from .commands.output import _WARNINGS, _one_line
 from .commands.session import open_zenoh
 from .fleet import command as fleet
+from .schema.json_text import strict_json
 
 __all__ = ["ROBOT_HELP", "build_parser", "load_robot_argument", "load_trajectory", "main", "open_zenoh", "strict_json"]
 """The command line's names; each command lives in ``armid/commands/`` (its options and what it runs)."""

@@ -40,10 +40,10 @@ from .experiments import (
     prepared_runs,
     run_experiments,
     service_agreement,
-    write_json,
 )
 from .kernels import compiled_ahead
 from .peer import Peer, PeerLink
+from .schema.json_text import write_json
 from .simulated import excitation_session
 
 DEFAULT_RIG = config_file("rigs/sim.yaml")  # package data: found in a wheel install too

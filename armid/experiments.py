@@ -7,7 +7,6 @@ first violation), then run back to back, each starting where the previous one en
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -200,8 +199,3 @@ def service_agreement(doc: dict[str, Any], whole: IdentificationResult, run: str
         z = np.where(std > 0, np.abs(values - beta) / std, 0.0)
     return {"run": run, "published": int(values.size), "max_difference_sigma": float(np.max(z)),
             "missing_records": int(doc["experiment"].get("missing", 0)) if doc.get("experiment") else None}
-
-
-def write_json(path: Path, doc: Any) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(doc, indent=1, default=float) + "\n")

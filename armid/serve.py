@@ -455,7 +455,7 @@ class EstimatorService:
         return doc
 
     def publish(self, doc: dict[str, Any]) -> None:
-        from .commands.output import strict_json
+        from .schema.json_text import strict_json
 
         text = strict_json(doc)
         # counted before the put: a subscriber that has the document must find it counted in `status`
@@ -466,7 +466,7 @@ class EstimatorService:
             self.on_publish(self.last)
 
     def _on_query(self, query: Any) -> None:
-        from .commands.output import strict_json
+        from .schema.json_text import strict_json
 
         doc = {"component": "estimator", "received": self.received, "skipped": self.skipped, "lost": self.lost, "bad": self.bad,
                "backlog": len(self._inbox), "analysing": self.busy, "queued_experiments": len(self._jobs),

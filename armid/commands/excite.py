@@ -13,8 +13,9 @@ import numpy as np
 
 from armid.schema.errors import InputFileError, OptionError, UsageError
 
+from ..schema.json_text import write_json
 from .arguments import _count, _positive, _seed
-from .output import _inputs_read, _write_json
+from .output import _inputs_read
 from .rig import _open_driver, _rig, _simulating
 from .session import _zenoh_arguments, open_zenoh
 
@@ -95,7 +96,7 @@ def _excite_run(args: argparse.Namespace, rig: Any, robot: Any, n: int, simulate
         experiments = design_experiments(robot, start, links, whole, rig.period_s, link_frequency_hz=args.frequency or 0.5,
                                           link_periods=args.periods, whole_frequency_hz=args.frequency or 0.2, seed=args.seed,
                                           log=lambda m: console.print(f"  {m}"))
-    _write_json(out / "designs.json", {e.name: e.design.to_json() for e in experiments})
+    write_json(out / "designs.json", {e.name: e.design.to_json() for e in experiments})
     if args.dry_run:
         console.print(f"armid excite: {len(experiments)} trajectories checked against every limit (dry run: nothing recorded)")
         return 0
@@ -122,7 +123,7 @@ def _excite_run(args: argparse.Namespace, rig: Any, robot: Any, n: int, simulate
             return rate(records, lost, invalid, faults, sum(s.dropped for s in acq.sinks))
 
         reports = run_experiments(session, experiments, out, console, status=status if enabled() else None)
-    _write_json(out / "runs.json", [r.to_json() for r in reports])
+    write_json(out / "runs.json", [r.to_json() for r in reports])
     for r in reports:
         outcome = "completed" if r.completed else f"STOPPED: {r.stop_reason}"
         console.print(f"{r.name}: {outcome}; {r.records} records in {r.recording}; max tracking error {1000 * max(r.max_tracking_error):.1f} mrad")

@@ -3,44 +3,12 @@ reads its inputs (bad input then ends in its one error line alone), one line eac
 
 from __future__ import annotations
 
-import json
-import math
 import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-
-def _finite_or_none(value: Any) -> Any:
-    """``value`` with every non-finite float (NaN, inf) replaced by None, recursively."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, np.floating):
-        return float(value) if np.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, np.bool_):
-        return bool(value)
-    if isinstance(value, np.ndarray):
-        return _finite_or_none(value.tolist())
-    if isinstance(value, dict):
-        return {k: _finite_or_none(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_finite_or_none(v) for v in value]
-    return value
-
-
-def strict_json(doc: Any, **kwargs: Any) -> str:
-    """JSON that every parser reads: ``null`` where a value is not finite, never a bare ``NaN``."""
-    return json.dumps(_finite_or_none(doc), allow_nan=False, **kwargs)
-
-
-def _write_json(path: Path, doc: Any) -> None:
-    """Write ``doc`` as strict JSON (see :func:`strict_json`), making the folder."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(strict_json(doc, indent=1, default=float) + "\n")
+from ..schema.json_text import strict_json
 
 
 def _show(found: list[str]) -> None:

@@ -14,7 +14,6 @@ parameter as it is.
 from __future__ import annotations
 
 import csv
-import json
 import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -24,6 +23,7 @@ import numpy as np
 
 from armid.identify import changes as detector
 from armid.identify.payload import load_change
+from armid.schema.json_text import strict_json
 
 from .task import Result
 
@@ -202,18 +202,8 @@ def _name_loads(detection: Detection, arm: str, scan: detector.Scan, rows_of: di
         detection.explained[(arm, recording)] = here
 
 
-def _finite(value: Any) -> Any:
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_finite(v) for v in value]
-    return value
-
-
 def write_changes(path: Path, detection: Detection) -> None:
     """``changes.json``: a JSON list, one object per change (:class:`Change`'s fields; the load's
     own fields only on a load)."""
     docs = [{k: v for k, v in asdict(c).items() if c.quantity == "load" or k not in Change.LOAD_KEYS} for c in detection.changes]
-    path.write_text(json.dumps(_finite(docs), indent=1, allow_nan=False) + "\n")
+    path.write_text(strict_json(docs, indent=1) + "\n")

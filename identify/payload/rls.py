@@ -59,12 +59,13 @@ information form (:func:`rls_update` is the one-sample form of the same update).
 
 from __future__ import annotations
 
-import json
 from collections import deque
 from collections.abc import Callable, Iterable
 from typing import Any
 
 import numpy as np
+
+from armid.schema.json_text import json_safe
 
 from ..robot import inertial_from_parameters
 from ..spatial import Array
@@ -75,7 +76,7 @@ from .projection import _phi_of_pseudo as _phi_of_pseudo  # re-exported for test
 from .projection import project_feasible, project_feasible_many, pseudo_inertia
 
 __all__ = ["ArmModel", "PayloadRLS", "ReferenceRun", "arm_model_from_identification", "derivatives_on_times", "identification_document",
-           "json_safe", "local_polynomial", "project_feasible", "project_feasible_many", "pseudo_inertia", "rls_update"]
+           "local_polynomial", "project_feasible", "project_feasible_many", "pseudo_inertia", "rls_update"]
 """The estimator's public names; the derivatives on the records' stamps, the arm model and the
 projection onto possible payloads live in ``identify/payload_*.py``."""
 
@@ -620,26 +621,3 @@ def _chi2_upper(k: float, z: float = 3.0902) -> float:
     return float(k * (1.0 - a + z * np.sqrt(a)) ** 3)
 
 
-def json_safe(x: Any) -> Any:
-    """``x`` with every non-finite float replaced by None: valid JSON (``null``, never ``NaN``)."""
-    if isinstance(x, dict):
-        try:  # the usual case, checked by the C encoder: nothing to replace
-            json.dumps(x, allow_nan=False)
-            return x
-        except (ValueError, TypeError):
-            pass
-    return _json_safe(x)
-
-
-def _json_safe(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {k: _json_safe(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_json_safe(v) for v in x]
-    if isinstance(x, float | np.floating):
-        return float(x) if np.isfinite(x) else None
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, np.bool_):
-        return bool(x)
-    return x
