@@ -78,7 +78,7 @@ class _Cycle:
     written: set[tuple[int, int]] = field(default_factory=set)  # (joint, object index) this cycle's frames carried
 
 
-_FIELDS = (("position", 0x6064), ("velocity", 0x606C), ("measured_current", 0x6078), ("status", 0x6041))  # the sample's, each drive's object
+_FIELDS = (("position", 0x6064), ("velocity", 0x606C), ("measured_current", 0x6078), ("status", 0x6041))  # (sample field, the drive object it comes from)
 
 
 class CanopenDriver(Driver):
