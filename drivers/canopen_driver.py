@@ -440,7 +440,7 @@ class CanopenDriver(Driver):
             self.lost_cycles[joint] += 1
         # what this cycle's frames did not carry is the last value reported: taken now, from
         # the sample emitted before, not when the cycle opened (its frames were not in yet)
-        self._carry_forward(s, [(name, j) for name, index in _FIELDS for j in range(self.n_joints) if (j, index) not in c.written])
+        self._carry_forward(s, [(name, [j for j in range(self.n_joints) if (j, index) not in c.written]) for name, index in _FIELDS])
         self._publish(s)
         if self.pacing == "drives":
             with self._ack:

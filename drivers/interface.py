@@ -373,16 +373,19 @@ class Driver(abc.ABC):
         self._in_force = self._commanded.copy()
         return s
 
-    def _carry_forward(self, sample: Sample, unwritten: list[tuple[str, int]] | None = None) -> None:
+    def _carry_forward(self, sample: Sample, unwritten: list[tuple[str, list[int]]] | None = None) -> None:
         """What a cycle did not report keeps the last value reported (the newest sample handed
-        to :meth:`read`): every field of every joint, or the (field, joint) pairs ``unwritten``."""
+        to :meth:`read`): every field of every joint, or each field's joints in ``unwritten``."""
         prev = self._emitted
         if unwritten is None:
             for name in CARRIED_FIELDS:
                 getattr(sample, name)[:] = getattr(prev, name)
             return
-        for name, j in unwritten:
-            getattr(sample, name)[j] = getattr(prev, name)[j]
+        for name, joints in unwritten:
+            if joints:  # element by element: numpy's fancy indexing costs more for six joints
+                mine, before = getattr(sample, name), getattr(prev, name)
+                for j in joints:
+                    mine[j] = before[j]
 
     def _declare_lost(self, joint: int, fault: DriveFault, kind: str) -> None:
         """A drive is lost (silent, or out of operation): the others are quick-stopped, and
