@@ -49,7 +49,7 @@ from .simulated import excitation_session
 DEFAULT_RIG = config_file("rigs/sim.yaml")  # package data: found in a wheel install too
 
 
-def true_parameters(rig: Rig, names: list[str]) -> np.ndarray:
+def true_parameters(rig: Rig[Robot], names: list[str]) -> np.ndarray:
     """The simulated arm's parameters in the order of ``names`` (rigid body, then fv, fc, ia)."""
     from armid.sim_bus.physics import simulation_config
 
@@ -101,7 +101,7 @@ def _truth_test(values: np.ndarray, covariance: np.ndarray, truth: np.ndarray, n
             "chi2": distance, **joint, "z": z.tolist(), "truth": truth.tolist(), "misses": misses}
 
 
-def check_against_truth(rig: Rig, seq: SequenceResult, whole: IdentificationResult) -> dict[str, Any]:
+def check_against_truth(rig: Rig[Robot], seq: SequenceResult, whole: IdentificationResult) -> dict[str, Any]:
     """Every identified combination against its true value, one by one and together."""
     phi_seq = true_parameters(rig, seq.names)
     phi_whole = true_parameters(rig, whole.names)
@@ -292,7 +292,7 @@ def _below_the_real_time() -> None:
     threadpool_limits(1, "blas")
 
 
-def _estimator_service(rig: Rig, out: Path) -> PeerLink:
+def _estimator_service(rig: Rig[Robot], out: Path) -> PeerLink:
     """``armid serve`` started in a process of its own (as in a lab), not yet waited for."""
     robot = rig.robot
     return PeerLink(robot.name, ["serve", "--robot", robot.source, "--whole-arm", "drives", "--no-payload", "--out", str(out / "service"),
@@ -309,7 +309,7 @@ def _published_fit(docs: list[dict[str, Any]], run: str) -> dict[str, Any] | Non
     return None
 
 
-def _runs_beside_the_service(rig: Rig, link: PeerLink, experiments: list[Any], out: Path, console: Any,
+def _runs_beside_the_service(rig: Rig[Robot], link: PeerLink, experiments: list[Any], out: Path, console: Any,
                              tick: Any = None) -> tuple[list[Any], list[dict[str, Any]]]:
     """The experiments on the drives, streamed to the estimator service once it is ready; its
     ``estimate/parameters`` documents, one per experiment it identified. ``tick``: called as the
@@ -332,7 +332,7 @@ DEMO_PAYLOAD = (2.0, (0.02, -0.03, 0.08), (0.004, 0.0, 0.0, 0.004, 0.0, 0.002))
 """Mass (kg), centre of mass in the last link's frame (m), inertia about it (kg m^2)."""
 
 
-def payload_estimator(rig: Rig, identification: dict[str, Any], out: Path) -> PeerLink:
+def payload_estimator(rig: Rig[Robot], identification: dict[str, Any], out: Path) -> PeerLink:
     """``armid estimate live`` on the identified arm (``identification``: its ``armid identify
     --json`` document), started in a process of its own, not yet waited for."""
     robot = rig.robot
@@ -343,7 +343,7 @@ def payload_estimator(rig: Rig, identification: dict[str, Any], out: Path) -> Pe
                     "alive/payload_estimator", wait=False)
 
 
-def run_payload(rig: Rig, link: PeerLink, design: Any, out: Path) -> dict[str, Any]:
+def run_payload(rig: Rig[Robot], link: PeerLink, design: Any, out: Path) -> dict[str, Any]:
     """Khosla's on-line strategy: the identified arm works through a whole-arm trajectory; a
     payload is attached 3 s in and removed 4 s later; ``link``'s ``armid estimate live``, in a
     process of its own, listens to the live Zenoh stream and publishes its estimates; they are
@@ -515,7 +515,7 @@ def truth_lines(what: str, test: dict[str, Any]) -> list[str]:
     return out
 
 
-def _write_report(out: Path, rig: Rig, experiments: list[Any], reports: list[Any], seq: SequenceResult, whole: IdentificationResult,
+def _write_report(out: Path, rig: Rig[Robot], experiments: list[Any], reports: list[Any], seq: SequenceResult, whole: IdentificationResult,
                   whole_doc: dict[str, Any], comparison: list[dict[str, Any]], truth: dict[str, Any], diagnosis: Any,
                   payload: dict[str, Any]) -> None:
     from armid.identify.payload.rls import COM_STD_M, MASS_STD_KG, MASS_STD_REL

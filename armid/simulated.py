@@ -8,11 +8,12 @@ whether the hardware is real.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 from armid.drivers import open_driver
 from armid.drivers.interface import Driver
-from armid.drivers.rig import Rig, open_bus
+from armid.drivers.rig import Pacing, Rig, open_bus
 
 
 class Simulator:
@@ -24,6 +25,7 @@ class Simulator:
         self._buses: list[Any] = []
         self.driver_kwargs: dict[str, Any] = {}
         self.peer: Any
+        self.pacing: Pacing  # what the driver of this simulated hardware waits for (drivers.rig.Pacing)
         if rig.serial is not None:
             if in_process_chain or rig.source.startswith("<"):
                 from armid.sim_bus.servo_chain import SimulatedServoChain
@@ -34,7 +36,7 @@ class Simulator:
 
                 self.peer = ServoChainProcess(rig.source)  # its own process: the driver's cannot stall it
             self.driver_kwargs["port"] = self.peer.port
-            self.paces = False
+            self.pacing = rig.pacing  # the chain keeps its own time: the rig's setting stands
         else:
             from armid.sim_bus.arm import SimulatedArm
 
@@ -45,7 +47,7 @@ class Simulator:
             except BaseException:
                 bus.shutdown()
                 raise
-            self.paces = True  # an arm in this process never runs ahead of its control loop
+            self.pacing = "consumer"  # an arm in this process never runs ahead of its control loop
         self._closed = False
 
     def close(self) -> None:
@@ -63,11 +65,10 @@ def simulated_driver(rig: Rig, **driver_kwargs: Any) -> tuple[Driver, Simulator]
     """The rig's simulator and its driver (not started); close the driver, then the simulator."""
     sim = Simulator(rig)
     try:
-        driver = open_driver(rig, **{**sim.driver_kwargs, **driver_kwargs})
+        driver = open_driver(replace(rig, pacing=sim.pacing), **{**sim.driver_kwargs, **driver_kwargs})
     except BaseException:
         sim.close()
         raise
-    driver.paced_by_consumer = sim.paces
     return driver, sim
 
 

@@ -52,8 +52,8 @@ def run(interface: str, seconds: float) -> str:
         while not ready.exists():
             time.sleep(0.05)
     driver = CanopenDriver(rig)
-    driver.paced_by_consumer = interface == "virtual"
-    driver.paced_by_drives = False  # the bus's own timing, as a real arm would meet it (not co-simulated)
+    # the bus's own timing, as a real arm would meet it (not co-simulated); the arm in this process paces by its consumer
+    driver.pacing = "consumer" if interface == "virtual" else "clock"
     sync_times: list[float] = []
     try:
         driver.start()
@@ -74,7 +74,7 @@ def run(interface: str, seconds: float) -> str:
         invalid = 0
         for _ in range(n):
             s = driver.read(1.0)
-            sync_times.append(time.perf_counter() if driver.paced_by_consumer else s.time_s)  # when its SYNC went out
+            sync_times.append(time.perf_counter() if driver.pacing == "consumer" else s.time_s)  # when its SYNC went out
             invalid += int(not s.valid.all())
             driver.command_torque(control(s.position, s.velocity, q_ref, z, z))
             driver.acknowledge(s.cycle)

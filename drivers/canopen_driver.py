@@ -36,11 +36,11 @@ import numpy as np
 from canopen.sdo import SdoAbortedError, SdoCommunicationError, SdoVariable
 
 from armid.schema import Array, Sample
-from armid.schema.errors import DriveConfigError, DriveFault, DriverError, HeartbeatLost, NotOperational
+from armid.schema.errors import DriveConfigError, DriveFault, DriverTimeout, HeartbeatLost, NotOperational
 
 from ..resources import config_file
 from .cia_codes import NMT_OPERATIONAL, NMT_STATES, OPERATION_ENABLED, PDO_FORMATS, STATE_MASK, emcy_meaning, is_signed
-from .interface import CycleClock, CycleHeartbeat, Driver, ProcessSettings, bus_time
+from .interface import CycleClock, CycleHeartbeat, Driver, bus_time
 from .pdo_plan import PLANS, PdoSpec, check_bus_budget
 from .realtime import silent_for, stall_sentence
 from .rig import Rig, current_of, open_bus, permille_of
@@ -50,7 +50,6 @@ EDS = str(config_file("drives/armid_cia402.eds"))  # package data (armid.config)
 
 SYNC_COUNTER_OVERFLOW = 240
 SYNC_COB_ID = 0x80
-SIMULATED_PRODUCT_CODE = 0x41524D53  # 0x1018:2 of armid's simulated drive ("ARMS"): see paced_by_drives
 CONTROLWORD_REFRESH = 25
 PACE_WAIT_S = 0.05
 STALL_S = 0.05  # a watchdog call this late means this process (not the bus) was stalled
@@ -79,20 +78,16 @@ class _Cycle:
     written: set[tuple[int, int]] = field(default_factory=set)  # (joint, object index) this cycle's frames carried
 
 
-_FIELDS = (("position", 0x6064), ("velocity", 0x606C), ("measured_current", 0x6078), ("status", 0x6041))
+_FIELDS = (("position", 0x6064), ("velocity", 0x606C), ("measured_current", 0x6078), ("status", 0x6041))  # (sample field, the drive object it comes from)
 
 
 class CanopenDriver(Driver):
     """The rig's CiA 402 drives. ``bus`` may be given (tests); else it is opened from the rig."""
 
     def __init__(self, rig: Rig, bus: can.BusABC | None = None, deadline_periods: float = 3.0) -> None:
-        super().__init__()
-        self.rig = rig
-        self.n_joints = rig.n_joints
-        self.period_s = rig.period_s
+        super().__init__(rig)
         self.deadline_periods = deadline_periods
         self.plan: tuple[PdoSpec, ...] = PLANS[rig.pdo_plan]
-        self.units = [d.units for d in rig.drives]
         self._bus = bus
         self._own_bus = bus is None
         self.network: canopen.Network | None = None
@@ -100,50 +95,35 @@ class CanopenDriver(Driver):
         self._tpdo: dict[int, _Tpdo] = {}
         self._lock = threading.Lock()
         self._open: list[_Cycle] = []
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._cycle = 0
         self._last = Sample.empty(0, 0.0, self.n_joints)
-        self._emitted = Sample.empty(0, 0.0, self.n_joints)
-        self._settings = ProcessSettings()
-        self.paced_by_consumer = False  # see _sync_loop; for an arm simulated in this process
-        # see _pace; for an arm simulated in another process (armid sim). None: when every drive
-        # says it is armid's simulator (0x1018:2) on a bus between processes
-        self.paced_by_drives: bool | None = None
         self._paced_s = 0.0  # time the SYNC loop waited for the consumer since the last watchdog call
         self._listen_only = False
         self._t0: float | None = None
         self._ack = threading.Condition()
         self._acknowledged = 0
         self.consumer_late = 0
-        self.drives_late = 0  # SYNCs sent before the previous cycle's frames were in (paced_by_drives)
+        self.drives_late = 0  # SYNCs sent before the previous cycle's frames were in (pacing: drives)
         self._target = np.zeros(self.n_joints, np.int64)  # per mille of rated torque
         self._target_position = np.zeros(self.n_joints, np.int64)
         self._position_mode = False
         self._controlword = np.zeros(self.n_joints, np.int64)
         self._sent_controlword = np.full(self.n_joints, -1, np.int64)
-        self._commanded = np.zeros(self.n_joints)
-        self._in_force = np.zeros(self.n_joints)
         self._heartbeat = np.zeros(self.n_joints)  # bus time (drivers.interface.bus_time) of each drive's last heartbeat
         self._newest_stamp = 0.0  # bus time of the newest frame read, from any node
         self._last_read = time.monotonic()  # when the reader last read a frame
         self._last_watch = time.monotonic()
-        self.last_stall: tuple[float, float] = (0.0, 0.0)  # (monotonic time, s) of the newest cycle this process ran late
         self.unscheduled_s = 0.0  # s this process was not scheduled (stalls over STALL_S)
         self.last_sync_sent = time.monotonic()  # when the SYNC thread last sent one
         self.longest_sync_gap = 0.0  # s between two SYNCs the thread sent, the longest since start
-        self._silent = np.zeros(self.n_joints, bool)  # no heartbeat: lost
         self._nmt = np.full(self.n_joints, -1, np.int64)  # each drive's NMT state as its heartbeat says
         self._not_operational = np.zeros(self.n_joints, bool)  # was operational, reports another state
         self._nmt_supervised = False  # from NMT start all on: before, the drives are sent to pre-operational on purpose
         self._hb_task: can.broadcastmanager.CyclicSendTaskABC | CycleHeartbeat | None = None
         self._bcm_task: can.broadcastmanager.CyclicSendTaskABC | None = None
         self.late_frames = np.zeros(self.n_joints, np.int64)
-        self.lost_cycles = np.zeros(self.n_joints, np.int64)
         self._taken_late: dict[tuple[int, int], float] = {}  # (joint, TPDO): bus time of its last frame, given to a cycle with a later one waiting
         self.error_frames = 0
         self._clock = CycleClock(rig.period_s)
-        self.drive_configuration: list[dict[str, int]] = []
         self._node_ids = {d.node_id: d.joint for d in rig.drives}
         # called under the decoding lock with each SYNC as its cycle opens (stamped with the
         # cycle's time) and each TPDO before it is decoded: frames written from it, in this
@@ -171,13 +151,6 @@ class CanopenDriver(Driver):
         return self._clock.late
 
     # --- start-up ---
-    def start(self) -> None:
-        try:
-            self._start()
-        except BaseException:
-            self._settings.restore()  # a driver that did not start changes nothing process-wide
-            raise
-
     def _start(self) -> None:
         r = self.rig
         # a thread waiting for the GIL waits up to the switch interval (5 ms by default):
@@ -209,9 +182,10 @@ class CanopenDriver(Driver):
         self.network.send_message(0, bytes([0x80, 0]))  # all nodes to pre-operational
         for d, node in zip(r.drives, self.nodes):
             self.drive_configuration.append(self._configure(d.joint, node))
-        if self.paced_by_drives is None:
-            self.paced_by_drives = r.bus.interface != "virtual" and not self.paced_by_consumer and all(
-                c["product_code"] == SIMULATED_PRODUCT_CODE for c in self.drive_configuration)
+        if self.pacing == "drives" and r.bus.interface == "virtual":
+            # python-can's virtual bus does not leave its process: drives on it answer as its
+            # frames are sent, and an arm simulated here paces by its consumer (armid.simulated)
+            self.pacing = "clock"
         # a full garbage collection walks every object of the process and stalls all threads
         # for many milliseconds; what exists after start-up is never garbage, so freeze it.
         # Before the heartbeat starts: the collection that precedes the freeze holds the GIL
@@ -239,7 +213,7 @@ class CanopenDriver(Driver):
             self._bcm_task = self._bus.send_periodic(frames, r.period_s)
             self.timing_note = "SYNC from the kernel (SocketCAN BCM); " + timing.sentence("bus threads")
         else:
-            self.timing_note = timing.sentence("SYNC thread") + ("; paced by the simulated drives' answers (co-simulation)" if self.paced_by_drives else "")
+            self.timing_note = timing.sentence("SYNC thread") + ("; paced by the drives' answers (pacing: drives, a co-simulation)" if self.pacing == "drives" else "")
             self._thread = threading.Thread(target=self._sync_loop, name="armid-sync", daemon=True)
             self._thread.start()
 
@@ -342,6 +316,7 @@ class CanopenDriver(Driver):
         import canopen.objectdictionary
 
         self._listen_only = True
+        self.pacing = "clock"  # a listener sends no SYNC: there is nothing to pace
         if self._bus is None:
             self._bus = open_bus(**self.rig.bus.kwargs())
         self.network = canopen.Network(self._bus)
@@ -368,7 +343,7 @@ class CanopenDriver(Driver):
     # --- cyclic ---
     def _sync_loop(self) -> None:
         assert self._bus is not None
-        paced = self.paced_by_consumer or bool(self.paced_by_drives)
+        paced = self.paced
         self._clock = clock = CycleClock(self.period_s, max(1, round(PACE_WAIT_S / self.period_s)) if paced else 1)  # the schedule starts with the thread
         counter = 0
         while not self._stop.is_set():
@@ -396,24 +371,25 @@ class CanopenDriver(Driver):
             self._watchdog()
 
     def _pace(self) -> None:
-        """Co-simulation: the next SYNC waits for the last cycle's consumer (``paced_by_consumer``:
-        an arm in this process; a busy process slows it instead of the control loop) and frames
-        (``paced_by_drives``: an arm in another process, which a shared machine stalls, 9 ms seen;
+        """Co-simulation: the next SYNC waits for the last cycle's consumer (``pacing: consumer``:
+        an arm in this process; a busy process slows it instead of the control loop) or frames
+        (``pacing: drives``: an arm in another process, which a shared machine stalls, 9 ms seen;
         its late answers were lost cycles), up to PACE_WAIT_S after the last SYNC (inside the
         drives' SYNC timeout)."""
         waited_from = time.monotonic()
         longest = max(PACE_WAIT_S - (waited_from - self.last_sync_sent), 0.0)
         with self._ack:
             if not self._ack.wait_for(lambda: self._paced_through() or self._stop.is_set(), longest):
-                self.consumer_late += self.paced_by_consumer and self._acknowledged < self._cycle
-                self.drives_late += bool(self.paced_by_drives) and self._emitted.cycle < self._cycle
+                self.consumer_late += self.pacing == "consumer" and self._acknowledged < self._cycle
+                self.drives_late += self.pacing == "drives" and self._emitted.cycle < self._cycle
         # a wait beyond its longest is this process not scheduled, and counts as a stall (_watchdog)
         self._paced_s += min(time.monotonic() - waited_from, longest)
 
     def _paced_through(self) -> bool:
         """The last cycle is done with: acted on by the consumer, its frames in, as paced."""
-        return ((not self.paced_by_consumer or self._acknowledged >= self._cycle)
-                and (not self.paced_by_drives or self._emitted.cycle >= self._cycle))
+        if self.pacing == "consumer":
+            return self._acknowledged >= self._cycle
+        return self.pacing != "drives" or self._emitted.cycle >= self._cycle
 
     def _on_sync_echo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """A SYNC the broadcast manager sent, seen on the bus: its cycle starts at its stamp."""
@@ -443,13 +419,8 @@ class CanopenDriver(Driver):
             self._t0 = now - cycle * self.period_s
         # a paced simulation steps its arm one period per SYNC, whenever the SYNC goes out:
         # its samples carry the arm's time; on a real bus the SYNC's own time is the arm's
-        stamp = self._t0 + cycle * self.period_s if self.paced_by_consumer or self.paced_by_drives else now
-        s = Sample.empty(cycle, stamp, self.n_joints)
-        # start from the newest complete sample: the previous cycle's frames may not be in yet
-        s.position[:], s.velocity[:] = self._emitted.position, self._emitted.velocity
-        s.measured_current[:], s.status[:] = self._emitted.measured_current, self._emitted.status
-        s.commanded_current[:] = self._in_force
-        self._in_force = self._commanded.copy()
+        # the newest complete sample carried forward: the previous cycle's frames may not be in yet
+        s = self._open_record(cycle, self._t0 + cycle * self.period_s if self.paced else now)
         quiet = self._silent | self._not_operational  # a drive that sends no PDOs is not waited for
         expected = {(t.joint, t.number) for t in self._tpdo.values() if counter % t.every == 0 and not quiet[t.joint]}
         c = _Cycle(cycle, counter, bus, s, expected)
@@ -469,15 +440,9 @@ class CanopenDriver(Driver):
             self.lost_cycles[joint] += 1
         # what this cycle's frames did not carry is the last value reported: taken now, from
         # the sample emitted before, not when the cycle opened (its frames were not in yet)
-        prev = self._emitted
-        for field_name, index in _FIELDS:
-            mine, before = getattr(s, field_name), getattr(prev, field_name)
-            for j in range(self.n_joints):
-                if (j, index) not in c.written:
-                    mine[j] = before[j]
-        self._emitted = s
+        self._carry_forward(s, [(name, [j for j in range(self.n_joints) if (j, index) not in c.written]) for name, index in _FIELDS])
         self._publish(s)
-        if self.paced_by_drives:
+        if self.pacing == "drives":
             with self._ack:
                 self._ack.notify_all()
 
@@ -577,7 +542,7 @@ class CanopenDriver(Driver):
             # this process did not run: frames sent meanwhile wait unread in the socket
             self._last_read += stall
             self.unscheduled_s += stall
-            if self.paced_by_consumer:
+            if self.pacing == "consumer":
                 # drives simulated in this process stopped with it and sent no heartbeat meanwhile;
                 # the first frame read after the stall (one drive's heartbeat) moved bus time on
                 # before the others' were read, and lost a drive that was answering (a 0.43 s
@@ -591,13 +556,11 @@ class CanopenDriver(Driver):
             if self._silent[j] or not (age > limit or bus_silent):
                 continue
             self._silent[j] = True
-            self.quick_stop([k for k in range(self.n_joints) if k != j])
             silent = age if age > limit else now - self._last_read
             why = (f"no heartbeat for {age:.3f} s of bus time (3 periods: {limit:.3f} s)" if age > limit
                    else f"nothing read from the bus for {silent:.3f} s")
-            fault = HeartbeatLost(j, d.node_id, 0x8130, f"{why}; the other drives were quick-stopped", silent_s=silent)
-            self._faults.put(fault)
-            self._event("heartbeat_lost", str(fault), j)
+            self._declare_lost(j, HeartbeatLost(j, d.node_id, 0x8130, f"{why}; the other drives were quick-stopped", silent_s=silent),
+                               "heartbeat_lost")
 
     def _on_frame_read(self, stamp: float) -> None:
         """Bus time as far as this process has read it: every frame, after the network's
@@ -631,11 +594,8 @@ class CanopenDriver(Driver):
         if was != NMT_OPERATIONAL or self._not_operational[j] or self._listen_only or not self._nmt_supervised:
             return
         self._not_operational[j] = True
-        self.quick_stop([k for k in range(self.n_joints) if k != j])
         meaning = NMT_STATES.get(state, f"reports NMT state 0x{state:02X} instead of operational")
-        fault = NotOperational(j, node, state, f"{meaning}; the other drives were quick-stopped")
-        self._faults.put(fault)
-        self._event("nmt", str(fault), j)
+        self._declare_lost(j, NotOperational(j, node, state, f"{meaning}; the other drives were quick-stopped"), "nmt")
 
     def _on_emcy_frame(self, joint: int, node: canopen.RemoteNode, can_id: int, data: bytearray, timestamp: float) -> None:
         """An EMCY frame of the CiA 301 length goes to canopen's decoder (and so to :meth:`_on_emcy`);
@@ -653,9 +613,7 @@ class CanopenDriver(Driver):
             self._event("emcy_reset", f"joint {joint + 1} (node {node_id}): error reset", joint)
             return
         meaning = emcy_meaning(err.code, bytes(err.data)) + self._own_stall(err.code)
-        fault = DriveFault(joint, node_id, err.code, meaning)
-        self._faults.put(fault)
-        self._event("emcy", str(fault), joint)
+        self._fault(DriveFault(joint, node_id, err.code, meaning), "emcy")
 
     def _own_stall(self, code: int) -> str:
         """Why a drive timed out on this master, where this process is the cause: its SYNC thread
@@ -692,20 +650,17 @@ class CanopenDriver(Driver):
                 return self._next_sample(timeout, "is SYNC running and the bus up?")
             except DriveFault:
                 raise
-            except DriverError as err:
+            except DriverTimeout as err:
                 wait = timeout if timeout is not None else 10 * self.period_s + 1.0
                 thread = self._thread  # None: the bus sends SYNC itself, and tells nothing of this process
                 stall = 0.0 if thread is None else silent_for(self.last_sync_sent, self.last_stall, wait, began, self._cycle - cycle, PACE_WAIT_S)
                 if thread is None or not stall or self._stop.is_set():
                     raise
-                if not (self.paced_by_consumer and thread.is_alive() and time.monotonic() - started < STALL_WAIT_S):
-                    raise DriverError(f"{err}; {stall_sentence(stall)}") from None
+                if not (self.pacing == "consumer" and thread.is_alive() and time.monotonic() - started < STALL_WAIT_S):
+                    raise DriverTimeout(f"{err}; {stall_sentence(stall)}") from None
                 self._event("stall", f"no cycle for {time.monotonic() - started:.2f} s: {stall_sentence(stall)}; the simulated arm waited")
 
-    def command_torque(self, torque: Array) -> None:
-        tau = np.asarray(torque, float)
-        if tau.shape != (self.n_joints,) or not np.isfinite(tau).all():
-            raise ValueError(f"torque command must be {self.n_joints} finite values, got {tau}")
+    def _command_torque(self, tau: Array) -> None:
         current = tau / self.torque_constants
         rated = np.array([u.rated_current_a for u in self.units])
         permille = permille_of(current, rated).astype(np.int64)
@@ -713,10 +668,7 @@ class CanopenDriver(Driver):
         self._commanded = current_of(permille, rated)
         self._position_mode = False
 
-    def command_position(self, position: Array) -> None:
-        q = np.asarray(position, float)
-        if q.shape != (self.n_joints,) or not np.isfinite(q).all():
-            raise ValueError(f"position command must be {self.n_joints} finite values, got {q}")
+    def _command_position(self, q: Array) -> None:
         if not self._position_mode:
             for j, node in enumerate(self.nodes):
                 self._sdo(j, node, 0x6060, 0, 8)
@@ -742,7 +694,7 @@ class CanopenDriver(Driver):
                     break
                 if time.monotonic() > deadline:
                     bad = [f"joint {j + 1}: statusword 0x{int(s):04X}" for j, s in enumerate(status) if (s & STATE_MASK) != state]
-                    raise DriverError(f"drives did not reach state 0x{state:02X} within {timeout} s ({'; '.join(bad)})")
+                    raise DriverTimeout(f"drives did not reach state 0x{state:02X} within {timeout} s ({'; '.join(bad)})")
                 time.sleep(self.period_s)
 
     def disable(self) -> None:
@@ -756,11 +708,7 @@ class CanopenDriver(Driver):
         self._target = target
         self.set_controlword(joints, 0x02)
 
-    def close(self) -> None:
-        self._settings.restore()
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=1.0)
+    def _close(self) -> None:
         for task in (self._hb_task, self._bcm_task):
             if task is not None:
                 task.stop()
@@ -769,6 +717,8 @@ class CanopenDriver(Driver):
                 self.network.disconnect()
             elif self.network.notifier is not None:
                 self.network.notifier.stop(0.5)
+        elif self._own_bus and self._bus is not None:  # a start that failed before the network was up
+            self._bus.shutdown()
         self.network = None
 
 

@@ -32,11 +32,11 @@ from typing import Any
 import numpy as np
 
 from armid.schema import Array
-from armid.schema.errors import ServoLost  # noqa: F401  (re-exported)
+from armid.schema.errors import ServoLost
 
 from . import dynamixel_protocol as dxl
 from .dynamixel_protocol import Address, ProtocolError, ReplyTimeout, StatusError
-from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverError, ProcessSettings, Sample
+from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverError, DriverTimeout, Sample
 from .rig import Rig
 
 REBOOT_WAIT_S = 1.0  # a rebooting servo answers a ping again within this
@@ -50,18 +50,15 @@ class DynamixelDriver(Driver):
     """The rig's servo chain on ``port`` (default: the rig's ``bus.port``)."""
 
     def __init__(self, rig: Rig, port: str | None = None) -> None:
-        super().__init__()
         if rig.serial is None:
             raise DriveConfigError(f"{rig.source}: bus.interface is {rig.bus.interface!r}, not dynamixel")
-        cfg = rig.serial
-        self.rig, self.cfg = rig, cfg
-        self.port_name = port or cfg.port
-        if self.port_name == "sim":
+        if (port or rig.serial.port) == "sim":
             raise DriveConfigError(f"{rig.source}: bus.port is 'sim': start the simulated chain (sim_bus.servo_chain) and pass its port")
-        self.n_joints = rig.n_joints
-        self.period_s = rig.period_s
+        super().__init__(rig)
+        cfg = rig.serial
+        self.cfg = cfg
+        self.port_name = port or cfg.port
         self.ids = [d.node_id for d in rig.drives]
-        self.units = [d.units for d in rig.drives]
         self.models = [dxl.SERVO_MODELS[d.model] for d in rig.drives]
         self.fast = cfg.read_mode == "fast_sync_read"
         self.budget = dxl.cycle_budget(self.n_joints, cfg.baudrate, rig.period_s, cfg.return_delay_us, cfg.host_latency_ms / 1000.0,
@@ -76,22 +73,13 @@ class DynamixelDriver(Driver):
         self._fd = -1
         self._rx = bytearray()
         self._requests: queue.Queue[tuple[Callable[[], Any], queue.Queue[Any]]] = queue.Queue()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._cycle = 0
-        self._emitted = Sample.empty(0, 0.0, self.n_joints)
         self._goal = np.zeros(self.n_joints, np.int64)  # current LSBs
         self._goal_position = np.zeros(self.n_joints, np.int64)
         self._position_mode = False
-        self._commanded = np.zeros(self.n_joints)
-        self._in_force = np.zeros(self.n_joints)
         self._stopped: set[int] = set()  # joints quick-stopped since the last enable
         self.torque_enabled = np.zeros(self.n_joints, bool)
         self.hardware_error = np.zeros(self.n_joints, np.int64)
         self._fail_run = np.zeros(self.n_joints, np.int64)
-        self._silent = np.zeros(self.n_joints, bool)
-        self.lost_cycles = np.zeros(self.n_joints, np.int64)
-        self._settings = ProcessSettings()
         self.errors_by_kind: dict[str, int] = {}
         self._clock = CycleClock(rig.period_s)
         self.noise_bytes = 0
@@ -99,7 +87,6 @@ class DynamixelDriver(Driver):
         self.stalled_waits = 0  # reply waits that overran their timeout while this process was not running (given a new window)
         self.reply_times: deque[float] = deque(maxlen=200_000)  # completion stamps (time.perf_counter)
         self.round_trips: deque[float] = deque(maxlen=200_000)  # read request sent -> reply complete (s)
-        self.drive_configuration: list[dict[str, int]] = []
 
     @property
     def late_cycles(self) -> int:
@@ -255,24 +242,13 @@ class DynamixelDriver(Driver):
         self._send(dxl.sync_write(address, [(self.ids[j], values[j]) for j in joints]))
 
     # --- start-up ---
-    def start(self) -> None:
-        """Check the budget, open the port, configure every servo, start cycling (torque off)."""
-        try:
-            self._start()
-        except BaseException:
-            self._settings.restore()  # a driver that did not start changes nothing process-wide
-            raise
-
     def _start(self) -> None:
+        """Check the budget, open the port, configure every servo, start cycling (torque off)."""
         self._settings.fast_switching(self.period_s)  # put back by close()
         dxl.check_budget(self.budget)
         self._open()
-        try:
-            for j in range(self.n_joints):
-                self.drive_configuration.append(self._configure(j))
-        except BaseException:
-            self._serial.close()
-            raise
+        for j in range(self.n_joints):
+            self.drive_configuration.append(self._configure(j))
         timing = self._settings.realtime()  # the port's thread, started next, inherits it
         # a full collection of the master's process held the interpreter for 80-155 ms (the
         # excitation command's, measured beside one busy core): 40 to 77 periods without a read.
@@ -321,9 +297,8 @@ class DynamixelDriver(Driver):
     def _hardware_fault(self, j: int, bits: int) -> None:
         self.hardware_error[j] = bits
         self.torque_enabled[j] = False
-        fault = DriveFault(j, self.ids[j], bits, f"{dxl.hardware_error_meaning(bits)}: the servo turned its torque off; enable() reboots it")
-        self._faults.put(fault)
-        self._event("hardware_error", str(fault), j)
+        self._fault(DriveFault(j, self.ids[j], bits, f"{dxl.hardware_error_meaning(bits)}: the servo turned its torque off; enable() reboots it"),
+                    "hardware_error")
 
     # --- cyclic ---
     def _run(self) -> None:
@@ -360,7 +335,7 @@ class DynamixelDriver(Driver):
         try:
             ok, value = reply.get(timeout=timeout)
         except queue.Empty:
-            raise DriverError(f"{self.port_name}: the cycle thread did not serve a request within {timeout} s") from None
+            raise DriverTimeout(f"{self.port_name}: the cycle thread did not serve a request within {timeout} s") from None
         if not ok:
             raise value
         return value
@@ -384,11 +359,7 @@ class DynamixelDriver(Driver):
         self.reply_times.append(done)
         self.round_trips.append(done - sent)
         self._cycle += 1
-        s = Sample.empty(self._cycle, time.time(), self.n_joints)
-        prev = self._emitted
-        s.position[:], s.velocity[:], s.measured_current[:], s.status[:] = prev.position, prev.velocity, prev.measured_current, prev.status
-        s.commanded_current[:] = self._in_force
-        self._in_force = self._commanded.copy()
+        s = self._open_record(self._cycle, time.time())  # a servo without a usable block keeps its last values
         alerts = []
         for j, b in enumerate(blocks):
             if b.ok:
@@ -417,12 +388,8 @@ class DynamixelDriver(Driver):
                 self._fail_run[j] += 1
                 if self._fail_run[j] == self.cfg.silent_cycles and not self._silent[j]:
                     self._silent[j] = True
-                    others = [k for k in range(self.n_joints) if k != j]
-                    self.quick_stop(others)
-                    lost = ServoLost(j, self.ids[j], 0x8130, f"no usable reply for {self.cfg.silent_cycles} cycles ({b.problem}); "
-                                                           "the other servos were quick-stopped")
-                    self._faults.put(lost)
-                    self._event("servo_lost", str(lost), j)
+                    self._declare_lost(j, ServoLost(j, self.ids[j], 0x8130, f"no usable reply for {self.cfg.silent_cycles} cycles "
+                                                                            f"({b.problem}); the other servos were quick-stopped"), "servo_lost")
         for j in alerts:  # what the alert is about: one read, on the cycle thread
             try:
                 bits = self._read_table(self.ids[j], Address.HARDWARE_ERROR_STATUS, 1)[0]
@@ -430,7 +397,6 @@ class DynamixelDriver(Driver):
                 s.status[j] = bits << 8 | (int(s.status[j]) & 0xFF)
             except ProtocolError as err:
                 self._event("reply", f"{self._where(j)}: alert set, but Hardware Error Status could not be read: {err}", j)
-        self._emitted = s
         self._publish(s)
 
     def _sync_read_block(self, servo_id: int, length: int, deadline: float) -> dxl.Block:
@@ -452,10 +418,7 @@ class DynamixelDriver(Driver):
     def read(self, timeout: float | None = None) -> Sample:
         return self._next_sample(timeout, f"is {self.port_name} cycling?")
 
-    def command_torque(self, torque: Array) -> None:
-        tau = np.asarray(torque, float)
-        if tau.shape != (self.n_joints,) or not np.isfinite(tau).all():
-            raise ValueError(f"torque command must be {self.n_joints} finite values, got {tau}")
+    def _command_torque(self, tau: Array) -> None:
         raw = np.clip(np.round(tau / self.torque_constants / self._lsb), -self._limit_raw, self._limit_raw).astype(np.int64)
         if self._stopped:
             raw[list(self._stopped)] = 0
@@ -464,10 +427,7 @@ class DynamixelDriver(Driver):
         if self._position_mode:
             self._call(lambda: self._switch_mode(dxl.CURRENT_MODE), 1.0)
 
-    def command_position(self, position: Array) -> None:
-        q = np.asarray(position, float)
-        if q.shape != (self.n_joints,) or not np.isfinite(q).all():
-            raise ValueError(f"position command must be {self.n_joints} finite values, got {q}")
+    def _command_position(self, q: Array) -> None:
         self._goal_position = np.round(q * self._counts_per_rad).astype(np.int64)
         if not self._position_mode:
             self._call(lambda: self._switch_mode(dxl.POSITION_MODE), 1.0)
@@ -554,11 +514,7 @@ class DynamixelDriver(Driver):
         else:
             self._requests.put((off, queue.Queue()))
 
-    def close(self) -> None:
-        self._settings.restore()
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=1.0)
+    def _close(self) -> None:
         if self._serial is not None:
             self._serial.close()
             self._serial = None

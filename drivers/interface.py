@@ -15,6 +15,8 @@ import queue
 import sys
 import threading
 import time
+import warnings
+import weakref
 from collections import deque
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -22,16 +24,16 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from armid.schema import Array, Sample
-from armid.schema.errors import DriveConfigError, DriveFault, DriverError, HeartbeatLost
+from armid.schema.errors import DriveConfigError, DriveFault, DriverError, DriverTimeout, HeartbeatLost
 
 from .realtime import RealtimeScheduling, Timing, stall_sentence
 
 if TYPE_CHECKING:
     import can
 
-    from .rig import DriveUnits
+    from .rig import DriveUnits, Pacing, Rig
 
-__all__ = ["CycleClock", "DriveConfigError", "DriveFault", "Driver", "DriverError", "Event", "HeartbeatLost", "Sample"]
+__all__ = ["CycleClock", "DriveConfigError", "DriveFault", "Driver", "DriverError", "DriverTimeout", "Event", "HeartbeatLost", "Sample"]
 
 
 @dataclass(frozen=True)
@@ -199,21 +201,47 @@ class CycleHeartbeat:
         self.stopped = True
 
 
+class Lifecycle:
+    """Whether a driver was started and closed: what its finalizer reads (never the driver itself,
+    which it must not keep alive)."""
+
+    def __init__(self) -> None:
+        self.started = self.closed = False
+
+
+def warn_unclosed(name: str, lifecycle: Lifecycle) -> None:
+    """A driver started and never closed (garbage-collected, or alive at the interpreter's exit):
+    its bus or port, threads and process-wide settings were never given back."""
+    if lifecycle.started and not lifecycle.closed:
+        warnings.warn(f"{name} was started and never closed: call close() (or use it as a context manager)",
+                      ResourceWarning, stacklevel=2)
+
+
+CARRIED_FIELDS = ("position", "velocity", "measured_current", "status")
+"""What a drive reports each cycle; a cycle that did not carry one keeps the last value reported."""
+
+
 class Driver(abc.ABC):
-    """Reads one :class:`Sample` per cycle and sends commands to the amplifiers."""
+    """Reads one :class:`Sample` per cycle and sends commands to the amplifiers.
+
+    The template every driver follows, in the manner of python-can's ``BusABC`` (public method
+    here, protected hook in the protocol's class): :meth:`start` over :meth:`_start` (what a start
+    that fails changed process-wide is put back, what it opened closed), :meth:`close` over
+    :meth:`_close` (safe twice; a driver started and never closed warns with a
+    ``ResourceWarning``), the command checks over :meth:`_command_torque` and
+    :meth:`_command_position`, the carry-forward of what a cycle did not report
+    (:meth:`_carry_forward`) and a lost drive with the others quick-stopped (:meth:`_declare_lost`).
+    A subclass writes only its protocol."""
 
     n_joints: int
     period_s: float
-    paced_by_consumer: bool = False
-    """True when the driver's cycle waits for :meth:`acknowledge` (an arm simulated in this
-    process never runs ahead of its control loop); a driver that cannot pace ignores it."""
-    paced_by_drives: bool | None = False
-    """True when each cycle waits for the drives' answers (armid's simulated drives in another
-    process: a co-simulation); known after :meth:`start`."""
+    pacing: Pacing
+    """What each cycle waits for (the rig's ``pacing``: ``clock``, ``drives`` or ``consumer``,
+    :class:`~drivers.rig.Rig`); set before :meth:`start`. A driver that cannot pace ignores it."""
     timing_note: str = ""
     """What keeps the cycle and at what priority, said once at start-up (``drivers.realtime``)."""
     lost_cycles: Array
-    """Cycles lost per joint since :meth:`start` (the driver sets it up in ``__init__``)."""
+    """Cycles lost per joint since :meth:`start`."""
     drive_configuration: list[dict[str, int]]
     """What each drive reported of its configuration at :meth:`start` (the recording's metadata)."""
     units: list[DriveUnits]
@@ -221,10 +249,33 @@ class Driver(abc.ABC):
     last_stall: tuple[float, float] = (0.0, 0.0)
     """(``time.monotonic()``, s) of the newest time this process was not scheduled when its cycle was due."""
 
-    def __init__(self) -> None:
+    def __init__(self, rig: Rig) -> None:
+        self.rig = rig
+        self.n_joints = rig.n_joints
+        self.period_s = rig.period_s
+        self.units = [d.units for d in rig.drives]
+        self.pacing = rig.pacing
+        self.drive_configuration = []
+        self.lost_cycles = np.zeros(self.n_joints, np.int64)
         self._events: deque[Event] = deque(maxlen=10_000)
         self._samples: queue.Queue[Sample] = queue.Queue(maxsize=100_000)
         self._faults: queue.Queue[DriveFault] = queue.Queue()
+        self._settings = ProcessSettings()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None  # the cycle's thread, when the driver runs one
+        self._cycle = 0
+        self._emitted = Sample.empty(0, 0.0, self.n_joints)  # the newest sample handed to read()
+        self._commanded = np.zeros(self.n_joints)  # current (A) the newest command asks for
+        self._in_force = np.zeros(self.n_joints)  # current the amplifiers act on this cycle
+        self._silent = np.zeros(self.n_joints, bool)  # declared lost, until heard from again
+        self._lifecycle = Lifecycle()
+        self._finalizer = weakref.finalize(self, warn_unclosed, type(self).__name__, self._lifecycle)
+
+    @property
+    def paced(self) -> bool:
+        """True when the cycle waits for something other than the clock (its samples then carry
+        the simulated arm's time: the cycle times the period)."""
+        return self.pacing != "clock"
 
     def stall_note(self, within_s: float = 0.5) -> str:
         """Why frames went missing, for a stop that says so: this process not scheduled (with
@@ -234,25 +285,70 @@ class Driver(abc.ABC):
             return f"; {stall_sentence(stall)}"
         return "; this process ran on time: the drives or the line went silent"
 
-    @abc.abstractmethod
+    # --- the template ---
     def start(self) -> None:
-        """Configure the amplifiers and start cycling (drives stay disabled)."""
+        """Configure the amplifiers and start cycling (drives stay disabled). A start that
+        fails closes what it opened and changes nothing process-wide."""
+        if self._lifecycle.closed:
+            raise DriverError(f"{type(self).__name__} on {self.rig.source}: closed; open a new driver")
+        self._lifecycle.started = True
+        try:
+            self._start()
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self) -> None:
+        """Stop cycling and release the bus; safe to call twice."""
+        if self._lifecycle.closed:
+            return
+        self._lifecycle.closed = True
+        self._finalizer.detach()
+        self._settings.restore()
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=1.0)
+        self._close()
+
+    def command_torque(self, torque: Array) -> None:
+        """Joint torques (N*m or N) for the next cycle (converted through each torque constant)."""
+        self._command_torque(self._checked(torque, "torque"))
+
+    def command_current(self, current: Array) -> None:
+        """Motor currents (A) for the next cycle."""
+        self.command_torque(self._checked(current, "current") * self.torque_constants)
+
+    def command_position(self, position: Array) -> None:
+        """Joint positions for the amplifiers' own position loops (cyclic synchronous position)."""
+        self._command_position(self._checked(position, "position"))
+
+    def _checked(self, values: Array, what: str) -> Array:
+        """A command as the drives take it: one finite value per joint, or a clear error."""
+        out = np.asarray(values, float)
+        if out.shape != (self.n_joints,) or not np.isfinite(out).all():
+            raise ValueError(f"{what} command must be {self.n_joints} finite values, got {out}")
+        return out
+
+    # --- the protocol's hooks ---
+    @abc.abstractmethod
+    def _start(self) -> None:
+        """Open the bus or port, configure each drive, start the cycle."""
+
+    @abc.abstractmethod
+    def _close(self) -> None:
+        """Release what :meth:`_start` opened (the cycle's thread has stopped); called once."""
+
+    @abc.abstractmethod
+    def _command_torque(self, torque: Array) -> None:
+        """Checked joint torques for the next cycle."""
+
+    @abc.abstractmethod
+    def _command_position(self, position: Array) -> None:
+        """Checked joint positions for the next cycle."""
 
     @abc.abstractmethod
     def read(self, timeout: float | None = None) -> Sample:
         """The next cycle's sample; raises a pending :class:`DriveFault` first."""
-
-    @abc.abstractmethod
-    def command_torque(self, torque: Array) -> None:
-        """Joint torques (N*m or N) for the next cycle (converted through each torque constant)."""
-
-    def command_current(self, current: Array) -> None:
-        """Motor currents (A) for the next cycle."""
-        self.command_torque(np.asarray(current, float) * self.torque_constants)
-
-    @abc.abstractmethod
-    def command_position(self, position: Array) -> None:
-        """Joint positions for the amplifiers' own position loops (cyclic synchronous position)."""
 
     @abc.abstractmethod
     def enable(self, timeout: float = 1.0) -> None:
@@ -266,9 +362,41 @@ class Driver(abc.ABC):
     def quick_stop(self, joints: list[int] | None = None) -> None:
         """Quick-stop the given joints (default: all)."""
 
-    @abc.abstractmethod
-    def close(self) -> None:
-        """Stop cycling and release the bus."""
+    # --- what every protocol's cycle shares ---
+    def _open_record(self, cycle: int, time_s: float) -> Sample:
+        """A new cycle's sample: what the drives last reported carried forward, and the current
+        the amplifiers act on this cycle (the command before the newest: this cycle's takes
+        effect at the next)."""
+        s = Sample.empty(cycle, time_s, self.n_joints)
+        self._carry_forward(s)
+        s.commanded_current[:] = self._in_force
+        self._in_force = self._commanded.copy()
+        return s
+
+    def _carry_forward(self, sample: Sample, unwritten: list[tuple[str, list[int]]] | None = None) -> None:
+        """What a cycle did not report keeps the last value reported (the newest sample handed
+        to :meth:`read`): every field of every joint, or each field's joints in ``unwritten``."""
+        prev = self._emitted
+        if unwritten is None:
+            for name in CARRIED_FIELDS:
+                getattr(sample, name)[:] = getattr(prev, name)
+            return
+        for name, joints in unwritten:
+            if joints:  # element by element: numpy's fancy indexing costs more for six joints
+                mine, before = getattr(sample, name), getattr(prev, name)
+                for j in joints:
+                    mine[j] = before[j]
+
+    def _declare_lost(self, joint: int, fault: DriveFault, kind: str) -> None:
+        """A drive is lost (silent, or out of operation): the others are quick-stopped, and
+        :meth:`read` raises ``fault`` once; ``kind`` names the event."""
+        self.quick_stop([k for k in range(self.n_joints) if k != joint])
+        self._fault(fault, kind)
+
+    def _fault(self, fault: DriveFault, kind: str) -> None:
+        """A drive's fault, raised once by :meth:`read` and said as an event."""
+        self._faults.put(fault)
+        self._event(kind, str(fault), fault.joint)
 
     @property
     def torque_constants(self) -> Array:
@@ -284,11 +412,9 @@ class Driver(abc.ABC):
         return self._samples.qsize()
 
     @property
-    def latest_cycle(self) -> int | None:
-        """The newest cycle started on the bus: a command sent now applies from the next
-        (``_cycle``, which a driver counts from :meth:`start`)."""
-        cycle: int | None = getattr(self, "_cycle", None)
-        return cycle
+    def latest_cycle(self) -> int:
+        """The newest cycle started on the bus: a command sent now applies from the next."""
+        return self._cycle
 
     def events(self) -> list[Event]:
         """Events since the last call."""
@@ -300,11 +426,13 @@ class Driver(abc.ABC):
         self._events.append(Event(kind, message, joint))
 
     def _publish(self, sample: Sample) -> None:
-        """Hand a cycle's sample to :meth:`read`; a full backlog drops its oldest, with an event.
+        """Hand a cycle's sample to :meth:`read` (the newest emitted: what the next cycle carries
+        forward); a full backlog drops its oldest, with an event.
 
         Where a live record's torque comes from: ``torque = measured_current * torque_constants``
         (readers of current-only recordings apply the robot file's torque constants themselves)."""
         sample.torque = sample.measured_current * self.torque_constants
+        self._emitted = sample
         try:
             self._samples.put_nowait(sample)
         except queue.Full:
@@ -327,7 +455,7 @@ class Driver(abc.ABC):
         try:  # a fault that came while waiting is why no cycle came
             raise self._faults.get_nowait()
         except queue.Empty:
-            raise DriverError(f"no cycle within {wait} s: {stalled}") from None
+            raise DriverTimeout(f"no cycle within {wait} s: {stalled}") from None
 
     def __enter__(self) -> Driver:
         self.start()

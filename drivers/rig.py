@@ -12,7 +12,7 @@ names the file and the field.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Generic, Literal, Protocol, TypeVar, get_args
 
 import numpy as np
 
@@ -23,11 +23,19 @@ class ArmDescription(Protocol):
     """What the drivers need of the robot a rig binds (``armid.identify.robot.Robot`` is one);
     the rig file is read, and the robot description loaded, by :mod:`armid.io.rig_file`."""
 
-    name: str
-    source: str
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def source(self) -> str: ...
 
     @property
     def n_joints(self) -> int: ...
+
+
+ArmT = TypeVar("ArmT", bound=ArmDescription)
+"""The robot description a rig binds: ``Rig[Robot]`` as :func:`armid.io.rig_file.load_rig` reads it,
+so that code that simulates or identifies the arm gets the full description, typed."""
 
 
 def permille_of(current_a: Any, rated_current_a: Any) -> Any:
@@ -115,10 +123,24 @@ class SerialConfig:
     silent_cycles: int = 50  # consecutive cycles without a reply before a servo is declared lost
 
 
+Pacing = Literal["clock", "drives", "consumer"]
+"""What a driver's cycle waits for, besides its period (the rig file's ``pacing``):
+
+- ``clock``: nothing, the period's schedule alone (real drives: the default);
+- ``drives``: each SYNC waits, up to 50 ms, for the previous cycle's answers (drives simulated in
+  another process, which a shared machine stalls: a co-simulation, as ``config/rigs/sim.yaml`` sets);
+- ``consumer``: each SYNC waits for the consumer's :meth:`~drivers.interface.Driver.acknowledge`
+  (an arm simulated in the consumer's own process, as :mod:`armid.simulated` sets).
+
+A paced cycle's samples carry the simulated arm's time (cycle x period)."""
+
+PACINGS: tuple[str, ...] = get_args(Pacing)
+
+
 @dataclass(frozen=True)
-class Rig:
+class Rig(Generic[ArmT]):
     name: str
-    robot: ArmDescription
+    robot: ArmT
     bus: BusConfig
     drives: tuple[DriveConfig, ...]
     period_s: float = 0.002
@@ -131,6 +153,7 @@ class Rig:
     serial: SerialConfig | None = None  # set for a Dynamixel chain (bus.interface: dynamixel)
     driver: str = "canopen"  # the registry's name (armid.drivers.BACKENDS) of the driver this rig needs
     control_bandwidth_hz: float | None = None  # the excitation loop's PD bandwidth (None: daq.excite.LOOP_BANDWIDTH_HZ)
+    pacing: Pacing = "clock"  # what each cycle waits for besides the period (Pacing)
 
     @property
     def is_serial(self) -> bool:
@@ -140,12 +163,12 @@ class Rig:
     def n_joints(self) -> int:
         return self.robot.n_joints
 
-    def with_bus(self, **changes: Any) -> Rig:
+    def with_bus(self, **changes: Any) -> Rig[ArmT]:
         """The rig on another bus (``--interface``, ``--channel``); the interface is checked."""
         from dataclasses import replace
 
         if "interface" in changes:
-            _check_interface(str(changes["interface"]), self.source, "bus.interface (--interface)")
+            check_interface(str(changes["interface"]), self.source, "bus.interface (--interface)")
         return replace(self, bus=replace(self.bus, **changes))
 
 
@@ -180,7 +203,7 @@ def open_bus(**kwargs: Any) -> Any:
     return bus
 
 
-def _check_interface(interface: Any, src: str, where: str) -> None:
+def check_interface(interface: Any, src: str, where: str) -> None:
     """A python-can interface name (``can.interfaces.VALID_INTERFACES``)."""
     from can.interfaces import VALID_INTERFACES
 

@@ -25,6 +25,7 @@ from armid.drivers.interface import ProcessSettings
 from armid.drivers.realtime import one_cpu
 from armid.drivers.rig import Rig, open_bus
 from armid.drivers.udp_filter import drive_frames, drop_own_frames
+from armid.identify.robot import Robot
 
 from .drive import SimulatedDrive
 from .physics import ArmPhysics, Measurement, simulation_config
@@ -63,7 +64,7 @@ class StateLog:
 class SimulatedArm:
     """Run the rig's arm on ``bus`` (or on a bus opened from the rig) until :meth:`close`."""
 
-    def __init__(self, rig: Rig, bus: can.BusABC | None = None, seed: int | None = None, log_size: int = 200_000,
+    def __init__(self, rig: Rig[Robot], bus: can.BusABC | None = None, seed: int | None = None, log_size: int = 200_000,
                  own_process: bool = False) -> None:
         """``own_process``: the arm is alone in its process (``armid sim``), standing in for
         drives with processors of their own: its threads run above the master's, on one CPU

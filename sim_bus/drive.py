@@ -24,7 +24,6 @@ import canopen
 import numpy as np
 from canopen.objectdictionary import ODVariable
 
-from armid.drivers.canopen_driver import SIMULATED_PRODUCT_CODE
 from armid.drivers.interface import bus_time
 from armid.drivers.rig import DriveUnits, current_of, permille_of
 from armid.resources import config_file
@@ -46,6 +45,8 @@ EMCY_VELOCITY_LIMIT = 0x8400  # velocity speed controller
 
 NMT_STATE_CODES = {name: code for code, name in canopen.nmt.NMT_STATES.items()}  # what a heartbeat carries
 
+
+PRODUCT_CODE = 0x41524D53  # 0x1018:2, identity ("ARMS"): the recording's metadata names the drive; a master paces by its rig's setting
 
 class State(Enum):
     NOT_READY_TO_SWITCH_ON = 0x0000
@@ -157,7 +158,7 @@ class SimulatedDrive:
         self.node.data_store[0x6091][2] = struct.pack("<I", 1000)
         self.node.data_store.setdefault(0x6075, {})[0] = struct.pack("<I", int(round(u.rated_current_a * 1000)))
         self.node.data_store.setdefault(0x6076, {})[0] = struct.pack("<I", int(round(u.rated_motor_torque_nm * 1000)))
-        self.node.data_store.setdefault(0x1018, {})[2] = struct.pack("<I", SIMULATED_PRODUCT_CODE)  # a master paces on it
+        self.node.data_store.setdefault(0x1018, {})[2] = struct.pack("<I", PRODUCT_CODE)
         self.node.data_store[0x1018][4] = struct.pack("<I", 0x1000 + self.id)
 
     def _od(self, index: int, subindex: int) -> ODVariable:

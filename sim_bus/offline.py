@@ -57,7 +57,7 @@ def simulate(robot: Robot, config: SimulationConfig, reference, duration_s: floa
     config = replace(config, initial_position=tuple(q0))
     physics = ArmPhysics(robot, config, period_s, seed)
     # the lab tuned its gains on the real arm: rotor inertias included
-    control = controller or ComputedTorque(robot, q_nominal=q0, armature=[config.effects(j).rotor_inertia for j in range(robot.n_joints)])
+    control = controller or ComputedTorque(robot, q_nominal=q0, armature=np.array([config.effects(j).rotor_inertia for j in range(robot.n_joints)]))
     counts = np.array([u.counts_per_rad for u in units])
     rated = np.array([u.rated_current_a for u in units])
     kt = np.array([u.torque_constant for u in units])

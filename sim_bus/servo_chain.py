@@ -35,6 +35,7 @@ import numpy as np
 from armid.drivers import dynamixel_protocol as dxl
 from armid.drivers.dynamixel_protocol import ALERT, Address, Instruction
 from armid.drivers.rig import Rig
+from armid.identify.robot import Robot
 from armid.schema.errors import RigFileError, UsageError
 
 from .physics import ArmPhysics, Measurement, simulation_config
@@ -138,7 +139,7 @@ class SimulatedServo:
 class SimulatedServoChain:
     """The rig's servos on a pty; ``port`` is the device the driver opens. ``close`` ends it."""
 
-    def __init__(self, rig: Rig, seed: int | None = None) -> None:
+    def __init__(self, rig: Rig[Robot], seed: int | None = None) -> None:
         if rig.serial is None:
             raise RigFileError(rig.source, "bus.interface", "not a serial rig (bus.interface: dynamixel)")
         self.rig = rig

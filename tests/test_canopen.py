@@ -45,7 +45,7 @@ class _Bench:
         self.buses = [can.Bus(interface="virtual", channel=self.channel) for _ in range(2)]  # passed in: ours to shut down
         self.arm = SimulatedArm(self.rig, bus=self.buses[0])
         self.driver = CanopenDriver(self.rig, bus=self.buses[1])
-        self.driver.paced_by_consumer = True
+        self.driver.pacing = "consumer"
         self.driver.start()
         self.control = ComputedTorque(self.rig.robot, q_nominal=self.arm.physics.position)
 
@@ -388,10 +388,10 @@ def test_udp_multicast_two_processes_10_s(tmp_path: Path) -> None:
         # both ends take real-time priority themselves where allowed (drivers.realtime), the
         # simulator above the master; the master paces its SYNC on the simulated drives' answers
         # (a co-simulation: a stall of the simulator's process must delay the arm, not lose cycles),
-        # by itself: the drives say they are armid's simulator (0x1018:2), as `armid record` meets them
+        # as the simulated rig sets (pacing: drives), as `armid record` meets them
         driver = CanopenDriver(rig)
         driver.start()
-        assert driver.paced_by_drives and "paced by the simulated drives" in driver.timing_note, driver.timing_note
+        assert driver.pacing == "drives" and "paced by the drives" in driver.timing_note, driver.timing_note
         if "SCHED_FIFO" in driver.timing_note:  # the simulated drives above the master, on one CPU
             assert os.sched_getparam(proc.pid).sched_priority == os.sched_getparam(0).sched_priority + HARDWARE_ABOVE
             assert len(os.sched_getaffinity(proc.pid)) == 1

@@ -448,7 +448,7 @@ def test_the_same_acquisition_code_runs_on_both_driver_families(family: str, tmp
         buses = [can.Bus(interface="virtual", channel=channel) for _ in range(2)]
         arm = SimulatedArm(rig, bus=buses[0])
         driver: object = CanopenDriver(rig, bus=buses[1])
-        driver.paced_by_consumer = True  # type: ignore[attr-defined]
+        driver.pacing = "consumer"  # type: ignore[attr-defined]
 
         def close() -> None:
             arm.close()

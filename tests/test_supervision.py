@@ -181,7 +181,7 @@ def test_a_drive_gone_silent_is_named_lost_while_acquisition_goes_on() -> None:
     buses = [can.Bus(interface="virtual", channel=channel) for _ in range(2)]
     arm = SimulatedArm(rig, bus=buses[0])
     driver = CanopenDriver(rig, bus=buses[1])
-    driver.paced_by_consumer = True
+    driver.pacing = "consumer"
     said: list[str] = []
     supervision = Supervision(said.append)
     records: list = []

@@ -15,7 +15,7 @@ from armid.schema.errors import RecordingError, UsageError
 
 from .arguments import load_robot_argument
 from .output import _show
-from .session import _zenoh_arguments, open_zenoh
+from .session import add_zenoh_arguments, open_zenoh
 
 
 def _replay_records(path: Path, robot: Any, period_s: float | None) -> tuple[tuple[np.ndarray, ...], list[str]]:
@@ -162,12 +162,12 @@ def _estimate(args: argparse.Namespace) -> int:
         # background by a shell inherits SIGINT ignored, and a stop sent to it (the demo's,
         # a supervisor's) went unheard until it was killed 30 s later. Installed before it says
         # it listens: a stop sent on that line found SIGTERM's default (beside two busy loops)
-        from .rig import _run_until, stopped_by_signals
+        from .rig import run_until, stopped_by_signals
 
         try:
             with stopped_by_signals() as stop:
                 print(f"armid estimate: listening on armid/{robot.name}/joint_state (Ctrl-C stops)", file=sys.stderr, flush=True)
-                _run_until(stop, args.duration)
+                run_until(stop, args.duration)
         finally:
             service.close()
             session.close()
@@ -196,5 +196,5 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
                    help="forgetting factor per 2 ms of the arm's time while it moves, in (0, 1] (default 0.998: about 1 s)")
     p.add_argument("--publish-every", type=int, default=10, help="publish on every Nth record (default 10: 50 Hz at 2 ms)")
     p.add_argument("--duration", type=float, help="live: stop after this many seconds")
-    _zenoh_arguments(p)
+    add_zenoh_arguments(p)
     p.set_defaults(run=_estimate)

@@ -16,8 +16,8 @@ from armid.schema.errors import InputFileError, OptionError, UsageError
 from ..schema.json_text import write_json
 from .arguments import _count, _positive, _seed
 from .output import _inputs_read
-from .rig import _open_driver, _rig, _simulating
-from .session import _zenoh_arguments, open_zenoh
+from .rig import open_rig_driver, rig_from_arguments, simulating
+from .session import add_zenoh_arguments, open_zenoh
 
 
 def _excite(args: argparse.Namespace) -> int:
@@ -25,14 +25,14 @@ def _excite(args: argparse.Namespace) -> int:
 
     from rich.console import Console
 
-    rig = _rig(args)
+    rig = rig_from_arguments(args)
     robot = rig.robot
     n = robot.n_joints
     if args.frequency is not None and args.frequency >= 0.5 / rig.period_s:
         raise OptionError("--frequency", f"{args.frequency:g} Hz is not below the {0.5 / rig.period_s:g} Hz Nyquist frequency "
                                          f"of {rig.source}'s {rig.period_s:g} s period")
     console = Console(stderr=True)
-    simulate = _simulating(rig, args)
+    simulate = simulating(rig, args)
     links: list[int] = []
     for spec in args.link or []:
         if spec == "all":
@@ -81,7 +81,7 @@ def _excite_run(args: argparse.Namespace, rig: Any, robot: Any, n: int, simulate
     from ..experiments import Experiment, design_experiments, run_experiments
 
     if start is None:  # the pose the drives report; the drives are let be while this process designs
-        driver, sim = _open_driver(rig, args)
+        driver, sim = open_rig_driver(rig, args)
         with ExcitationSession(rig, driver, simulator=sim, tracking_limit_rad=args.tracking_limit) as probe:
             start = probe.position
     if trajectory is not None:
@@ -102,7 +102,7 @@ def _excite_run(args: argparse.Namespace, rig: Any, robot: Any, n: int, simulate
         return 0
     console.print(f"armid excite: {len(experiments)} trajectories checked against every limit; recording to {out}")
     # designing can keep this process busy for tens of seconds: only now the drives run with it
-    driver, sim = _open_driver(rig, args)
+    driver, sim = open_rig_driver(rig, args)
     with ExcitationSession(rig, driver, simulator=sim, tracking_limit_rad=args.tracking_limit, stream=stream,
                            say=lambda text: console.print(f"armid excite: {text}", markup=False, highlight=False)) as session:
         holder["session"] = session
@@ -226,5 +226,5 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--simulate", action=argparse.BooleanOptionalAction, default=None,
                    help="run the rig's simulated arm in this process (default: when the bus is virtual)")
     p.add_argument("--no-zenoh", action="store_true", help="do not stream the records and the experiments' events")
-    _zenoh_arguments(p)
+    add_zenoh_arguments(p)
     p.set_defaults(run=_excite)

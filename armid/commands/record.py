@@ -9,8 +9,8 @@ from typing import Any
 
 from .arguments import _positive
 from .output import _inputs_read
-from .rig import _open_driver, _rig, stopped_by_signals
-from .session import _zenoh_arguments, open_zenoh
+from .rig import open_rig_driver, rig_from_arguments, stopped_by_signals
+from .session import add_zenoh_arguments, open_zenoh
 
 
 def _record(args: argparse.Namespace) -> int:
@@ -20,11 +20,11 @@ def _record(args: argparse.Namespace) -> int:
     from armid.daq.recorder import McapRecorder
     from armid.schema import versions
 
-    rig = _rig(args)
+    rig = rig_from_arguments(args)
     _inputs_read()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    driver, sim = _open_driver(rig, args)
+    driver, sim = open_rig_driver(rig, args)
     # an arm simulated here or by `armid sim` never runs ahead of what records it (SYNC waits
     # for the consumer or the drives); --duration is then the arm's time, whatever the wall clock does
     session = stream = None
@@ -80,7 +80,7 @@ def _record(args: argparse.Namespace) -> int:
             with live:
                 while not stop.wait(0.1):
                     supervision.events(driver.events())
-                    elapsed = acq.sequence * rig.period_s if driver.paced_by_consumer or driver.paced_by_drives else time.monotonic() - start
+                    elapsed = acq.sequence * rig.period_s if driver.paced else time.monotonic() - start
                     if args.duration and elapsed >= args.duration:
                         break
                     if acq.error:
@@ -122,5 +122,5 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--simulate", action=argparse.BooleanOptionalAction, default=None,
                    help="run the rig's simulated arm in this process (default: when the bus is virtual)")
     p.add_argument("--no-zenoh", action="store_true", help="do not stream")
-    _zenoh_arguments(p)
+    add_zenoh_arguments(p)
     p.set_defaults(run=_record)

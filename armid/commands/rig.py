@@ -10,7 +10,7 @@ from contextlib import contextmanager
 from typing import Any
 
 
-def _rig(args: argparse.Namespace) -> Any:
+def rig_from_arguments(args: argparse.Namespace) -> Any:
     """The rig file, with ``--interface``/``--channel`` replacing its CAN bus's."""
     from armid.io.rig_file import load_rig
 
@@ -19,7 +19,7 @@ def _rig(args: argparse.Namespace) -> Any:
     return rig.with_bus(**changes) if changes and not rig.is_serial else rig
 
 
-def _simulating(rig: Any, args: argparse.Namespace) -> bool:
+def simulating(rig: Any, args: argparse.Namespace) -> bool:
     """``--simulate``/``--no-simulate``, else: a serial rig on ``port: sim``, a CAN rig on ``virtual``."""
     if args.simulate is not None:
         return bool(args.simulate)
@@ -28,11 +28,11 @@ def _simulating(rig: Any, args: argparse.Namespace) -> bool:
     return bool(rig.bus.interface == "virtual")
 
 
-def _open_driver(rig: Any, args: argparse.Namespace) -> tuple[Any, Any]:
+def open_rig_driver(rig: Any, args: argparse.Namespace) -> tuple[Any, Any]:
     """The rig's driver (the registry names it), on the simulated hardware when simulating: (driver, simulator or None)."""
     from armid.drivers import open_driver
 
-    if _simulating(rig, args):
+    if simulating(rig, args):
         from ..simulated import simulated_driver
 
         return simulated_driver(rig)
@@ -60,7 +60,7 @@ def stopped_by_signals() -> Iterator[threading.Event]:
             signal.signal(sig, handler)
 
 
-def _run_until(stop: Any, duration: float | None) -> None:
+def run_until(stop: Any, duration: float | None) -> None:
     """Until ``stop`` is set (a signal) or ``duration`` seconds have passed."""
     import time
 

@@ -10,7 +10,7 @@ from typing import Any
 
 from .arguments import ROBOT_HELP, _count, _positive, load_robot_argument
 from .output import _inputs_read, strict_json
-from .session import _zenoh_arguments, open_zenoh
+from .session import add_zenoh_arguments, open_zenoh
 
 
 def _serve(args: argparse.Namespace) -> int:
@@ -87,5 +87,5 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--max-backlog", type=_count, default=2500, help="records queued before the service skips to the newest (default 2500: 5 s at 2 ms)")
     p.add_argument("--duration", type=_positive, help="stop after this many seconds (default: until Ctrl-C)")
     p.add_argument("--json", metavar="JSONL", help="also write every published estimate/parameters document as a JSON line")
-    _zenoh_arguments(p)
+    add_zenoh_arguments(p)
     p.set_defaults(run=_serve)

@@ -62,7 +62,7 @@ def open_zenoh(args: argparse.Namespace) -> Any:
         raise InputFileError(src or endpoints, "", f"cannot open a Zenoh session ({_zenoh_message(err)})") from None
 
 
-def _zenoh_arguments(p: argparse.ArgumentParser) -> None:
+def add_zenoh_arguments(p: argparse.ArgumentParser) -> None:
     """Where the Zenoh session connects (peer mode, multicast scouting off). With none of
     these, armid processes on one machine find each other (``daq.stream.open_local_session``)."""
     p.add_argument("--zenoh-listen", nargs="*", metavar="ENDPOINT", help="Zenoh endpoints to listen on, e.g. tcp/127.0.0.1:7447")

@@ -11,11 +11,11 @@ import numpy as np
 
 from .arguments import _positive, _seed
 from .output import _inputs_read
-from .rig import _rig, _run_until, stopped_by_signals
+from .rig import rig_from_arguments, run_until, stopped_by_signals
 
 
 def _sim(args: argparse.Namespace) -> int:
-    rig = _rig(args)
+    rig = rig_from_arguments(args)
     _inputs_read()
     with stopped_by_signals() as stop:
         return _sim_chain(rig, args, stop) if rig.is_serial else _sim_arm(rig, args, stop)
@@ -31,7 +31,7 @@ def _sim_arm(rig: Any, args: argparse.Namespace, stop: Any) -> int:
     if args.ready:
         Path(args.ready).write_text("ready\n")
     try:
-        _run_until(stop, args.duration)
+        run_until(stop, args.duration)
     finally:
         arm.close()
         if args.log:
@@ -53,7 +53,7 @@ def _sim_chain(rig: Any, args: argparse.Namespace, stop: Any) -> int:
     if args.ready:
         Path(args.ready).write_text(chain.port + "\n")
     try:
-        _run_until(stop, args.duration)
+        run_until(stop, args.duration)
     finally:
         chain.close()
     print(f"armid sim: {chain.periods} periods simulated ({chain.physics.time_s:.3f} s of arm time), "

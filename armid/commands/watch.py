@@ -7,7 +7,7 @@ import sys
 
 from .arguments import _positive
 from .rig import stopped_by_signals
-from .session import _zenoh_arguments, open_zenoh
+from .session import add_zenoh_arguments, open_zenoh
 
 
 def _watch(args: argparse.Namespace) -> int:
@@ -29,5 +29,5 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p = sub.add_parser("watch", help="a live view of the stream in the terminal (joints, rate, gaps, events, payload)")
     p.add_argument("--robot", required=True, help="robot name, as in armid/<robot>/... (e.g. puma560)")
     p.add_argument("--duration", type=_positive, help="stop after this many seconds (default: until Ctrl-C)")
-    _zenoh_arguments(p)
+    add_zenoh_arguments(p)
     p.set_defaults(run=_watch)

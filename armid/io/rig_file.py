@@ -7,18 +7,18 @@ The robot path is relative to the rig file; every error is a
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
-from armid.drivers.rig import BusConfig, DriveConfig, DriveUnits, Rig, SerialConfig, _check_interface
+from armid.drivers.rig import PACINGS, BusConfig, DriveConfig, DriveUnits, Pacing, Rig, SerialConfig, check_interface
 from armid.identify.robot import Robot
 from armid.schema.errors import RigFileError
 
 from .robot_file import load_robot
 
 
-def load_rig(path: str | Path) -> Rig:
+def load_rig(path: str | Path) -> Rig[Robot]:
     """Read and check a rig YAML file; the robot path is relative to the rig file."""
     import yaml
 
@@ -38,7 +38,7 @@ def load_rig(path: str | Path) -> Rig:
     return rig_from_dict(doc, src, path.parent)
 
 
-def rig_from_dict(doc: Any, src: str = "<rig>", base_dir: Path | None = None) -> Rig:
+def rig_from_dict(doc: Any, src: str = "<rig>", base_dir: Path | None = None) -> Rig[Robot]:
     if not isinstance(doc, dict):
         raise RigFileError(src, "", "must be a mapping")
     base_dir = base_dir or Path.cwd()
@@ -69,7 +69,7 @@ def rig_from_dict(doc: Any, src: str = "<rig>", base_dir: Path | None = None) ->
     known_bus = {"interface", "channel", "bitrate"}
     interface = bus_doc.get("interface", "virtual")
     if "interface" in bus_doc:
-        _check_interface(interface, src, "bus.interface")
+        check_interface(interface, src, "bus.interface")
     bus = BusConfig(
         interface=str(interface),
         channel=str(bus_doc.get("channel", "armid")),
@@ -100,6 +100,7 @@ def rig_from_dict(doc: Any, src: str = "<rig>", base_dir: Path | None = None) ->
         source=src,
         driver=_driver(doc, src, "canopen"),
         control_bandwidth_hz=_bandwidth(doc, src),
+        pacing=_pacing(doc, src),
     )
     if rig.master_node_id in {d.node_id for d in drives}:
         raise RigFileError(src, "master_node_id", f"{rig.master_node_id} is also a drive's node id")
@@ -167,7 +168,7 @@ def _check_simulation(sim: dict[str, Any], robot: Robot, src: str) -> None:
                     _float(value, src, f"{where}.{name}")
 
 
-def _serial_rig(doc: dict[str, Any], bus_doc: dict[str, Any], robot: Robot, src: str) -> Rig:
+def _serial_rig(doc: dict[str, Any], bus_doc: dict[str, Any], robot: Robot, src: str) -> Rig[Robot]:
     """A Dynamixel chain: ``bus`` gives the port and line, each drive its servo id and model."""
     from armid.drivers.dynamixel_protocol import BAUD_CODES, MAX_ID, SERVO_MODELS
 
@@ -216,6 +217,7 @@ def _serial_rig(doc: dict[str, Any], bus_doc: dict[str, Any], robot: Robot, src:
         serial=serial,
         driver=_driver(doc, src, "dynamixel"),
         control_bandwidth_hz=_bandwidth(doc, src),
+        pacing=_pacing(doc, src),
     )
 
 
@@ -279,3 +281,11 @@ def _driver(doc: dict[str, Any], src: str, default: str) -> str:
     if not isinstance(name, str) or name not in known:
         raise RigFileError(src, "driver", f"unknown driver {name!r}; known: {', '.join(known)}")
     return name
+
+
+def _pacing(doc: dict[str, Any], src: str) -> Pacing:
+    """The rig's ``pacing:`` (:data:`~armid.drivers.rig.Pacing`): ``clock`` unless the rig says otherwise."""
+    value = doc.get("pacing", "clock")
+    if isinstance(value, str) and value in PACINGS:
+        return cast(Pacing, value)
+    raise RigFileError(src, "pacing", f"must be one of {', '.join(PACINGS)}, got {value!r}")

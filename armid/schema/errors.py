@@ -22,12 +22,13 @@ Errors that were ``ValueError`` stay catchable as ``ValueError`` (python-can's
      +-- DriverError                                    runtime: the driver cannot go on
      |    +-- DriveConfigError(InputError, ValueError)  a drive refuses the rig's configuration
      |    |    +-- SerialBudgetError                    the servo cycle does not fit the period
+     |    +-- DriverTimeout(TimeoutError)               no cycle, state or answer within its time
      |    +-- DriveFault                                a drive's fault (EMCY) or silence
      |    |    +-- HeartbeatLost                        no heartbeat within 3 periods
      |    |         +-- ServoLost                       a servo silent for ``silent_cycles``
      |    +-- ProtocolError                             a Dynamixel reply that cannot be used
      |         +-- CrcError
-     |         +-- ReplyTimeout
+     |         +-- ReplyTimeout(TimeoutError)
      |         |    +-- PartialPacket
      |         +-- MalformedPacket
      |         +-- StatusError                          (drivers.dynamixel_protocol: the servo's error field)
@@ -132,6 +133,11 @@ class SerialBudgetError(DriveConfigError):
     """The cycle does not fit the period at this baud rate: the message gives the numbers."""
 
 
+class DriverTimeout(DriverError, TimeoutError):
+    """A cycle, a drive's state or an answer did not come within its time: a ``TimeoutError``
+    as python-can's ``CanTimeoutError`` is, and a driver error the command line prints on one line."""
+
+
 class DriveFault(DriverError):
     """A drive reported a fault (EMCY) or went silent; ``joint`` is 0-based."""
 
@@ -176,7 +182,7 @@ class CrcError(ProtocolError):
     """The CRC does not match the bytes: corrupted on the line."""
 
 
-class ReplyTimeout(ProtocolError):
+class ReplyTimeout(ProtocolError, TimeoutError):
     """No reply (or not all of it) within the reply timeout."""
 
 
