@@ -2,7 +2,7 @@
 seconds and bytes (issue 18).
 
 The recording is the shipped PUMA 560 example written by the recorder itself
-(``daq.recorder.McapRecorder``: 32 KiB uncompressed chunks, summary with the chunk index,
+(``daq.recorder.McapRecorder``: zstd chunks of about 16 KiB of messages, summary with the chunk index,
 footer). Damage: bytes flipped inside one chunk (its CRC fails), a chunk's length field
 garbled (the framing breaks: reading resumes at the next chunk, found through the summary's
 chunk index, or byte by byte when there is no summary), the footer or the whole summary
@@ -21,7 +21,7 @@ import pytest
 from armid.cli import main
 from armid.daq.recorder import McapRecorder
 from armid.drivers.interface import Sample
-from armid.io.recordings import _McapScan, read_mcap_arrays, read_recording
+from armid.io.recordings import read_mcap_arrays, read_recording
 from armid.io.robot_file import load_robot
 from armid.schema.joint_state import JointStateRecord
 
@@ -50,9 +50,13 @@ def intact(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def _chunks(path: Path) -> list[int]:
-    scan = _McapScan(path.read_bytes())
-    assert scan.summary and len(scan.chunk_starts) > 100
-    return scan.chunk_starts
+    """Where each chunk starts, from the summary's chunk index (the ``mcap`` library's reader)."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None and len(summary.chunk_indexes) > 100
+    return sorted(c.chunk_start_offset for c in summary.chunk_indexes)
 
 
 def _write(path: Path, data: bytes | bytearray) -> Path:

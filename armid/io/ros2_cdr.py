@@ -6,9 +6,10 @@ the text the recorder stores beside them), registered once into an empty typesto
 reads any message a ROS 2 tool wrote for them, checking each one.
 
 One path of armid's own remains, :func:`ros2_columns`: messages of one layout (what the
-recorder writes for one arm) read in place as arrays. A typestore decodes about 25 us a cycle
-(two messages), 7.5 s for a 10-minute recording at 2 ms, where reading in place costs about
-1.5 us a cycle; the first message is checked against the typestore's decoding on every read.
+recorder writes for one arm) read in place as arrays, because decoding them one by one is far
+slower: for a 10-minute recording at 2 ms (300,000 cycles) the typestore's decoding and the
+gathering of its values cost 17.5 s of CPU, reading in place 0.7 s (the whole file is read in
+2.4 s). The first message is checked against the typestore's decoding on every read.
 """
 
 from __future__ import annotations
