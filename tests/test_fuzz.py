@@ -220,6 +220,16 @@ def _seven_joints(records: list[JointStateRecord]) -> None:
             setattr(r.sample, field, np.concatenate([v, v[:1]]))
 
 
+def _stamped_two_seconds_apart(records: list[JointStateRecord]) -> None:
+    for r in records:
+        r.sample.time_s = 2.0 * r.sequence  # the example's 2 ms cycles stamped as if milliseconds were seconds
+
+
+def _zero_torque(records: list[JointStateRecord]) -> None:
+    for r in records:
+        r.sample.torque = np.zeros(6)
+
+
 _DELETE = object()
 
 
@@ -266,9 +276,8 @@ MCAP_CASES: dict[str, tuple[Callable[[Path], Path], str]] = {
     "not an MCAP file": (lambda p: (p.write_bytes(b"hello, this is not MCAP" * 100), p)[1], r"not an MCAP file"),
     "magic only": (lambda p: (p.write_bytes(b"\x89MCAP0\r\n"), p)[1], r"no joint_state record"),
     "every chunk corrupt": (_every_chunk_flipped, r"no joint_state record could be read: a chunk that fails its CRC"),
-    "time stamps in milliseconds": (lambda p: _mcap_with(p, lambda m: [setattr(r.sample, "time_s", 2.0 * r.sequence) for r in m]),
-                                    r"milliseconds"),
-    "zero torque": (lambda p: _mcap_with(p, lambda m: [setattr(r.sample, "torque", np.zeros(6)) for r in m]), r"every torque is zero"),
+    "time stamps in milliseconds": (lambda p: _mcap_with(p, _stamped_two_seconds_apart), r"milliseconds"),
+    "zero torque": (lambda p: _mcap_with(p, _zero_torque), r"every torque is zero"),
 }
 
 

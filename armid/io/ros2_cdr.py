@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import struct
 from functools import lru_cache
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -33,6 +33,9 @@ from armid.schema.joint_state import (
     JointStateRecord,
 )
 
+if TYPE_CHECKING:
+    from rosbags.typesys.store import Typestore
+
 PER_JOINT = ("position", "velocity", "effort", "valid", "velocity_fresh", "commanded_current", "measured_current", "statusword")
 """The per-joint fields of the two message types together, by their message names."""
 STATE_FIELDS = ("position", "velocity", "effort")
@@ -40,7 +43,7 @@ STATE_FIELDS = ("position", "velocity", "effort")
 
 
 @lru_cache(maxsize=1)
-def typestore() -> Any:
+def typestore() -> Typestore:
     """A ``rosbags`` typestore that holds the two message types and what they use, from armid's schemas."""
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
