@@ -101,8 +101,8 @@ def test_the_cdr_bytes_are_what_a_ros2_serializer_writes() -> None:
     """The CDR armid writes (``rosbags``' typestore) against the other library's serializer (``mcap_ros2``)."""
     from mcap_ros2._dynamic import serialize_dynamic
 
-    from armid.schema import Sample
     from armid.io.ros2_cdr import ros2_messages
+    from armid.schema import Sample
     from armid.schema.joint_state import ROS2_MSGDEFS
 
     encode = {kind: serialize_dynamic(kind, text)[kind] for kind, text in ROS2_MSGDEFS.items()}
@@ -130,8 +130,8 @@ def test_the_columns_read_in_place_are_what_a_ros2_decoder_reads_and_other_layou
     from mcap.records import Schema
     from mcap_ros2.decoder import DecoderFactory
 
-    from armid.schema import Sample
     from armid.io.ros2_cdr import ros2_columns, ros2_messages
+    from armid.schema import Sample
     from armid.schema.joint_state import ROS2_MSGDEFS
 
     factory = DecoderFactory()
@@ -175,8 +175,8 @@ def test_a_stamp_ros2_time_cannot_hold_is_named_not_a_struct_error() -> None:
     import numpy as np
     import pytest
 
-    from armid.schema.errors import RecordFormatError
     from armid.io.ros2_cdr import ros2_messages
+    from armid.schema.errors import RecordFormatError
     from armid.schema.joint_state import JointStateRecord, Sample
 
     z = np.zeros(6)

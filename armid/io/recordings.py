@@ -314,9 +314,9 @@ class _Loss:
 class _McapScan:
     """Every record of an MCAP file that can be trusted, read past bad chunks.
 
-    The ``mcap`` library parses each record, decompresses each chunk and checks its CRC; its
-    readers stop at the first record they cannot read, and say nothing of where records lie.
-    This walk keeps the byte offsets and resumes: a chunk that fails its CRC, or whose records
+    The ``mcap`` library parses the records (chunk headers, channels, metadata, the summary),
+    decompresses each chunk and checks its CRC; its readers stop at the first record they cannot
+    read and say nothing of where records lie, so this walk keeps the byte offsets and resumes: a chunk that fails its CRC, or whose records
     do not parse, is left out whole, and reading goes on at the next chunk the summary's chunk
     index gives when the file has an intact summary, else at the next byte position that
     holds a whole chunk with a matching CRC.
