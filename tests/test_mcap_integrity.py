@@ -23,6 +23,7 @@ from armid.daq.recorder import McapRecorder
 from armid.drivers.interface import Sample
 from armid.io.recordings import read_mcap_arrays, read_recording
 from armid.io.robot_file import load_robot
+from armid.io.ros2_cdr import typestore
 from armid.schema.joint_state import JointStateRecord
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -38,6 +39,7 @@ def intact(tmp_path_factory: pytest.TempPathFactory) -> Path:
     rec = read_recording(EXAMPLE, robot)
     kt = np.array([j.torque_constant for j in robot.joints])
     path = tmp_path_factory.mktemp("mcap") / "run.mcap"
+    typestore()  # the codec built before the recorder opens: it closes a chunk 0.25 s after the last one, by the clock
     recorder = McapRecorder(path, [j.name for j in robot.joints], {"robot": robot.name})
     n = robot.n_joints
     assert rec.qd is not None

@@ -44,12 +44,16 @@ STATE_FIELDS = ("position", "velocity", "effort")
 
 @lru_cache(maxsize=1)
 def typestore() -> Typestore:
-    """A ``rosbags`` typestore that holds the two message types and what they use, from armid's schemas."""
+    """A ``rosbags`` typestore that holds the two message types and what they use, from armid's
+    schemas, with their (de)serializers built: about 0.1 s on the first call, so that a writer
+    that calls it when it opens does not spend it on its first record."""
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     store = get_typestore(Stores.EMPTY)
     for kind, text in ROS2_MSGDEFS.items():
         store.register(get_types_from_msg(text, kind))
+    for kind in ROS2_MSGDEFS:
+        store.get_msgdef(kind)  # generates the type's serializer and deserializer
     return store
 
 
