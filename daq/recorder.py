@@ -32,6 +32,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from armid.io.ros2_cdr import ros2_messages
 from armid.schema.joint_state import (
     EXTRA_TOPIC,
     EXTRA_TYPE,
@@ -39,7 +40,6 @@ from armid.schema.joint_state import (
     JOINT_STATES_TOPIC,
     ROS2_MSGDEFS,
     JointStateRecord,
-    ros2_messages,
 )
 
 CHUNK_BYTES = 16 * 1024

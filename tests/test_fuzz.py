@@ -25,6 +25,9 @@ import pytest
 import yaml
 
 from armid.cli import load_trajectory, main, strict_json
+from armid.io.ros2_cdr import ros2_messages
+from armid.schema import Sample
+from armid.schema.joint_state import EXTRA_TOPIC, EXTRA_TYPE, JOINT_STATE_TYPE, JOINT_STATES_TOPIC, ROS2_MSGDEFS, JointStateRecord
 
 ROOT = Path(__file__).resolve().parent.parent
 EXAMPLE = ROOT / "examples" / "puma560_excitation.csv"
@@ -166,84 +169,115 @@ def test_the_unbroken_recording_identifies(tmp_path: Path, capsys: pytest.Captur
 
 # -- MCAP --------------------------------------------------------------------------------
 
-def _messages() -> list[dict[str, Any]]:
-    """The example's rows as ``armid record`` writes them."""
+def _records(change: Callable[[list[JointStateRecord]], None] | None = None) -> list[JointStateRecord]:
+    """The example's rows as ``armid record`` acquires them (the driver's torque, its currents)."""
     out = []
     for k in range(ROWS):
-        ns = int(round(T[k] * 1e9))
-        current = (TAU[k] / KT).tolist()
-        out.append({"header": {"stamp": {"sec": ns // 10**9, "nsec": ns % 10**9}, "frame_id": ""},
-                    "name": [f"j{j + 1}" for j in range(6)], "position": Q[k].tolist(), "velocity": QD[k].tolist(),
-                    "effort": TAU[k].tolist(), "sequence": k, "cycle": k, "valid": [True] * 6, "velocity_fresh": [True] * 6,
-                    "commanded_current": current, "measured_current": current, "status": [0x27] * 6})
+        current = TAU[k] / KT
+        out.append(JointStateRecord(k, Sample(k, float(T[k]), np.ones(6, bool), Q[k].copy(), QD[k].copy(), np.ones(6, bool), current,
+                                              current.copy(), np.full(6, 0x27), TAU[k].copy())))
+    if change is not None:
+        change(out)
     return out
 
 
-def write_mcap(path: Path, payloads: list[bytes], metadata: dict[str, str] | None = None) -> Path:
-    """An MCAP file laid out as ``daq.recorder`` writes it (32 KiB chunks, summary, footer)."""
+def write_mcap(path: Path, records: list[JointStateRecord], metadata: dict[str, str] | None = None,
+               replace: dict[tuple[str, int], bytes] | None = None) -> Path:
+    """A ROS 2 recording as ``daq.recorder`` lays it out (its two CDR channels, summary, footer),
+    in uncompressed 32 KiB chunks so that a case can break bytes in them; ``replace``: the bytes
+    of (topic, sequence)'s message instead of the record's."""
     from mcap.writer import CompressionType, Writer
 
+    names = [f"j{j + 1}" for j in range(records[0].sample.position.size)]
     with open(path, "wb") as f:
         w = Writer(f, chunk_size=32 * 1024, compression=CompressionType.NONE)
-        w.start(profile="", library="armid-test")
-        schema = w.register_schema("armid.JointState", "jsonschema", b"{}")
-        channel = w.register_channel("/joint_state", "json", schema)
+        w.start(profile="ros2", library="armid-test")
+        channels = {topic: w.register_channel(topic, "cdr", w.register_schema(kind, "ros2msg", ROS2_MSGDEFS[kind].encode()))
+                    for topic, kind in ((JOINT_STATES_TOPIC, JOINT_STATE_TYPE), (EXTRA_TOPIC, EXTRA_TYPE))}
         w.add_metadata("armid.run", {"robot": "puma560"} if metadata is None else metadata)
-        for k, payload in enumerate(payloads):
-            w.add_message(channel, 2_000_000 * k, payload, 2_000_000 * k, k)
+        for r in records:
+            ns = int(round(r.sample.time_s * 1e9))
+            for topic, data in zip(channels, ros2_messages(r, names)):
+                w.add_message(channels[topic], ns, (replace or {}).get((topic, r.sequence), data), ns, r.sequence)
         w.finish()
     return path
 
 
-def _mcap_with(path: Path, change: Callable[[list[dict[str, Any]]], None], metadata: dict[str, str] | None = None) -> Path:
-    msgs = _messages()
-    change(msgs)
-    return write_mcap(path, [json.dumps(m).encode() for m in msgs], metadata)
+def _mcap_with(path: Path, change: Callable[[list[JointStateRecord]], None], metadata: dict[str, str] | None = None) -> Path:
+    return write_mcap(path, _records(change), metadata)
 
 
-def _set(k: int, key: str, value: Any) -> Callable[[list[dict[str, Any]]], None]:
-    def change(msgs: list[dict[str, Any]]) -> None:
-        if value is _DELETE:
-            del msgs[k][key]
-        else:
-            msgs[k][key] = value
+def _set(k: int, field: str, value: Any) -> Callable[[list[JointStateRecord]], None]:
+    def change(records: list[JointStateRecord]) -> None:
+        setattr(records[k].sample, field, value)
     return change
+
+
+def _seven_joints(records: list[JointStateRecord]) -> None:
+    for r in records:
+        for field in ("valid", "position", "velocity", "velocity_fresh", "commanded_current", "measured_current", "status", "torque"):
+            v = getattr(r.sample, field)
+            setattr(r.sample, field, np.concatenate([v, v[:1]]))
+
+
+def _stamped_two_seconds_apart(records: list[JointStateRecord]) -> None:
+    for r in records:
+        r.sample.time_s = 2.0 * r.sequence  # the example's 2 ms cycles stamped as if milliseconds were seconds
+
+
+def _zero_torque(records: list[JointStateRecord]) -> None:
+    for r in records:
+        r.sample.torque = np.zeros(6)
 
 
 _DELETE = object()
 
 
 def _every_chunk_flipped(path: Path) -> Path:
-    write_mcap(path, [json.dumps(m).encode() for m in _messages()])
+    from mcap.reader import make_reader
+
+    write_mcap(path, _records())
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
     data = bytearray(path.read_bytes())
-    for pos in [m.start() for m in re.finditer(rb'"sequence": ', bytes(data))][::5]:
-        data[pos + 1 : pos + 5] = b"\x00\xff\x00\xff"
+    for chunk in summary.chunk_indexes:
+        pos = chunk.chunk_start_offset + chunk.chunk_length // 2
+        data[pos : pos + 4] = bytes(b ^ 0xFF for b in data[pos : pos + 4])
     path.write_bytes(bytes(data))
     return path
 
 
+def _json_layout(path: Path) -> Path:
+    """A file in the layout armid wrote before its ROS 2 recordings: one JSON message a cycle on ``/joint_state``."""
+    from mcap.writer import Writer
+
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start(profile="", library="armid")
+        channel = w.register_channel("/joint_state", "json", w.register_schema("armid.JointState", "jsonschema", b"{}"))
+        for k in range(10):
+            w.add_message(channel, 2_000_000 * k, json.dumps({"sequence": k, "position": Q[k].tolist()}).encode(), 2_000_000 * k, k)
+        w.finish()
+    return path
+
+
 MCAP_CASES: dict[str, tuple[Callable[[Path], Path], str]] = {
-    "message without sequence": (lambda p: _mcap_with(p, _set(300, "sequence", _DELETE)), r"message 300: 'sequence' missing"),
-    "sequence not an integer": (lambda p: _mcap_with(p, _set(10, "sequence", "ten")), r"'sequence' must be an integer"),
-    "position too short": (lambda p: _mcap_with(p, _set(200, "position", [0.0] * 5)), r"'position' has 5 values, .* 6"),
-    "position not a list": (lambda p: _mcap_with(p, _set(200, "position", "up")), r"'position' must be a list of numbers"),
-    "position of strings": (lambda p: _mcap_with(p, _set(200, "position", ["a"] * 6)), r"'position' must be a list of numbers"),
-    "measured current missing": (lambda p: _mcap_with(p, _set(5, "measured_current", _DELETE)), r"'measured_current' missing"),
-    "validity not booleans": (lambda p: _mcap_with(p, _set(5, "valid", [1] * 6)), r"'valid' must be a list of 6 bools"),
-    "stamp missing": (lambda p: _mcap_with(p, _set(7, "header", {})), r"'header\.stamp' must hold integers"),
-    "message not an object": (lambda p: write_mcap(p, [b"[1, 2, 3]"] * 10), r"must be a JSON object"),
-    "message not JSON": (lambda p: write_mcap(p, [b"{not json"] * 10), r"not valid JSON"),
+    "position too short": (lambda p: _mcap_with(p, _set(200, "position", Q[200][:5])),
+                           r"/joint_states \(sequence 200\): 'position' has 5 values, the recording's other messages 6"),
+    "statusword too long": (lambda p: _mcap_with(p, _set(5, "status", np.full(7, 0x27))),
+                            r"/armid/joint_state_extra \(sequence 5\): 'statusword' has 7 values, .* 6"),
+    "message not its type": (lambda p: write_mcap(p, _records(), replace={(EXTRA_TOPIC, 10): b"\x00\x01\x00\x00garbage"}),
+                             r"/armid/joint_state_extra message 10 \(in the chunk at byte \d+\): not a armid_msgs/msg/JointStateExtra in CDR"),
+    "the JSON layout of old": (_json_layout, r"bad\.mcap: an MCAP in the JSON layout \(channel /joint_state\).*no longer read"),
     "recorded on another robot": (lambda p: _mcap_with(p, lambda m: None, {"robot": "ur5"}),
                                   r"recorded on robot 'ur5'.* describes 'puma560'"),
-    "seven joints recorded": (lambda p: _mcap_with(p, lambda m: [x.update({k: x[k] + x[k][:1] for k in (
-        "position", "velocity", "commanded_current", "measured_current", "valid", "velocity_fresh", "status")}) for x in m]),
-        r"7 joints recorded, robot puma560 has 6"),
+    "seven joints recorded": (lambda p: _mcap_with(p, _seven_joints), r"7 joints recorded, robot puma560 has 6"),
     "not an MCAP file": (lambda p: (p.write_bytes(b"hello, this is not MCAP" * 100), p)[1], r"not an MCAP file"),
     "magic only": (lambda p: (p.write_bytes(b"\x89MCAP0\r\n"), p)[1], r"no joint_state record"),
     "every chunk corrupt": (_every_chunk_flipped, r"no joint_state record could be read: a chunk that fails its CRC"),
-    "time stamps in milliseconds": (lambda p: _mcap_with(p, lambda m: [x["header"].update(stamp={"sec": x["sequence"] * 2, "nsec": 0})
-                                                                       for x in m]), r"milliseconds"),
-    "zero current": (lambda p: _mcap_with(p, lambda m: [x.update(measured_current=[0.0] * 6) for x in m]), r"every torque is zero"),
+    "time stamps in milliseconds": (lambda p: _mcap_with(p, _stamped_two_seconds_apart), r"milliseconds"),
+    "zero torque": (lambda p: _mcap_with(p, _zero_torque), r"every torque is zero"),
 }
 
 
@@ -275,10 +309,9 @@ def test_the_unbroken_mcap_reads_whole() -> None:
 
 def test_mcap_time_going_backwards_is_read_and_said(tmp_path: Path) -> None:
     """A clock step back on the bench: the records stamped before an earlier one are left out, and said so."""
-    def step_back(msgs: list[dict[str, Any]]) -> None:
-        for x in msgs[300:]:
-            ns = int(round((T[x["sequence"]] - 0.05) * 1e9))
-            x["header"]["stamp"] = {"sec": ns // 10**9, "nsec": ns % 10**9}
+    def step_back(records: list[JointStateRecord]) -> None:
+        for r in records[300:]:
+            r.sample.time_s = float(T[r.sequence] - 0.05)
     rec = _read_as_identify_does(_mcap_with(tmp_path / "step.mcap", step_back))
     assert any(re.search(r"time goes backwards at sequence 300 .*left out 25 records", n) for n in rec.notes), rec.notes
     assert rec.n_samples == ROWS - 25 and np.all(np.diff(rec.t) > 0)

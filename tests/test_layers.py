@@ -34,7 +34,7 @@ ALLOWED = {
     "sim_bus": {"schema", "identify", "drivers", "resources", "sim_bus"},
     "app": {"schema", "resources", "identify", "io", "drivers", "daq", "sim_bus", "app"},
 }
-IO_LIBRARIES = {"yaml", "mcap", "mcap_ros2", "zenoh", "can", "canopen", "serial", "matplotlib"}
+IO_LIBRARIES = {"yaml", "mcap", "mcap_ros2", "rosbags", "zenoh", "can", "canopen", "serial", "matplotlib"}
 
 
 def layer(module: str) -> str:

@@ -98,11 +98,12 @@ def test_armids_reader_gives_what_was_acquired(acquired: tuple[list[JointStateRe
 
 
 def test_the_cdr_bytes_are_what_a_ros2_serializer_writes() -> None:
-    """armid's own CDR writer (a few microseconds a cycle) against mcap_ros2's generic one."""
+    """The CDR armid writes (``rosbags``' typestore) against the other library's serializer (``mcap_ros2``)."""
     from mcap_ros2._dynamic import serialize_dynamic
 
+    from armid.io.ros2_cdr import ros2_messages
     from armid.schema import Sample
-    from armid.schema.joint_state import ROS2_MSGDEFS, ros2_messages
+    from armid.schema.joint_state import ROS2_MSGDEFS
 
     encode = {kind: serialize_dynamic(kind, text)[kind] for kind, text in ROS2_MSGDEFS.items()}
     rng = np.random.default_rng(0)
@@ -129,8 +130,9 @@ def test_the_columns_read_in_place_are_what_a_ros2_decoder_reads_and_other_layou
     from mcap.records import Schema
     from mcap_ros2.decoder import DecoderFactory
 
+    from armid.io.ros2_cdr import ros2_columns, ros2_messages
     from armid.schema import Sample
-    from armid.schema.joint_state import ROS2_MSGDEFS, ros2_columns, ros2_messages
+    from armid.schema.joint_state import ROS2_MSGDEFS
 
     factory = DecoderFactory()
     decode = {kind: factory.decoder_for("cdr", Schema(id=k, name=kind, encoding="ros2msg", data=text.encode()))
@@ -173,8 +175,9 @@ def test_a_stamp_ros2_time_cannot_hold_is_named_not_a_struct_error() -> None:
     import numpy as np
     import pytest
 
+    from armid.io.ros2_cdr import ros2_messages
     from armid.schema.errors import RecordFormatError
-    from armid.schema.joint_state import JointStateRecord, Sample, ros2_messages
+    from armid.schema.joint_state import JointStateRecord, Sample
 
     z = np.zeros(6)
 

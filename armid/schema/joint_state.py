@@ -4,7 +4,7 @@ Units are SI at the joint, everywhere after the driver: position in rad (m for a
 joint), velocity in rad/s (m/s), current in A, torque in N*m (N). The driver applies each
 joint's torque constant to the measured current, ``torque = measured_current * torque_constant``,
 and the torque travels beside the currents: a reader takes it as recorded. Where a recording
-carries currents only (a CSV's ``i1..in``, an MCAP in the older JSON layout), the reader applies
+carries currents only (a CSV's ``i1..in``), the reader applies
 the robot file's torque constant instead (``armid.io.recordings``); a torque command is divided
 by it into a current. Each record is scaled once.
 
@@ -18,14 +18,14 @@ subscriber can see what it missed.
 
 Recordings (MCAP) carry the same record as ROS 2 messages: ``sensor_msgs/msg/JointState``
 on ``/joint_states`` (position, velocity, effort = torque) and the rest in
-``armid_msgs/msg/JointStateExtra`` on ``/armid/joint_state_extra`` (:data:`ROS2_MSGDEFS`).
+``armid_msgs/msg/JointStateExtra`` on ``/armid/joint_state_extra`` (:data:`ROS2_MSGDEFS`; their CDR
+codec is :mod:`armid.io.ros2_cdr`).
 """
 
 from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -149,139 +149,5 @@ ROS2_MSGDEFS = {
 """``ros2msg`` schema text of each message type, as rosbag2 writes it (dependencies after ``MSG:`` lines)."""
 
 
-class _Cdr:
-    """A little-endian CDR (XCDR1) buffer: what ROS 2's rmw writes. Alignment counts from the
-    end of the 4-byte encapsulation header."""
-
-    def __init__(self) -> None:
-        self.buf = bytearray(b"\x00\x01\x00\x00")
-
-    def align(self, size: int) -> None:
-        pad = -(len(self.buf) - 4) % size
-        if pad:
-            self.buf += bytes(pad)
-
-    def u32(self, value: int) -> None:
-        self.align(4)
-        self.buf += struct.pack("<I", value)
-
-    def header(self, ns: int) -> None:
-        self.align(4)
-        self.buf += struct.pack("<iII", ns // 1_000_000_000, ns % 1_000_000_000, 1) + b"\x00"  # stamp, frame_id ""
-
-    def strings(self, values: list[bytes]) -> None:
-        self.u32(len(values))
-        for v in values:
-            self.u32(len(v) + 1)
-            self.buf += v + b"\x00"
-
-    def array(self, values: NDArray[Any], dtype: str, size: int) -> None:
-        self.u32(len(values))
-        self.align(size)
-        self.buf += np.ascontiguousarray(values, dtype).tobytes()
-
-
 ROS2_SECONDS = (-(2.0**31), 2.0**31)
 """The stamps ``builtin_interfaces/Time`` can hold (``sec`` is an int32)."""
-
-
-def ros2_messages(record: JointStateRecord, names: list[str]) -> tuple[bytes, bytes]:
-    """The record as CDR bytes of (``sensor_msgs/msg/JointState``, ``armid_msgs/msg/JointStateExtra``),
-    byte for byte what a ROS 2 serializer writes for :data:`ROS2_MSGDEFS` (tested against
-    ``mcap_ros2``'s), at a small fraction of a generic serializer's cost per cycle."""
-    s = record.sample
-    if not (np.isfinite(s.time_s) and ROS2_SECONDS[0] <= s.time_s < ROS2_SECONDS[1]):
-        raise RecordFormatError(f"record {record.sequence}: time stamp {s.time_s:.6g} s cannot be written in a ROS 2 recording "
-                                "(builtin_interfaces/Time counts int32 seconds: 1901-12-13 to 2038-01-19)")
-    ns = int(round(s.time_s * 1e9))
-    state = _Cdr()
-    state.header(ns)
-    state.strings([n.encode() for n in names])
-    for values in (s.position, s.velocity, s.joint_torque()):
-        state.array(values, "<f8", 8)
-    extra = _Cdr()
-    extra.header(ns)
-    extra.align(8)
-    extra.buf += struct.pack("<QQ", record.sequence, s.cycle)
-    extra.array(s.valid, "u1", 1)
-    extra.array(s.velocity_fresh, "u1", 1)
-    extra.array(s.commanded_current, "<f8", 8)
-    extra.array(s.measured_current, "<f8", 8)
-    extra.array(np.asarray(s.status, np.int64) & 0xFFFF, "<u2", 2)
-    return bytes(state.buf), bytes(extra.buf)
-
-
-def _cdr_layout(msg: bytes, fields: tuple[tuple[str, str], ...]) -> tuple[dict[str, tuple[int, str, int]], NDArray[np.bool_]] | None:
-    """Where each numeric field of one CDR message lies (offset, dtype, count) and which bytes
-    are structure (the encapsulation, lengths, strings, padding); None if ``msg`` does not
-    parse as ``fields`` (kinds: ``header``, ``strings``, or a dtype and ``[]`` for an array).
-    Alignment counts from the end of the 4-byte encapsulation header, as :class:`_Cdr` writes."""
-    numeric: dict[str, tuple[int, str, int]] = {}
-    structure = np.ones(len(msg), bool)
-    at = 4
-
-    def take(name: str, dtype: str, count: int) -> None:
-        nonlocal at
-        size = np.dtype(dtype).itemsize
-        at += -(at - 4) % size
-        if at + size * count > len(msg):
-            raise ValueError
-        numeric[name] = (at, dtype, count)
-        structure[at : at + size * count] = False
-        at += size * count
-
-    def length() -> int:
-        nonlocal at
-        at += -(at - 4) % 4
-        if at + 4 > len(msg):
-            raise ValueError
-        (n,) = struct.unpack_from("<I", msg, at)
-        at += 4
-        return int(n)
-
-    try:
-        for name, kind in fields:
-            if kind == "header":
-                take("sec", "<i4", 1)
-                take("nanosec", "<u4", 1)
-                skip = length()  # frame_id: structure (read before ``at`` moves on: length() moves it)
-                at += skip
-            elif kind == "strings":
-                for _ in range(length()):
-                    skip = length()
-                    at += skip
-            elif kind.endswith("[]"):
-                take(name, kind[:-2], length())
-            else:
-                take(name, kind, 1)
-    except (ValueError, struct.error):
-        return None
-    return (numeric, structure) if at == len(msg) else None
-
-
-_STATE_FIELDS = (("header", "header"), ("name", "strings"), ("position", "<f8[]"), ("velocity", "<f8[]"), ("effort", "<f8[]"))
-_EXTRA_FIELDS = (("header", "header"), ("sequence", "<u8"), ("cycle", "<u8"), ("valid", "u1[]"), ("velocity_fresh", "u1[]"),
-                 ("commanded_current", "<f8[]"), ("measured_current", "<f8[]"), ("statusword", "<u2[]"))
-
-
-def ros2_columns(messages: list[bytes], kind: str) -> dict[str, NDArray[Any]] | None:
-    """The numeric fields of many CDR messages of one type (``JOINT_STATE_TYPE`` or
-    ``EXTRA_TYPE``) as columns (messages, values), read in place: what a generic decoder does
-    message by message (3 s for the demo's 30,000 cycles), at a small fraction of the cost.
-    Only when every message has the first one's layout to the byte (the same length, joint
-    names, frame id and padding: what :func:`ros2_messages` writes for one arm); None
-    otherwise, and the caller decodes them one by one."""
-    if not messages or any(len(m) != len(messages[0]) for m in messages):
-        return None
-    found = _cdr_layout(messages[0], _STATE_FIELDS if kind == JOINT_STATE_TYPE else _EXTRA_FIELDS)
-    if found is None:
-        return None
-    numeric, structure = found
-    table = np.frombuffer(b"".join(messages), np.uint8).reshape(len(messages), len(messages[0]))
-    if not np.array_equal(table[:, structure], np.broadcast_to(table[0, structure], (len(messages), int(structure.sum())))):
-        return None
-    out = {}
-    for name, (offset, dtype, count) in numeric.items():
-        width = np.dtype(dtype).itemsize * count
-        out[name] = np.ascontiguousarray(table[:, offset : offset + width]).view(dtype).reshape(len(messages), count)
-    return out
