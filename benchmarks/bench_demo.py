@@ -37,13 +37,14 @@ def one_demo() -> tuple[float, dict | None, str]:  # type: ignore[type-arg]
 
 
 def summary(took: float, doc: dict) -> str:  # type: ignore[type-arg]
-    s, w, p = doc["truth_check"]["single_link"], doc["truth_check"]["whole_arm"], doc["payload"]
+    s, w, p, service = doc["truth_check"]["single_link"], doc["truth_check"]["whole_arm"], doc["payload"], doc["service"]
     attach = p["after_attach_2s"]
     com = attach["com_error_m"]
+    payload = (f"payload 2 s after the attach {attach['mass']:.3f} kg (true {p['true_mass']} kg), centre of mass off by {1000 * com:.1f} mm"
+               if com is not None and attach["mass"] is not None else "payload: no estimate 2 s after the attach")
     return (f"{took:.0f} s; single-link {s['within_3_sigma']} of {s['combinations']} within 3 sigma (max |z| {s['max_abs_z']:.2f}), "
-            f"whole arm {w['within_3_sigma']} of {w['combinations']} ({w['max_abs_z']:.2f}); payload 2 s after the attach "
-            f"{attach['mass']:.3f} kg (true {p['true_mass']} kg), centre of mass off by {1000 * com:.1f} mm"
-            if com is not None and attach["mass"] is not None else f"{took:.0f} s; payload: no estimate 2 s after the attach")
+            f"whole arm {w['within_3_sigma']} of {w['combinations']} ({w['max_abs_z']:.2f}); the service's whole-arm fit against "
+            f"the recording's: {service['max_difference_sigma']:.2g} sigma at most, {service.get('missing_records')} records missed; {payload}")
 
 
 def main(runs: int, busy: int) -> None:
