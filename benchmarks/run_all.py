@@ -35,6 +35,8 @@ RUNS = {
     "canopen": ["bench_canopen.py", "10", "virtual", "udp_multicast"],
     "canopen_busy2": ["bench_canopen.py", "10", "virtual", "udp_multicast", "--busy", "2"],
     "dynamixel": ["bench_dynamixel.py"],
+    "dynamixel_excite": ["bench_command.py", "dynamixel_excite"],
+    "dynamixel_excite_busy2": ["bench_command.py", "dynamixel_excite", "--busy", "2"],
     "fleet": ["bench_fleet.py"],
     "demo": ["bench_demo.py", "2"],
     "demo_busy2": ["bench_demo.py", "3", "--busy", "2"],

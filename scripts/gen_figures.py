@@ -45,9 +45,9 @@ class Section:
 
 SECTIONS = (
     Section("Real time on a busy machine",
-            "The whole demo, the timing-sensitive tests and the CANopen bus, each beside two busy processes on the "
-            "machine below.",
-            ("demo_busy2", "realtime_busy2", "canopen_busy2")),
+            "The whole demo, the timing-sensitive tests, the CANopen bus and the Dynamixel arm's excitation, each "
+            "beside two busy processes.",
+            ("demo_busy2", "realtime_busy2", "canopen_busy2", "dynamixel_excite_busy2")),
     Section("The estimator service",
             "`armid demo` runs the service's path: its experiments stream to an estimator service, whose published "
             "fits are compared with the fit of the complete recording (equal when no record was missed); the "
@@ -82,8 +82,9 @@ SECTIONS = (
             "6 axes at 2 ms, quiet (beside two busy processes: [Real time on a busy machine](#real-time-on-a-busy-machine)).",
             ("canopen",)),
     Section("Dynamixel chain",
-            "6 servos over a pseudo-terminal at 4 Mbaud.",
-            ("dynamixel",)),
+            "6 servos over a pseudo-terminal at 4 Mbaud: the chain's timing, then a whole-arm excitation and its "
+            "recording identified.",
+            ("dynamixel", "dynamixel_excite")),
     Section("A lab's fleet",
             "`armid fleet` on Ray: 2 workers against 1, and the same results.",
             ("fleet",)),
