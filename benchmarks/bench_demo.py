@@ -57,7 +57,7 @@ def main(runs: int, busy: int) -> None:
                 continue
             finished += 1
             print(f"run {k + 1}: {summary(took, doc)}", flush=True)
-    print(f"{finished} of {runs} demos finished" + (f" beside {busy} busy processes" if busy else ", quiet"))
+    print(f"{finished} of {runs} demos finished" + (f" beside {busy} busy processes" if busy else ", no busy process of its own"))
 
 
 if __name__ == "__main__":

@@ -32,7 +32,7 @@ def main(busy: int) -> int:
     tally = next((ln.strip("= ") for ln in reversed(lines) if re.search(r"\d+ (passed|failed)", ln)), "no tally")
     failed = [ln.split(" - ")[0] for ln in lines if ln.startswith("FAILED ")]
     print(f"`python {' '.join(PYTEST[:4])} \"{PYTEST[4]}\" {' '.join(PYTEST[5:6])}`"
-          + (f" beside {busy} busy processes" if busy else ", quiet") + f": {tally} ({took:.0f} s wall)")
+          + (f" beside {busy} busy processes" if busy else ", no busy process of its own") + f": {tally} ({took:.0f} s wall)")
     for line in failed:
         print(line)
     return 0
