@@ -5,8 +5,8 @@
 
 Run it on a quiet machine: the figures are the machine's, and the load average is recorded
 beside each. On the project's 2-core machine, with other test runs beside it (load average
-6-12), the whole run took 50 minutes, of which the five demos 16 and the timing-sensitive
-tests beside two busy processes about 10; quiet, expect about half.
+6-12), the whole run took about 40 minutes, of which the five demos 16 and the timing-sensitive
+tests beside two busy processes 5; quiet, expect about half.
 """
 
 from __future__ import annotations
