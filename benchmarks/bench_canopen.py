@@ -29,6 +29,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from figures_json import recorded  # noqa: E402
+
 from armid.daq.excite import LOOP_BANDWIDTH_HZ  # noqa: E402
 from armid.drivers.canopen_driver import CanopenDriver  # noqa: E402
 from armid.identify.control import ComputedTorque  # noqa: E402
@@ -106,8 +108,9 @@ if __name__ == "__main__":
     seconds = float(args[0]) if args else 60.0
     loads = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(busy)]
     try:
-        for iface in args[1:] or ["virtual", "udp_multicast"]:
-            print(run(iface, seconds) + (f"; beside {busy} busy processes" if busy else ""), flush=True)
+        with recorded("canopen" + (f"_busy{busy}" if busy else "")):
+            for iface in args[1:] or ["virtual", "udp_multicast"]:
+                print(run(iface, seconds) + (f"; beside {busy} busy processes" if busy else ""), flush=True)
     finally:
         for p in loads:
             p.kill()

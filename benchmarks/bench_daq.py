@@ -29,6 +29,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 
+from figures_json import recorded  # noqa: E402
+
 from armid.daq.acquisition import Acquisition, Sink  # noqa: E402
 from armid.daq.canlog import BusLog  # noqa: E402
 from armid.daq.recorder import McapRecorder  # noqa: E402
@@ -122,4 +124,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with recorded("daq"):
+        main()

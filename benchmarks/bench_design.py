@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from figures_json import recorded
 from scipy.optimize import minimize
 
 from armid.identify import excitation as ex
@@ -200,4 +201,5 @@ def main(names: list[str]) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    with recorded("design"):
+        main(sys.argv[1:])

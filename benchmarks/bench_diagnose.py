@@ -25,6 +25,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
 
 import blindgen  # noqa: E402
+from figures_json import recorded  # noqa: E402
 
 from armid import pipeline  # noqa: E402
 from armid.io.robot_file import load_robot  # noqa: E402
@@ -66,4 +67,5 @@ def main(seconds: float = 125.0, repeats: int = 1) -> None:
 
 
 if __name__ == "__main__":
-    main(float(sys.argv[1]) if len(sys.argv) > 1 else 125.0, int(sys.argv[2]) if len(sys.argv) > 2 else 1)
+    with recorded("diagnose"):
+        main(float(sys.argv[1]) if len(sys.argv) > 1 else 125.0, int(sys.argv[2]) if len(sys.argv) > 2 else 1)

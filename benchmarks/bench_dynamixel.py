@@ -27,6 +27,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from figures_json import recorded  # noqa: E402
+
 from armid.chain_process import ServoChainProcess  # noqa: E402
 from armid.drivers import dynamixel_protocol as dxl  # noqa: E402
 from armid.drivers.dynamixel_driver import DynamixelDriver  # noqa: E402
@@ -122,4 +124,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with recorded("dynamixel"):
+        main()

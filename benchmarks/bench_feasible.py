@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from figures_json import recorded
 
 from armid.identify.dynamics import regressor
 from armid.identify.feasible import feasible_estimate
@@ -55,4 +56,5 @@ def main(n: int = 100_000, repeats: int = 3) -> None:
 
 
 if __name__ == "__main__":
-    main(int(sys.argv[1]) if len(sys.argv) > 1 else 100_000, int(sys.argv[2]) if len(sys.argv) > 2 else 3)
+    with recorded("feasible"):
+        main(int(sys.argv[1]) if len(sys.argv) > 1 else 100_000, int(sys.argv[2]) if len(sys.argv) > 2 else 3)

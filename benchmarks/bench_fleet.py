@@ -26,6 +26,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
 
+from figures_json import recorded  # noqa: E402
+
 from armid.fleet.discover import find_arms, jobs_of  # noqa: E402
 from armid.fleet.engine import ONE_THREAD, import_ray, run_ray  # noqa: E402
 from armid.fleet.outputs import detect, in_order  # noqa: E402
@@ -95,4 +97,7 @@ def main(repeats: int = 2, fleet_dir: str | None = None) -> int:
 
 if __name__ == "__main__":
     argv = sys.argv[1:]
-    raise SystemExit(main(int(argv[0]) if argv else 2, argv[1] if len(argv) > 1 else None))
+    with recorded("fleet"):
+        code = main(int(argv[0]) if argv else 2, argv[1] if len(argv) > 1 else None)
+        if code:
+            raise SystemExit(code)

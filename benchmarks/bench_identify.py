@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from figures_json import recorded
 
 from armid.identify.dynamics import regressor
 from armid.identify.identification import identify, stacked_regressor, structural_base
@@ -51,4 +52,5 @@ def main(n: int = 100_000) -> None:
 
 
 if __name__ == "__main__":
-    main(int(sys.argv[1]) if len(sys.argv) > 1 else 100_000)
+    with recorded("identify"):
+        main(int(sys.argv[1]) if len(sys.argv) > 1 else 100_000)

@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from figures_json import recorded
 
 from armid.daq.payload_service import EstimateStream
 from armid.identify import excitation as ex
@@ -77,4 +78,5 @@ def main(seconds: float = 20.0) -> None:
 
 
 if __name__ == "__main__":
-    main(float(sys.argv[1]) if len(sys.argv) > 1 else 20.0)
+    with recorded("payload"):
+        main(float(sys.argv[1]) if len(sys.argv) > 1 else 20.0)

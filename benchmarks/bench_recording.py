@@ -19,6 +19,7 @@ import uuid
 from pathlib import Path
 
 import numpy as np
+from figures_json import recorded
 
 from armid.daq.acquisition import Acquisition, Sink
 from armid.daq.recorder import McapRecorder
@@ -129,4 +130,7 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    with recorded("recording"):
+        code = main()
+        if code:
+            sys.exit(code)

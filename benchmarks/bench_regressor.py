@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
+from figures_json import recorded
 
 from armid.identify.dynamics import regressor
 from armid.identify.identification import random_motion
@@ -59,4 +60,5 @@ def main(n: int = 100_000) -> None:
 
 
 if __name__ == "__main__":
-    main(int(sys.argv[1]) if len(sys.argv) > 1 else 100_000)
+    with recorded("regressor"):
+        main(int(sys.argv[1]) if len(sys.argv) > 1 else 100_000)

@@ -142,6 +142,60 @@ def test_the_cli_reference_is_what_the_parser_says() -> None:
     assert done.returncode == 0, done.stderr
 
 
+def test_the_figures_are_what_the_benchmarks_wrote() -> None:
+    """docs/figures.md is generated from benchmarks/results/*.json (scripts/gen_figures.py);
+    an edit by hand, or a result not rendered again, fails here as in CI."""
+    done = subprocess.run([sys.executable, str(ROOT / "scripts" / "gen_figures.py"), "--check"], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert len((ROOT / "docs" / "figures.md").read_bytes()) <= 30_000
+
+
+def test_the_figures_check_fails_on_a_page_that_differs(tmp_path: Path) -> None:
+    sys.path.insert(0, str(ROOT / "scripts"))
+    try:
+        import gen_figures
+    finally:
+        sys.path.remove(str(ROOT / "scripts"))
+    page = tmp_path / "figures.md"
+    page.write_text(gen_figures.render(gen_figures.load_results()))
+    original = gen_figures.PAGE
+    try:
+        gen_figures.PAGE = page
+        assert gen_figures.main(["--check"]) == 0
+        page.write_text(page.read_text().replace("Python", "Pyth0n", 1))
+        assert gen_figures.main(["--check"]) == 1
+    finally:
+        gen_figures.PAGE = original
+
+
+HISTORY_PAGES = [*sorted((ROOT / "docs" / "reference").glob("*.md")), *sorted((ROOT / "docs" / "guides").glob("*.md")),
+                 ROOT / "docs" / "architecture.md", ROOT / "docs" / "methods.md"]
+HISTORY = re.compile(r"\b20\d\d-\d\d-\d\d\b|\b[Ii]ssues? \d+\b|\b(?=[0-9a-f]*\d)(?=[0-9a-f]*[a-f])[0-9a-f]{7,40}\b")
+
+
+def _prose_lines(page: Path) -> list[tuple[int, str]]:
+    """A page's lines outside fenced code blocks (a command's example output may hold its dates)."""
+    out, fenced = [], False
+    for k, line in enumerate(page.read_text().splitlines(), 1):
+        if line.lstrip().startswith("```"):
+            fenced = not fenced
+        elif not fenced:
+            out.append((k, line))
+    return out
+
+
+def test_the_docs_say_what_is_true_now() -> None:
+    """No dated history (a date, "issue NN", a commit hash) in the reference, the guides, the
+    architecture and the methods, and no path under /tmp anywhere in the README or docs/:
+    history goes to CHANGELOG.md."""
+    dated = [f"{page.relative_to(ROOT)}:{k}: {line.strip()[:120]}" for page in HISTORY_PAGES for k, line in _prose_lines(page)
+             if HISTORY.search(line)]
+    assert not dated, "history in the docs (it goes to CHANGELOG.md):\n" + "\n".join(dated)
+    tmp = [f"{page.relative_to(ROOT)}:{k}" for page in [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+           for k, line in enumerate(page.read_text().splitlines(), 1) if "/tmp/" in line]
+    assert not tmp, "paths under /tmp (a developer's machine) in the docs:\n" + "\n".join(tmp)
+
+
 def test_every_shell_block_is_marked() -> None:
     unmarked = [b.where for page in PAGES for b in blocks(page) if not b.mode]
     assert not unmarked, "shell blocks without a docs-test marker (run, run slow, or skip REASON):\n" + "\n".join(unmarked)
