@@ -88,6 +88,7 @@ class SimulatedArm:
         self.network.connect()
         sync_timeout = float(sim.get("sync_timeout_s", 0.1))
         self.drives = [SimulatedDrive(d.node_id, d.joint, d.units, self.network, sync_timeout) for d in rig.drives]
+        self.step_seconds: deque[float] = deque(maxlen=100_000)  # before the first SYNC can come
         self.network.subscribe(0x80, self._on_sync)
         self.network.subscribe(0x700 + rig.master_node_id, self._on_master_heartbeat)
         self.log = StateLog(log_size, rig.n_joints)
@@ -96,7 +97,6 @@ class SimulatedArm:
         self._watchdog = threading.Thread(target=self._watch, name="armid-sim-watchdog", daemon=True)
         self._settings.freeze()  # see CanopenDriver.start: keep full collections short while running
         self._watchdog.start()
-        self.step_seconds: deque[float] = deque(maxlen=100_000)
 
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         start = time.perf_counter()
