@@ -16,7 +16,7 @@ from .session import _zenoh_arguments, open_zenoh
 def _record(args: argparse.Namespace) -> int:
     import time
 
-    from armid.daq.acquisition import Acquisition, Sink
+    from armid.daq.acquisition import Acquisition, Sink, SinkFailure
     from armid.daq.recorder import McapRecorder
     from armid.schema import versions
 
@@ -88,7 +88,7 @@ def _record(args: argparse.Namespace) -> int:
             acq.stop()
             supervision.events(driver.events())
             # how the run ended, in the recording: a run cut short says so wherever it is read
-            recorder.close({"completed": acq.error is None, "stop": acq.error})
+            closed = _close(recorder, {"completed": acq.error is None, "stop": acq.error}, acq)
             if can_log is not None:
                 can_log.stop()
             if stream:
@@ -100,6 +100,9 @@ def _record(args: argparse.Namespace) -> int:
                 print(f"armid record: {line}", file=sys.stderr)
             if supervision.failed:
                 print(f"armid record: {supervision.verdict()} ({out / 'run.mcap'} holds every record)", file=sys.stderr)
+            if acq.failed is not None or closed is not None:  # a sink failed: the run stopped on it
+                raise SinkFailure(f"{acq.error or closed}; the run stopped after {acq.sequence} records: what reached "
+                                  f"{out / 'run.mcap'} before it reads back")
             return 1 if acq.error or supervision.failed else 0
         finally:
             driver.close()
@@ -109,6 +112,18 @@ def _record(args: argparse.Namespace) -> int:
                 session.close()
             if sim is not None:
                 sim.close()
+
+
+def _close(recorder: Any, end: dict[str, Any], acq: Any) -> str | None:
+    """Close the recording; why it could not be (a full disk), None when it closed. After a
+    sink's failure the file may not take its summary either: what it holds reads without one."""
+    from armid.daq.recorder import RecorderWriteError
+
+    try:
+        recorder.close(end)
+    except RecorderWriteError as err:
+        return str(err)
+    return None
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
