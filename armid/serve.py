@@ -356,8 +356,8 @@ class EstimatorService:
         refusal = self._refusal(kind, link, rec) if kind in ("single_link", "whole_arm") else None
         if refusal:
             info["note"] = refusal
-        elif kind == "single_link":
-            self._single_link(exp, rec, path, int(link) - 1, info)
+        elif kind == "single_link" and isinstance(link, int):  # a link of the robot's (the refusal saw to it)
+            self._single_link(exp, rec, path, link - 1, info)
         elif kind == "whole_arm":
             self._whole_arm(exp, rec, path, info)
         else:

@@ -119,7 +119,7 @@ class Acquisition:
             except DriverError as err:
                 self.error = str(err)
                 break
-            self.invalid += ~sample.valid
+            self.invalid += np.logical_not(sample.valid)
             if self._last_position is not None:
                 same = (sample.position == self._last_position) & (sample.commanded_current != 0) & sample.valid
                 self._stale_run = np.where(same, self._stale_run + 1, 0)

@@ -122,6 +122,7 @@ def replay_log(path: str | Path, rig: Any, timeout_s: float = 30.0) -> list[Samp
     reached = threading.Event()
     try:
         driver.listen()
+        assert driver.network is not None  # listening opened it
         driver.network.subscribe(END_OF_LOG_COB_ID, lambda can_id, data, timestamp: reached.set() if bytes(data) == marker else None)
         stop = threading.Event()
         reader = threading.Thread(target=lambda: _drain(driver, samples, stop), daemon=True)

@@ -29,6 +29,7 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from armid.identify.errors import RecordingError
 from armid.identify.payload.rls import PayloadRLS
@@ -107,7 +108,7 @@ class EstimateStream:
         return {"skipped": self.skipped, "lost": self.lost, "invalid": self.invalid, "time_faults": self.time_faults,
                 "dropped": dict(self.dropped), "last_drop": self.last_drop}
 
-    def _screen(self, seq: Array, t: Array, valid: Array, q: Array, torque: Array) -> tuple[Array, Array, list[dict[str, Any]], Array]:
+    def _screen(self, seq: NDArray[np.int64], t: Array, valid: NDArray[np.bool_], q: Array, torque: Array) -> tuple[NDArray[np.bool_], NDArray[np.bool_], list[dict[str, Any]], Array]:
         """Which records the estimator takes, before which the derivatives restart (a gap in
         the sequence numbers, a dropped record, a stepped clock), the counts after each, and
         each record's time on the estimator's clock (a stepped clock's step taken out: the

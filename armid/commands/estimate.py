@@ -125,7 +125,7 @@ def _estimate(args: argparse.Namespace) -> int:
         ref_records, ref_notes = _replay_records(Path(args.reference), robot, args.period)
         for note in ref_notes:
             print(f"{args.reference}: {note}", file=sys.stderr)
-        kept = ref_records[ref_records.valid.all(axis=1)]
+        kept = ref_records[np.flatnonzero(ref_records.valid.all(axis=1))]
         try:
             reference = ReferenceRun(arm, kept.time, kept.position, kept.torque)
         except ValueError as err:
@@ -157,7 +157,10 @@ def _estimate(args: argparse.Namespace) -> int:
 
         ordinary_priority()  # the arithmetic never at a real-time policy inherited from what started it
         session = open_zenoh(args)
-        service = PayloadService(session, robot.name, stream, on_estimate=lambda d: out.write(json.dumps(d, allow_nan=False) + "\n"),
+        def write(doc: dict[str, Any]) -> None:
+            out.write(json.dumps(doc, allow_nan=False) + "\n")
+
+        service = PayloadService(session, robot.name, stream, on_estimate=write,
                                  log=lambda line: print(f"armid estimate: {line}", file=sys.stderr, flush=True))
         # SIGINT and SIGTERM stop it through handlers of its own: a process started in the
         # background by a shell inherits SIGINT ignored, and a stop sent to it (the demo's,

@@ -70,8 +70,8 @@ class JointStates:
     def of_sample(sequence: int, s: Sample) -> JointStates:
         """The driver's sample as the record numbered ``sequence`` (views of its arrays)."""
         return JointStates(np.array([sequence], np.int64), np.array([s.cycle], np.int64), np.array([s.time_s], float),
-                           s.valid[None], s.velocity_fresh[None], s.position[None], s.velocity[None], s.commanded_current[None],
-                           s.measured_current[None], s.joint_torque()[None], np.asarray(s.status)[None])
+                           np.asarray(s.valid, bool)[None], np.asarray(s.velocity_fresh, bool)[None], s.position[None], s.velocity[None], s.commanded_current[None],
+                           s.measured_current[None], s.joint_torque()[None], np.asarray(s.status, np.int64)[None])
 
     @staticmethod
     def of_log(sequence: NDArray[Any], time: NDArray[Any], valid: NDArray[Any], position: NDArray[Any], torque: NDArray[Any]) -> JointStates:
