@@ -474,13 +474,13 @@ def test_once_the_arm_is_identified_the_service_estimates_a_payload_on_the_live_
             assert active.first_cycle is not None
             # the plan's cycle k is the arm's step k (one step per SYNC, from time 0)
             physics.attach_payload(truth, at_time_s=(active.first_cycle - 1) * rig.period_s + plan.lead_in_s + 1.5)
-            last = s.control.last_record
+            last = s.acquisition.last
             assert last is not None
-            offset = last.sequence - last.sample.cycle  # a record's sequence number less its SYNC cycle
+            offset = int(last.sequence[0] - last.cycle[0])  # a record's sequence number less its SYNC cycle
             assert active.done.wait(plan.duration_s + 60)
             assert s.control.stop_reason is None, s.control.stop_reason
-            last = s.control.last_record
-            assert last is not None and last.sequence - last.sample.cycle == offset  # no SYNC lost while it worked
+            last = s.acquisition.last
+            assert last is not None and int(last.sequence[0] - last.cycle[0]) == offset  # no SYNC lost while it worked
             first_work = active.first_cycle + offset
             end = active.first_cycle + active.cycles + offset
         wait(lambda: estimates and estimates[-1]["sequence"] >= end - 10, 20)
