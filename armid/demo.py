@@ -382,7 +382,7 @@ def run_payload(rig: Rig[Robot], link: PeerLink, design: Any, out: Path) -> dict
                 physics.attach_payload(truth, at_time_s=start_s + plan.lead_in_s + 3.0)
                 physics.attach_payload(None, at_time_s=start_s + plan.lead_in_s + 7.0)
             runner.join()
-            last_time = s.control.last_record.sample.time_s if s.control.last_record is not None else float("inf")
+            last_time = s.control.last_sample.time_s if s.control.last_sample is not None else float("inf")
         _wait_for_estimates(estimates, last_time - 0.1, link.peer)
     finally:
         link.close()

@@ -33,10 +33,11 @@ from armid.identify.identification import IdentificationResult, IdentifyOptions,
 from armid.identify.identification import identify as _identify
 from armid.identify.plausibility import check_against_model, check_positions, check_recording, moving_joints
 from armid.identify.preprocess import Prepared, PrepareOptions, prepare
-from armid.identify.recordings import Recording
+from armid.identify.recordings import Recording, with_torque
 from armid.identify.robot import Robot
 from armid.io.recordings import read_mcap_arrays, read_recording, stop_line
 from armid.schema.errors import OptionError, PoorExcitationWarning, RecordingError
+from armid.schema.joint_states import JointStates
 
 if TYPE_CHECKING:
     from armid.identify.diagnosis.search import DiagnoseOptions, Diagnosis
@@ -119,7 +120,11 @@ def plausibility(source: str, robot: Robot, t: np.ndarray, q: np.ndarray, qd: np
 
 def read(path: str | Path, robot: Robot, need_motion: bool = True, window: Window | None = None) -> tuple[Recording, list[str]]:
     """Read and check one recording (cut to ``window`` when given); its warnings."""
-    rec = read_recording(path, robot)
+    return checked(read_recording(path, robot), robot, need_motion, window)
+
+
+def checked(rec: Recording, robot: Robot, need_motion: bool = True, window: Window | None = None) -> tuple[Recording, list[str]]:
+    """Check one recording, read or held in memory (cut to ``window`` when given); its warnings."""
     found = [stop_warning(rec.source, rec.stopped)] if rec.stopped else []
     found += plausibility(rec.source, robot, rec.t, rec.q, rec.qd, rec.tau, need_motion)
     return (rec if window is None else cut_to_window(rec, window)), found
@@ -181,8 +186,14 @@ def load(robot: Robot, recipe: Recipe, data: Sequence[str | Path], validate: Seq
 
 
 def load_run(path: str | Path, robot: Robot, recipe: Recipe, window: Window | None = None, need_motion: bool = True) -> tuple[Prepared, list[str]]:
-    """One run read, checked, cut to its window and prepared (the service's and the demo's)."""
-    inputs = prepare_checked([read(path, robot, need_motion, window)], robot, recipe, [str(path)])
+    """One run read, checked, cut to its window and prepared (the demo's)."""
+    return prepare_run(read_recording(path, robot), robot, recipe, window, need_motion)
+
+
+def prepare_run(rec: Recording, robot: Robot, recipe: Recipe, window: Window | None = None, need_motion: bool = True) -> tuple[Prepared, list[str]]:
+    """One run checked, cut to its window and prepared (the service's, from memory: the same
+    numbers as :func:`load_run` on the run's recording)."""
+    inputs = prepare_checked([checked(rec, robot, need_motion, window)], robot, recipe, [rec.source])
     return inputs.experiments[0], inputs.warnings
 
 
@@ -202,17 +213,17 @@ def diagnose(robot: Robot, inputs: Inputs, options: DiagnoseOptions | None = Non
     return _diagnose(robot, inputs.experiments, inputs.validation, options)
 
 
-def replay_records(path: str | Path, robot: Robot) -> tuple[tuple[np.ndarray, ...], list[str], list[str]]:
-    """(sequence, time, valid, position, torque) of a recording in order, on its own stamps, for
-    the payload estimator (``armid estimate --replay``); its notes and its checks' warnings.
+def replay_records(path: str | Path, robot: Robot) -> tuple[JointStates, list[str], list[str]]:
+    """A recording's records in order, on its own stamps, for the payload estimator (``armid
+    estimate --replay``); its notes and its checks' warnings.
 
     An MCAP's records keep their sequence numbers and validity flags (the estimator counts
-    what was lost); a CSV's rows are numbered. Both pass :func:`plausibility`."""
+    what was lost), their torque by :func:`~armid.identify.recordings.with_torque`; a CSV's
+    rows are numbered. Both pass :func:`plausibility`."""
     path = Path(path)
     if path.suffix.lower() != ".mcap":
         rec, found = read(path, robot, need_motion=False)
-        records = _numbered(rec, robot)
-        return records, list(rec.notes), found
+        return _numbered(rec, robot), list(rec.notes), found
     if not path.exists():
         raise RecordingError(str(path), "no such file")
     a, metadata, notes = read_mcap_arrays(path)
@@ -220,17 +231,14 @@ def replay_records(path: str | Path, robot: Robot) -> tuple[tuple[np.ndarray, ..
         raise RecordingError(str(path), "no joint_state record could be read" + (f": {notes[0]}" if notes else ""))
     if a["position"].shape[1] != robot.n_joints:
         raise RecordingError(str(path), f"{a['position'].shape[1]} joints recorded, robot {robot.name} has {robot.n_joints}")
-    t = np.asarray(a["t"], float)
-    torque = a["torque"] if "torque" in a else a["measured_current"] * np.array([j.torque_constant for j in robot.joints])
-    records = (np.asarray(a["sequence"], np.int64), t, np.asarray(a["valid"], bool).reshape(t.size, -1),
-               np.asarray(a["position"], float), np.asarray(torque, float))
+    states, _ = with_torque(JointStates.from_columns(a), robot)
     stopped = stop_line(metadata)
     found = [stop_warning(str(path), stopped)] if stopped else []
-    found += plausibility(str(path), robot, t, records[3], None, records[4], need_motion=False)
-    return records, notes, found
+    found += plausibility(str(path), robot, states.time, states.position, None, states.torque, need_motion=False)
+    return states, notes, found
 
 
-def _numbered(rec: Recording, robot: Robot) -> tuple[np.ndarray, ...]:
+def _numbered(rec: Recording, robot: Robot) -> JointStates:
     """A CSV's rows as replay records: those without a time left out (as identify does), time
     required to increase (the line named)."""
     t = np.asarray(rec.t, float)
@@ -244,4 +252,4 @@ def _numbered(rec: Recording, robot: Robot) -> tuple[np.ndarray, ...]:
         k = int(back[0]) + 1
         raise RecordingError(rec.source, f"line {line[stamped][k]}: time {t[k]:.6g} s is not after the line before ({t[k - 1]:.6g} s): "
                                          "time must increase (a reversed or shuffled log?)")
-    return np.arange(t.size, dtype=np.int64), t, np.ones((t.size, robot.n_joints), bool), q, tau
+    return JointStates.of_log(np.arange(t.size), t, np.ones((t.size, robot.n_joints), bool), q, tau)

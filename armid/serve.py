@@ -2,8 +2,9 @@
 
 It subscribes to ``armid/<robot>/joint_state`` and ``armid/<robot>/events``, cuts each
 experiment out of the stream by the sequence numbers its ``stop`` event gives
-(:mod:`daq.experiment_stream`), keeps its own MCAP copy of what it received
-(``<out>/<run>/run.mcap``, written by the recorder ``armid record`` uses), and then:
+(:mod:`daq.experiment_stream`), holds its records in memory
+(:class:`~armid.schema.joint_states.JointStates`), and then, reading them there (the same
+numbers as reading its copy: :func:`~armid.identify.recordings.recording_of` either way):
 
 - a **single-link** experiment (one joint moved): Khosla's off-line sequence over every
   single-link experiment received so far, last link first, each link with the later links
@@ -17,6 +18,9 @@ After each experiment it publishes ``armid/<robot>/estimate/parameters`` (JSON, 
 a whole-arm fit exists it also runs the on-line payload estimator on the live stream
 (:class:`daq.payload_service.PayloadService`, beside it in the same session:
 ``armid/<robot>/estimate/payload`` as ``armid estimate live`` publishes it).
+
+Each experiment's records are written afterwards, for the archive, to ``<out>/<run>/run.mcap``
+(by the recorder ``armid record`` uses).
 
 Threads, so that nothing waits on the arithmetic: Zenoh's callbacks only queue bytes; an
 ingest thread files records by sequence number; an analysis thread identifies. The ingest
@@ -54,7 +58,8 @@ from armid.daq.experiment_stream import CollectedExperiment, ExperimentCollector
 from armid.daq.stream import key
 from armid.identify.robot import Robot
 from armid.identify.single_link import joint_spans
-from armid.schema.joint_state import JointStateRecord, check_encoding
+from armid.schema.joint_state import check_encoding
+from armid.schema.joint_states import JointStates
 
 from .pipeline import RECIPES
 
@@ -176,16 +181,17 @@ class EstimatorService:
                         self._last_seq = None
                     data = self._inbox.popleft()
                     try:
-                        seq = JointStateRecord.unpack(data).sequence
+                        states = JointStates.unpack(data)
                     except ValueError as err:
                         self.bad += 1
                         self._error(err)
                         continue
-                    if self._last_seq is not None and seq > self._last_seq + 1:
-                        self.lost += seq - self._last_seq - 1
-                    self._last_seq = seq
-                    self.received += 1
-                    self.collector.record(seq, data)
+                    first = int(states.sequence[0])
+                    if self._last_seq is not None and first > self._last_seq + 1:
+                        self.lost += first - self._last_seq - 1
+                    self._last_seq = int(states.sequence[-1])
+                    self.received += len(states)
+                    self.collector.record(states)
                     if delay:
                         time.sleep(delay)
                     while self._events:
@@ -261,34 +267,44 @@ class EstimatorService:
         """Nothing received waits to be filed or identified."""
         return not (self._inbox or self._events or self._jobs or self.collector.stopping or self.busy)
 
-    def write_copy(self, exp: CollectedExperiment) -> Path:
-        """The service's own recording of the experiment: what it received, as ``armid record`` writes it."""
-        from armid.daq.recorder import McapRecorder
-
+    def held(self, exp: CollectedExperiment) -> tuple[JointStates, dict[str, Any]]:
+        """The experiment's records as its recording holds them (stamped; shifted where ROS 2
+        time cannot hold the stamps) and the recording's metadata."""
         desc = exp.description
         meta = dict(desc.get("metadata") or {})
         meta.setdefault("robot", self.name)
         meta["excitation"] = {k: v for k, v in desc.items() if k != "metadata"}
         meta["received_by"] = {"component": "estimator", "missing": exp.missing, "kept": exp.kept}
-        records = [JointStateRecord.unpack(data) for data in exp.records]
-        stamped = [r for r in records if np.isfinite(r.sample.time_s)]
-        if len(stamped) < len(records):  # a record without a time has no place in a recording
-            self.log(f"{exp.name}: left out {len(records) - len(stamped)} record(s) whose time stamp is not finite")
-            records = stamped
-        offset = _ros2_time_offset([r.sample.time_s for r in records])
+        records = exp.records
+        stamped = np.isfinite(records.time)
+        if not stamped.all():  # a record without a time has no place in a recording
+            self.log(f"{exp.name}: left out {int((~stamped).sum())} record(s) whose time stamp is not finite")
+            records = records[stamped]
+        offset = _ros2_time_offset(records.time.tolist())
         if offset:
             meta["time_offset_s"] = offset
             self.log(f"{exp.name}: stamped beyond what ROS 2 time holds (after 2038-01-19): the copy's stamps are "
                      f"{offset:.0f} s earlier (time_offset_s in its metadata); the fit uses time differences only")
-        path = self.out / _safe(exp.name) / "run.mcap"
+            records = replace(records, time=records.time - offset)
+        return records, meta
+
+    def write_copy(self, path: Path, records: JointStates, meta: dict[str, Any]) -> None:
+        """The service's own recording of the experiment: what it received, as ``armid record`` writes it."""
+        from armid.daq.recorder import McapRecorder
+
         rec = McapRecorder(path, [j.name for j in self.robot.joints], meta)
         try:
-            for r in records:
-                r.sample.time_s -= offset
-                rec.write(r)
+            rec.write(records)
         finally:
             rec.close()
-        return path
+
+    def recording(self, records: JointStates, meta: dict[str, Any], path: Path) -> Any:
+        """The run as identification takes it, from memory: what reading its copy at ``path`` gives."""
+        from armid.identify.recordings import recording_of
+        from armid.io.recordings import run_period
+
+        as_written = {k: v if isinstance(v, str) else json.dumps(v) for k, v in meta.items()}  # as the copy's metadata reads back
+        return recording_of(records.recorded(), self.robot, str(path), [], run_period(as_written), None)
 
     def _with_identity(self, exp: CollectedExperiment) -> CollectedExperiment:
         """The experiment under a name no earlier one had: a run named as an earlier one
@@ -309,34 +325,43 @@ class EstimatorService:
     def process(self, exp: CollectedExperiment) -> dict[str, Any] | None:
         """Identify on one collected experiment; the document to publish (None: nothing to say)."""
         exp = self._with_identity(exp)
-        desc = exp.description
-        kind = desc.get("kind") or "recording"
         info = self._info(exp)
         if len(exp.records) < 50:
             info["note"] = f"only {len(exp.records)} records received: nothing identified"
             self.experiments.append(info)
             return self._document(info)
-        path = self.write_copy(exp)
+        records, meta = self.held(exp)
+        path = self.out / _safe(exp.name) / "run.mcap"
         info["mcap"] = str(path)
-        if not info["completed"]:
-            info["note"] = f"the run was stopped ({exp.stop.get('reason')}): not identified"
-        link = desc.get("link")
-        if info["completed"] and kind == "recording":
-            kind, moving = self._kind_from_motion(path)
-            info["kind_from_motion"] = kind
-            link = int(moving[0]) + 1 if kind == "single_link" else link
-        refusal = self._refusal(kind, link, path) if info["completed"] and kind in ("single_link", "whole_arm") else None
-        if refusal:
-            info["note"] = refusal
-        elif info["completed"] and kind == "single_link":
-            self._single_link(exp, path, int(link) - 1, info)
-        elif info["completed"] and kind == "whole_arm":
-            self._whole_arm(exp, path, info)
-        elif info["completed"]:
-            info["note"] = f"a {kind} experiment: neither single-link nor whole-arm, not identified"
+        try:
+            self._identify(exp, records, meta, path, info)
+        finally:  # the archive's copy, after the analysis (which reads the records in memory)
+            self.write_copy(path, records, meta)
         self.experiments.append(info)
         self.log(f"{exp.name}: {info.get('note') or 'identified'} ({len(exp.records)} records, {exp.missing} missing)")
         return self._document(info)
+
+    def _identify(self, exp: CollectedExperiment, records: JointStates, meta: dict[str, Any], path: Path, info: dict[str, Any]) -> None:
+        """The refusal, the kind and the identification, on the records in memory."""
+        kind = exp.description.get("kind") or "recording"
+        if not info["completed"]:
+            info["note"] = f"the run was stopped ({exp.stop.get('reason')}): not identified"
+            return
+        link = exp.description.get("link")
+        rec = self.recording(records, meta, path)
+        if kind == "recording":
+            kind, moving = self._kind_from_motion(rec)
+            info["kind_from_motion"] = kind
+            link = int(moving[0]) + 1 if kind == "single_link" else link
+        refusal = self._refusal(kind, link, rec) if kind in ("single_link", "whole_arm") else None
+        if refusal:
+            info["note"] = refusal
+        elif kind == "single_link" and isinstance(link, int):  # a link of the robot's (the refusal saw to it)
+            self._single_link(exp, rec, path, link - 1, info)
+        elif kind == "whole_arm":
+            self._whole_arm(exp, rec, path, info)
+        else:
+            info["note"] = f"a {kind} experiment: neither single-link nor whole-arm, not identified"
 
     def _info(self, exp: CollectedExperiment) -> dict[str, Any]:
         """What a published document says of the experiment itself (INTERFACES.md)."""
@@ -345,17 +370,15 @@ class EstimatorService:
                 "missing": exp.missing, "kept": exp.kept, "completed": bool(stop.get("completed", True)),
                 "reason": stop.get("reason"), "skipped_total": self.skipped, "timed_out": exp.timed_out}
 
-    def _refusal(self, kind: str, link: Any, path: Path) -> str | None:
+    def _refusal(self, kind: str, link: Any, rec: Any) -> str | None:
         """Why a run cannot become the arm's parameters (None: it can): a claimed link that is
         not one of the robot's joints, or a run whose joints did not move (5.2: a trajectory
         that excites nothing determines nothing; identified, it published a condition number
         of 1.5e16 as the arm's parameters)."""
-        from armid.io.recordings import read_recording
-
         n = self.robot.n_joints
         if kind == "single_link" and not (isinstance(link, int) and not isinstance(link, bool) and 1 <= link <= n):
             return f"the run claims link {link!r}, not a joint of {self.name} (1..{n}): not identified"
-        moved = joint_spans(read_recording(path, self.robot).q) > MIN_MOTION_RAD
+        moved = joint_spans(rec.q) > MIN_MOTION_RAD
         still = [j + 1 for j in range(n) if not moved[j]]
         if kind == "single_link" and not moved[link - 1]:
             return f"not excited: link {link} did not move (range below {MIN_MOTION_RAD} rad): not identified"
@@ -363,23 +386,20 @@ class EstimatorService:
             return f"not excited: joints {', '.join(map(str, still))} did not move (range below {MIN_MOTION_RAD} rad): not identified"
         return None
 
-    def _kind_from_motion(self, path: Path) -> tuple[str, np.ndarray]:
+    def _kind_from_motion(self, rec: Any) -> tuple[str, np.ndarray[Any, np.dtype[np.intp]]]:
         """What a plain recording was, from which joints moved (and those joints)."""
-        from armid.io.recordings import read_recording
-
-        rec = read_recording(path, self.robot)
         moving = np.flatnonzero(joint_spans(rec.q) > MIN_MOTION_RAD)
         if moving.size == self.robot.n_joints:
             return "whole_arm", moving
         return ("single_link" if moving.size == 1 else "partial"), moving
 
-    def _single_link(self, exp: CollectedExperiment, path: Path, k: int, info: dict[str, Any]) -> None:
+    def _single_link(self, exp: CollectedExperiment, rec: Any, path: Path, k: int, info: dict[str, Any]) -> None:
         from armid.identify.single_link import single_link_sequence
 
         from .pipeline import DRIVE_RUN
 
         stop = exp.stop
-        self._single[k] = self._prepared(exp, path, DRIVE_RUN)
+        self._single[k] = self._prepared(exp, rec, path, DRIVE_RUN)
         self._single_runs[k] = exp.name
         self.sequence = single_link_sequence(self.robot, {j: [p] for j, p in self._single.items()})
         doc = self.sequence.to_json()
@@ -392,11 +412,11 @@ class EstimatorService:
         self._sequence_doc = doc
         info["window_s"] = stop.get("window_s")
 
-    def _whole_arm(self, exp: CollectedExperiment, path: Path, info: dict[str, Any]) -> None:
+    def _whole_arm(self, exp: CollectedExperiment, rec: Any, path: Path, info: dict[str, Any]) -> None:
         from . import pipeline
 
         recipe = pipeline.RECIPES[self.options.whole_arm]  # "identify": as `armid identify RUN.mcap`; "drives": as `armid demo`
-        self._whole[exp.name] = self._prepared(exp, path, recipe)
+        self._whole[exp.name] = self._prepared(exp, rec, path, recipe)
         for run in list(self._whole):  # each run's fit, validated on every other whole-arm run
             others = [p for r, p in self._whole.items() if r != run]
             fit, _ = pipeline.identify(self.robot, [self._whole[run]], others, recipe)  # poor excitation: the design's business
@@ -409,8 +429,8 @@ class EstimatorService:
         if self.options.payload and self.payload_service is None:
             self._start_payload(self.whole_fits[exp.name])
 
-    def _prepared(self, exp: CollectedExperiment, path: Path, recipe: Any) -> Any:
-        """The service's copy of a run through the pipeline by ``recipe``: a drive run cut to its
+    def _prepared(self, exp: CollectedExperiment, rec: Any, path: Path, recipe: Any) -> Any:
+        """The run (from memory) through the pipeline by ``recipe``: a drive run cut to its
         excitation window (as ``armid demo`` cuts it), a user's log whole (as ``armid identify``
         reads it); what the checks found goes to the log."""
         from . import pipeline
@@ -420,7 +440,7 @@ class EstimatorService:
             period = float((exp.description.get("metadata") or {}).get("period_s") or 0.002)
             report = _report_of(exp, path)
             window = pipeline.Window(report.first_cycle, report.window_s, period)
-        prep, found = pipeline.load_run(path, self.robot, recipe, window)
+        prep, found = pipeline.prepare_run(rec, self.robot, recipe, window)
         for warning in found:
             self.log(f"{exp.name}: warning: {warning}")
         return prep

@@ -15,14 +15,15 @@ from collections import deque
 from typing import Any
 
 from armid.daq.stream import key
-from armid.schema.joint_state import JointStateRecord, check_encoding
+from armid.schema.joint_state import check_encoding
+from armid.schema.joint_states import JointStates
 
 
 class WatchState:
     """What the view shows, updated from Zenoh callbacks (thread-safe enough: one writer each)."""
 
     def __init__(self) -> None:
-        self.last: JointStateRecord | None = None
+        self.last: JointStates | None = None  # the newest record
         self.received = 0
         self.gaps = 0
         self.missing = 0
@@ -38,19 +39,21 @@ class WatchState:
     def on_record(self, data: bytes, encoding: str) -> None:
         try:
             check_encoding(encoding)
-            rec = JointStateRecord.unpack(data)
+            records = JointStates.unpack(data)
         except ValueError as err:
             self.bad += 1
             self.events.append(f"bad record: {err}")
             return
         with self.lock:
-            if self._last_seq is not None and rec.sequence != self._last_seq + 1:
+            first = int(records.sequence[0])
+            if self._last_seq is not None and first != self._last_seq + 1:
                 self.gaps += 1
-                self.missing += max(0, rec.sequence - self._last_seq - 1)
-            self._last_seq = rec.sequence
-            self.last = rec
-            self.received += 1
-            self.arrivals.append(time.monotonic())
+                self.missing += max(0, first - self._last_seq - 1)
+            self._last_seq = int(records.sequence[-1])
+            self.last = records[len(records) - 1 :]
+            self.received += len(records)
+            now = time.monotonic()
+            self.arrivals.extend([now] * len(records))
 
     def rate_hz(self) -> float:
         a = list(self.arrivals)
@@ -71,11 +74,10 @@ def render(state: WatchState, robot: str) -> Any:
     for col in ("joint", "valid", "position rad", "velocity rad/s", "current A", "commanded A", "statusword"):
         table.add_column(col, justify="right")
     if rec is not None:
-        s = rec.sample
-        for j in range(s.position.shape[0]):
-            table.add_row(str(j + 1), "yes" if s.valid[j] else "[red]NO[/]", f"{s.position[j]:+.4f}", f"{s.velocity[j]:+.3f}",
-                          f"{s.measured_current[j]:+.3f}", f"{s.commanded_current[j]:+.3f}", f"0x{int(s.status[j]):04X}")
-        head.append(f"\ncycle {s.cycle}  sequence {rec.sequence}  t {s.time_s:.3f}")
+        for j in range(rec.n_joints):
+            table.add_row(str(j + 1), "yes" if rec.valid[0, j] else "[red]NO[/]", f"{rec.position[0, j]:+.4f}", f"{rec.velocity[0, j]:+.3f}",
+                          f"{rec.measured_current[0, j]:+.3f}", f"{rec.commanded_current[0, j]:+.3f}", f"0x{int(rec.status[0, j]):04X}")
+        head.append(f"\ncycle {int(rec.cycle[0])}  sequence {int(rec.sequence[0])}  t {float(rec.time[0]):.3f}")
     parts: list[Any] = [head, table]
     if state.payload:
         p = state.payload

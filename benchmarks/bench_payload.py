@@ -2,7 +2,7 @@
 
 Replay folds a 2 ms recording of the simulated PUMA 560 (with a 2 kg payload attached
 half way) through the same code ``armid estimate --replay`` and the Zenoh service run
-(:meth:`EstimateStream.feed_arrays`: derivatives of the whole batch at once, one 10 x 10
+(:meth:`EstimateStream.feed`: derivatives of the whole batch at once, one 10 x 10
 update per 10 ms of the arm's time). Figures are ratios to a reference run in the same
 process (the arm model evaluated on every record in one batch) and the recording's duration
 over the time taken; the live service is timed fed 10 records at a time. The estimator is numpy
@@ -27,6 +27,7 @@ from armid.identify import excitation as ex
 from armid.identify.identification import declared_effects, structural_base
 from armid.identify.payload.rls import ArmModel, PayloadRLS
 from armid.io.rig_file import load_rig
+from armid.schema.joint_states import JointStates
 from armid.sim_bus.offline import simulate
 from armid.sim_bus.physics import Payload, simulation_config
 
@@ -49,8 +50,8 @@ def main(seconds: float = 20.0) -> None:
                    payloads=[(plan.duration_s / 2, Payload(2.0, (0.02, -0.03, 0.08)))])
     duration = float(run.t[-1] - run.t[0])
 
-    seq, t, valid = np.arange(run.t.size), run.t, np.ones((run.t.size, 6), bool)
-    EstimateStream(PayloadRLS(arm)).feed_arrays(seq[:400], t[:400], valid[:400], run.position[:400], run.torque[:400])  # first calls
+    records = JointStates.of_log(np.arange(run.t.size), run.t, np.ones((run.t.size, 6), bool), run.position, run.torque)
+    EstimateStream(PayloadRLS(arm)).feed(records[:400])  # first calls
     # the reference run, in this process: the arm model and payload columns of every record in one
     # batch (the least any replay must do); the figures below are ratios to it, not wall-clock bounds
     start = time.perf_counter()
@@ -59,13 +60,13 @@ def main(seconds: float = 20.0) -> None:
 
     stream = EstimateStream(PayloadRLS(arm))
     start = time.perf_counter()
-    docs = stream.feed_arrays(seq, t, valid, run.position, run.torque)  # what armid estimate --replay runs
+    docs = stream.feed(records)  # what armid estimate --replay runs
     replay_s = time.perf_counter() - start
 
     one = EstimateStream(PayloadRLS(arm))
     start = time.perf_counter()
     for k in range(0, run.t.size, 10):  # the live service keeping up: a batch per 10 records (20 ms at 2 ms)
-        one.feed_arrays(seq[k : k + 10], t[k : k + 10], valid[k : k + 10], run.position[k : k + 10], run.torque[k : k + 10])
+        one.feed(records[k : k + 10])
     live_s = time.perf_counter() - start
 
     n = run.t.size

@@ -25,7 +25,8 @@ from armid.daq.acquisition import Acquisition, Sink
 from armid.daq.recorder import McapRecorder
 from armid.io.rig_file import load_rig
 from armid.resources import config_file
-from armid.schema.joint_state import JOINT_STATES_TOPIC, JointStateRecord
+from armid.schema.joint_state import JOINT_STATES_TOPIC
+from armid.schema.joint_states import JointStates
 from armid.simulated import simulated_driver
 
 
@@ -43,7 +44,12 @@ class JsonRecorder:
         self._writer.add_metadata("armid.run", metadata)
         self.names, self.kt = names, kt
 
-    def write(self, record: JointStateRecord) -> None:
+    def write(self, states: JointStates) -> None:
+        for k in range(len(states)):
+            self._write_one(states, k)
+
+    def _write_one(self, states: JointStates, k: int) -> None:
+        record = states.record(k)
         s = record.sample
         ns = int(round(s.time_s * 1e9))
         msg = {"header": {"stamp": {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}, "frame_id": ""}, "name": self.names,
@@ -57,7 +63,7 @@ class JsonRecorder:
         self._file.close()
 
 
-def acquire(out: Path, seconds: float) -> tuple[list[JointStateRecord], Path, Path]:
+def acquire(out: Path, seconds: float) -> tuple[list[JointStates], Path, Path]:
     """Run the simulated arm for ``seconds`` of arm time, recording both layouts and keeping every record."""
     rig = load_rig(config_file("rigs/sim.yaml")).with_bus(channel=f"armid-size-{uuid.uuid4().hex[:8]}")
     names = [j.name for j in rig.robot.joints]
@@ -65,7 +71,7 @@ def acquire(out: Path, seconds: float) -> tuple[list[JointStateRecord], Path, Pa
     ros2, legacy = out / "ros2.mcap", out / "json.mcap"
     recorder = McapRecorder(ros2, names, {"robot": rig.robot.name})
     old = JsonRecorder(legacy, names, kt, {"robot": rig.robot.name})
-    kept: list[JointStateRecord] = []
+    kept: list[JointStates] = []
     driver, sim = simulated_driver(rig)
     sinks = [Sink("ros2", recorder.write, bounded=False), Sink("json", old.write, bounded=False), Sink("keep", kept.append, bounded=False)]
     try:
@@ -84,7 +90,7 @@ def acquire(out: Path, seconds: float) -> tuple[list[JointStateRecord], Path, Pa
     return kept, ros2, legacy
 
 
-def compare(path: Path, kept: list[JointStateRecord]) -> tuple[int, list[str]]:
+def compare(path: Path, kept: list[JointStates]) -> tuple[int, list[str]]:
     """Read ``path`` with mcap_ros2's decoder; (cycles compared, differences) against ``kept``."""
     from mcap_ros2.reader import read_ros2_messages
 
@@ -94,7 +100,8 @@ def compare(path: Path, kept: list[JointStateRecord]) -> tuple[int, list[str]]:
         (states if m.channel.topic == JOINT_STATES_TOPIC else extras)[key] = m.ros_msg
     by_seq = {int(e.sequence): (states.get(k), e) for k, e in extras.items()}
     wrong = []
-    for r in kept:
+    rows = [part.record(k) for part in kept for k in range(len(part))]
+    for r in rows:
         s = r.sample
         state, extra = by_seq.get(r.sequence, (None, None))
         if state is None or extra is None:
@@ -110,7 +117,7 @@ def compare(path: Path, kept: list[JointStateRecord]) -> tuple[int, list[str]]:
                  "statusword": (list(extra.statusword), s.status.tolist()),
                  "extra stamp": (extra.header.stamp.sec * 1_000_000_000 + extra.header.stamp.nanosec, ns)}
         wrong += [f"sequence {r.sequence}: {name} {a} != {b}" for name, (a, b) in pairs.items() if a != b]
-    return len(kept), wrong
+    return len(rows), wrong
 
 
 def main() -> int:

@@ -36,9 +36,14 @@ class BusLog:
     ``send``, which its commands and periodic heartbeat go through). A second bus instance
     would see every frame too, but receives and unpacks each again (on this machine that
     cost more CPU than the rest of the logging), and could not know which side of a SYNC
-    the driver saw a frame on."""
+    the driver saw a frame on.
+
+    A write that fails (a full disk) closes the log, never the driver's path that called it:
+    ``failure`` says why, for the command to stop the run on."""
 
     def __init__(self, driver: Any, path: str | Path) -> None:
+        self.path = Path(path)
+        self.failure: str | None = None
         self.logger = can.Logger(str(path))
         self.driver = driver
         self.bus = driver.bus
@@ -63,7 +68,15 @@ class BusLog:
     def _write(self, msg: can.Message) -> None:
         with self._lock:
             if not self._closed:
-                self.logger.on_message_received(msg)
+                try:
+                    self.logger.on_message_received(msg)
+                except OSError as err:
+                    self._failed(err)
+
+    def _failed(self, err: OSError) -> None:
+        self._closed = True
+        if self.failure is None:
+            self.failure = f"{self.path}: cannot write ({err.strerror or err})"
 
     def stop(self) -> None:
         self.driver.decoded_frames = None
@@ -71,7 +84,10 @@ class BusLog:
         self.driver.network.notifier.remove_listener(self._listener)
         with self._lock:
             self._closed = True
-            self.logger.stop()
+            try:
+                self.logger.stop()
+            except OSError as err:  # the last buffer did not fit
+                self._failed(err)
 
 
 class _Received(can.Listener):
@@ -106,6 +122,7 @@ def replay_log(path: str | Path, rig: Any, timeout_s: float = 30.0) -> list[Samp
     reached = threading.Event()
     try:
         driver.listen()
+        assert driver.network is not None  # listening opened it
         driver.network.subscribe(END_OF_LOG_COB_ID, lambda can_id, data, timestamp: reached.set() if bytes(data) == marker else None)
         stop = threading.Event()
         reader = threading.Thread(target=lambda: _drain(driver, samples, stop), daemon=True)

@@ -31,7 +31,8 @@ from armid.identify.errors import UsageError
 from armid.identify.excitation import Limits, Plan
 from armid.identify.robot import Robot
 from armid.schema import Array, versions
-from armid.schema.joint_state import JointStateRecord
+from armid.schema.joint_state import Sample
+from armid.schema.joint_states import JointStates
 
 from .acquisition import Acquisition, Sink
 from .canlog import BusLog
@@ -115,7 +116,7 @@ class ExcitationControl:
         # lost frames stop the arm once the drives are enabled; before that (the trajectories are
         # being designed, which can stall this process for longer than 3 cycles) they are only counted
         self.armed = False
-        self.last_record: JointStateRecord | None = None
+        self.last_sample: Sample | None = None
         self._lock = threading.Lock()
 
     def start(self, plan: Plan) -> _Active:
@@ -131,14 +132,14 @@ class ExcitationControl:
     @property
     def plan_time(self) -> float:
         """Time into the active plan at the newest record (s); -1 without one."""
-        active, last = self.active, self.last_record
+        active, last = self.active, self.last_sample
         if active is None or active.first_cycle is None or last is None:
             return -1.0
-        return (last.sample.cycle - active.first_cycle) * self.period_s
+        return (last.cycle - active.first_cycle) * self.period_s
 
     def fault(self, fault: DriveFault) -> None:
-        last = self.last_record
-        self._stop(f"drive fault: {fault}", last.sample.cycle if last is not None else None)  # the cycle it was seen at
+        last = self.last_sample
+        self._stop(f"drive fault: {fault}", last.cycle if last is not None else None)  # the cycle it was seen at
 
     def _stop(self, reason: str, cycle: int | None) -> None:
         if self.stop_reason is None:
@@ -147,9 +148,8 @@ class ExcitationControl:
         if self.active is not None:
             self.active.done.set()
 
-    def __call__(self, record: JointStateRecord) -> None:
-        s = record.sample
-        self.last_record = record
+    def __call__(self, s: Sample) -> None:
+        self.last_sample = s
         if self.stop_reason:
             return
         self._invalid_run = np.where(s.valid, 0, self._invalid_run + 1)
@@ -225,14 +225,14 @@ class _Switch:
         self.first_sequence: int | None = None  # of the current recording: the stream's subscribers cut the run by these
         self.last_sequence: int | None = None
 
-    def __call__(self, record: JointStateRecord) -> None:
+    def __call__(self, states: JointStates) -> None:
         recorder = self.recorder
         if recorder is not None:
-            recorder.write(record)
-            self.count += 1
+            recorder.write(states)
+            self.count += len(states)
             if self.first_sequence is None:
-                self.first_sequence = record.sequence
-            self.last_sequence = record.sequence
+                self.first_sequence = int(states.sequence[0])
+            self.last_sequence = int(states.sequence[-1])
 
 
 class ExcitationSession:

@@ -9,7 +9,7 @@ the plan's timing and the run's metadata); the ``stop`` event adds what the reco
 ``first_cycle`` and ``window_s`` (where the excitation lies in the plan's time), ``completed``
 and the stop reason.
 
-:class:`ExperimentCollector` is the subscriber's side, with no I/O: raw records and events
+:class:`ExperimentCollector` is the subscriber's side, with no I/O: records and events
 in (any interleaving: records and events travel on different keys, so a ``stop`` may arrive
 before the run's last records), completed experiments out, each with exactly the records of
 the recording that it received, and what it did not receive.
@@ -22,7 +22,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from armid.schema.joint_state import JointStateRecord
+from armid.schema.joint_states import JointStates
 
 IDLE_KEEP = 2000
 """Records kept while no experiment is open (4 s at 2 ms): a ``start`` event may arrive after
@@ -66,18 +66,21 @@ def experiment_description(name: str, plan: Any, n_joints: int, metadata: dict[s
 
 @dataclass
 class CollectedExperiment:
-    """One experiment as a subscriber received it: ``records`` (raw, in sequence order) of the
+    """One experiment as a subscriber received it: ``records`` (in sequence order) of the
     recording's ``first_sequence`` .. ``last_sequence``; ``missing`` of them never arrived or
     were skipped; ``kept`` gives the sequence ranges received, ``[[first, last], ...]``."""
 
     name: str
     start: dict[str, Any] | None
     stop: dict[str, Any]
-    records: list[bytes]
-    sequences: list[int]
+    records: JointStates
     missing: int
     kept: list[list[int]]
     timed_out: bool = False
+
+    @property
+    def sequences(self) -> list[int]:
+        return [int(k) for k in self.records.sequence]
 
     @property
     def description(self) -> dict[str, Any]:
@@ -92,15 +95,17 @@ class ExperimentCollector:
     past it the experiment is completed with what was received."""
 
     stop_wait_s: float = 5.0
-    buffer: dict[int, bytes] = field(default_factory=dict)
+    buffer: dict[int, JointStates] = field(default_factory=dict)
     started: dict[str, dict[str, Any]] = field(default_factory=dict)
     stopping: list[tuple[dict[str, Any], float]] = field(default_factory=list)
     newest: int = -1
     dropped_idle: int = 0
 
-    def record(self, sequence: int, data: bytes) -> None:
-        self.buffer[sequence] = data
-        self.newest = max(self.newest, sequence)
+    def record(self, states: JointStates) -> None:
+        """File ``states`` (one record or several) by their sequence numbers."""
+        for k, sequence in enumerate(states.sequence.tolist()):
+            self.buffer[sequence] = states[k : k + 1]
+        self.newest = max(self.newest, int(states.sequence.max(initial=-1)))
         limit = MOST_KEPT if (self.started or self.stopping) else IDLE_KEEP
         if len(self.buffer) > limit:
             for seq in sorted(self.buffer)[: len(self.buffer) - limit]:
@@ -133,17 +138,13 @@ class ExperimentCollector:
                     kept[-1][1] = s
                 else:
                     kept.append([s, s])
-            out.append(CollectedExperiment(doc["run"], self.started.pop(doc["run"], None), doc, [self.buffer[s] for s in seqs], seqs,
+            records = JointStates.concat([self.buffer[s] for s in seqs]) if seqs else JointStates.empty(0)
+            out.append(CollectedExperiment(doc["run"], self.started.pop(doc["run"], None), doc, records,
                                            (last - first + 1) - len(seqs), kept, timed_out))
             if not self.stopping:
                 for s in [s for s in self.buffer if s <= last]:
                     del self.buffer[s]
         return out
-
-
-def sequence_of(data: bytes) -> int:
-    """The record's sequence number without decoding the rest."""
-    return JointStateRecord.unpack(data).sequence
 
 
 def event_of(data: bytes) -> dict[str, Any] | None:

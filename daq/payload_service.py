@@ -25,15 +25,17 @@ import os
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from armid.identify.errors import RecordingError
 from armid.identify.payload.rls import PayloadRLS
 from armid.schema import Array
-from armid.schema.joint_state import JointStateRecord, check_encoding
+from armid.schema.joint_state import check_encoding
+from armid.schema.joint_states import JointStates
 
 from .stream import key
 
@@ -96,18 +98,6 @@ class EstimateStream:
         self.last_sequence = None  # skipped, not lost: the next record's number is no gap
         self.estimator.restart_filter()
 
-    def feed(self, records: Iterable[tuple[int, float, Array, Array, Array]]) -> list[dict[str, Any]]:
-        """(sequence, time, valid, position, torque) per record, SI (the driver applied the torque
-        constants); returns what to publish.
-
-        The same as :meth:`feed_arrays` on the records stacked."""
-        rows = list(records)
-        if not rows:
-            return []
-        seq, t, valid, q, torque = zip(*rows)
-        return self.feed_arrays(np.array(seq, np.int64), np.array(t, float), np.array(valid, bool), np.array(q, float),
-                                np.array(torque, float))
-
     def final(self) -> dict[str, Any]:
         """The run's one answer (:meth:`PayloadRLS.final_estimate`) with what the stream did not
         use; a replay writes it last."""
@@ -118,7 +108,7 @@ class EstimateStream:
         return {"skipped": self.skipped, "lost": self.lost, "invalid": self.invalid, "time_faults": self.time_faults,
                 "dropped": dict(self.dropped), "last_drop": self.last_drop}
 
-    def _screen(self, seq: Array, t: Array, valid: Array, q: Array, torque: Array) -> tuple[Array, Array, list[dict[str, Any]], Array]:
+    def _screen(self, seq: NDArray[np.int64], t: Array, valid: NDArray[np.bool_], q: Array, torque: Array) -> tuple[NDArray[np.bool_], NDArray[np.bool_], list[dict[str, Any]], Array]:
         """Which records the estimator takes, before which the derivatives restart (a gap in
         the sequence numbers, a dropped record, a stepped clock), the counts after each, and
         each record's time on the estimator's clock (a stepped clock's step taken out: the
@@ -194,21 +184,19 @@ class EstimateStream:
                   f"is not after the previous record's {self.last_time:.6g} s"))
         return False
 
-    def feed_arrays(self, seq: Array, t: Array, valid: Array, q: Array, torque: Array) -> list[dict[str, Any]]:
-        """Records as arrays, in sequence order: sequence numbers (n,), times (n,) in s, valid
-        flags, positions and joint torques (n, N), SI. Returns the documents to publish, one on
-        every record whose sequence number is a multiple of ``publish_every``.
+    def feed(self, records: JointStates) -> list[dict[str, Any]]:
+        """Records in sequence order, on the time stamps they carry (the service's are on the
+        recording's clock: :meth:`JointStates.recorded`); the estimator takes their sequence
+        numbers, times, valid flags, positions and joint torques, SI. Returns the documents to
+        publish, one on every record whose sequence number is a multiple of ``publish_every``.
 
         Runs of consecutive accepted records go to the estimator in one batch each; the
         derivative filter restarts where :meth:`_screen` says."""
         out: list[dict[str, Any]] = []
-        n = int(np.size(t))
+        n = len(records)
         if n == 0:
             return out
-        seq = np.asarray(seq, np.int64)
-        t = np.asarray(t, float)
-        valid = np.asarray(valid, bool).reshape(n, -1)
-        q, torque = np.asarray(q, float), np.asarray(torque, float)
+        seq, t, valid, q, torque = records.sequence, records.time, records.valid, records.position, records.torque
         take, restart, counts, clock = self._screen(seq, t, valid, q, torque)
 
         def flush(a: int, b: int) -> None:
@@ -238,14 +226,6 @@ class EstimateStream:
         return out
 
 
-def _from_record(r: JointStateRecord) -> tuple[int, float, Array, Array, Array]:
-    """The record's time as the recording keeps it (whole nanoseconds, ``sec + 1e-9 nsec``):
-    the estimator differentiates on time stamps, so live and replay see the same floats."""
-    s = r.sample
-    ns = int(round(s.time_s * 1e9))
-    return r.sequence, ns // 1_000_000_000 + 1e-9 * (ns % 1_000_000_000), s.valid, s.position, s.joint_torque()
-
-
 class PayloadService:
     """Run an :class:`EstimateStream` on a Zenoh session until :meth:`close`."""
 
@@ -271,7 +251,7 @@ class PayloadService:
         self.log = log
         self._clock = _WorkerClock()
         self._pending: deque[tuple[float, bytes]] = deque()  # (arrival on the monotonic clock, record)
-        self._held: dict[int, tuple[int, float, Array, Array, Array]] = {}  # the reorder buffer, by sequence number
+        self._held: JointStates | None = None  # the reorder buffer, in sequence order
         self._released: int | None = None
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -318,12 +298,12 @@ class PayloadService:
             batch = []
             while self._pending:
                 batch.append(self._pending.popleft())
-            if not batch and not self._held:
+            if not batch and self._held is None:
                 continue
             waited_s = time.monotonic() - batch[0][0] if batch else 0.0
             try:
                 records = self._in_order(self._records([b for _, b in batch]), idle=not batch)
-                if not records:
+                if records is None:
                     continue
                 records = self._caught_up_or_newest(records, waited_s)
                 self._clock.start()
@@ -338,7 +318,7 @@ class PayloadService:
                 if len(self.errors) < 100:
                     self.errors.append(f"{type(err).__name__}: {err}")
 
-    def _caught_up_or_newest(self, records: list[tuple[int, float, Array, Array, Array]], waited_s: float) -> list[tuple[int, float, Array, Array, Array]]:
+    def _caught_up_or_newest(self, records: JointStates, waited_s: float) -> JointStates:
         """A batch more than ``max_backlog_s`` of the arm's time behind: all of it when the
         worker can catch up in at most ``max_backlog_s`` of its CPU time (a busy machine
         stalled it; a cold-start payload run beside two busy loops skipped 539 records that
@@ -355,48 +335,56 @@ class PayloadService:
         if self.log is not None:
             self.log(f"{behind_s:.2f} s of the arm's time behind: skipped {len(records) - 1} records to the newest (catching up would "
                      f"take {catch_up_s:.3g} s of its CPU time); the oldest waited {waited_s:.3f} s here; " + self._clock.since_last())
-        return records[-1:]
+        return records[len(records) - 1 :]
 
     @staticmethod
-    def _behind_s(records: list[tuple[int, float, Array, Array, Array]]) -> float:
+    def _behind_s(records: JointStates) -> float:
         """How much of the arm's time the batch spans: its steps' median times their count
         (one corrupt stamp in the batch is not a backlog)."""
         if len(records) < 2:
             return 0.0
-        steps = np.diff([r[1] for r in records])
+        steps = np.diff(records.time)
         return float(np.median(steps)) * steps.size if np.isfinite(steps).all() else 0.0
 
-    def _in_order(self, records: list[tuple[int, float, Array, Array, Array]], idle: bool) -> list[tuple[int, float, Array, Array, Array]]:
+    def _in_order(self, records: JointStates | None, idle: bool) -> JointStates | None:
         """Records released in sequence order (a reorder buffer): a record waits while the one
         before it may still come, up to ``REORDER_RECORDS`` records or until the stream goes
-        idle for a wake interval; then the gap is a gap."""
-        for r in records:
-            self._held[r[0]] = r
-        last, out = self._released, []
-        for first in sorted(self._held):  # once per batch: a backlog of thousands stays linear
-            if last is not None and first > last + 1 and len(self._held) <= REORDER_RECORDS and not idle:
+        idle for a wake interval; then the gap is a gap. A sequence number received twice: the
+        later record."""
+        parts = [p for p in (self._held, records) if p is not None]
+        if not parts:
+            return None
+        held = JointStates.concat(parts)
+        newest_first = held.sequence[::-1]
+        _, at = np.unique(newest_first, return_index=True)  # sorted, the later of each number
+        held = held[len(held) - 1 - at]
+        seqs = held.sequence.tolist()
+        last, cut = self._released, len(seqs)
+        for k, first in enumerate(seqs):
+            if last is not None and first > last + 1 and len(seqs) - k <= REORDER_RECORDS and not idle:
+                cut = k
                 break
-            out.append(self._held.pop(first))
             last = first if last is None else max(last, first)
         self._released = last
-        return out
+        self._held = held[cut:] if cut < len(seqs) else None
+        return held[:cut] if cut else None
 
-    def _records(self, batch: list[bytes]) -> list[tuple[int, float, Array, Array, Array]]:
-        """The batch's records (:meth:`_in_order` orders them); one that cannot be read or is
-        of another arm is dropped, counted and said, never the batch."""
+    def _records(self, batch: list[bytes]) -> JointStates | None:
+        """The batch's records on the recording's clock (:meth:`_in_order` orders them); a
+        payload that cannot be read or is of another arm is dropped, counted and said, never the batch."""
         n_joints = self.stream.estimator.arm.robot.n_joints
-        records = []
+        parts = []
         for b in batch:
             try:
-                r = _from_record(JointStateRecord.unpack(b))
-            except Exception as err:  # the record's own bytes: nothing else is lost with it
+                r = JointStates.unpack(b)
+            except Exception as err:  # the payload's own bytes: nothing else is lost with it
                 self.stream.drop("malformed", f"a record of {len(b)} bytes could not be read: {err}")
                 continue
-            if len(r[3]) != n_joints:
-                self.stream.drop("joints", f"record {r[0]} has {len(r[3])} joints; this arm has {n_joints}")
+            if r.n_joints != n_joints:
+                self.stream.drop("joints", f"record {int(r.sequence[0])} has {r.n_joints} joints; this arm has {n_joints}")
                 continue
-            records.append(r)
-        return records
+            parts.append(r)
+        return JointStates.concat(parts).recorded() if parts else None
 
     def request_stop(self) -> None:
         """Ask the worker to stop after its batch (:meth:`close` then waits for it)."""

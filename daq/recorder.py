@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from armid.io.ros2_cdr import ros2_messages
+from armid.schema.errors import ArmidError
 from armid.schema.joint_state import (
     EXTRA_TOPIC,
     EXTRA_TYPE,
@@ -41,6 +42,7 @@ from armid.schema.joint_state import (
     ROS2_MSGDEFS,
     JointStateRecord,
 )
+from armid.schema.joint_states import JointStates
 
 CHUNK_BYTES = 16 * 1024
 FLUSH_S = 0.25
@@ -48,6 +50,15 @@ TOPIC = JOINT_STATES_TOPIC
 RUN_END = "armid.run_end"
 """The metadata record of how the run ended (see the module docstring)."""
 _RECORD_OVERHEAD = 9 + 22  # an MCAP message record's opcode, length and fixed fields
+
+
+class RecorderWriteError(ArmidError, OSError):
+    """The recording's file could not be written (a full disk, a file-size limit, a folder gone):
+    the run stops; what was handed to the operating system before it reads back."""
+
+    def __init__(self, path: Path, err: OSError) -> None:
+        super().__init__(f"{path}: cannot write ({err.strerror or err})")
+        self.path = path
 
 
 class McapRecorder:
@@ -74,7 +85,16 @@ class McapRecorder:
         self._chunk_bytes = 0
         self.count = 0
 
-    def write(self, record: JointStateRecord) -> None:
+    def write(self, states: JointStates) -> None:
+        """Write ``states`` (one cycle or several); :class:`RecorderWriteError` when the file
+        cannot take them."""
+        try:
+            for k in range(len(states)):
+                self._write(states.record(k))
+        except OSError as err:
+            raise RecorderWriteError(self.path, err) from None
+
+    def _write(self, record: JointStateRecord) -> None:
         ns = int(round(record.sample.time_s * 1e9))
         seq = record.sequence % 2**32
         for topic, data in zip((JOINT_STATES_TOPIC, EXTRA_TOPIC), ros2_messages(record, self.names)):
@@ -91,9 +111,16 @@ class McapRecorder:
         """Write the summary and close the file. ``end``: how the run ended (``completed``,
         ``stop``, ``stop_cycle``; ``records`` is this recorder's count unless given), written
         first as metadata :data:`RUN_END` after the last chunk."""
-        if end is not None:
-            self._writer.flush()  # the last records' chunk first: the end record comes after them
-            doc = {"records": self.count, **{k: v for k, v in end.items() if v is not None}}
-            self._writer.add_metadata(RUN_END, {k: v if isinstance(v, str) else json.dumps(v) for k, v in doc.items()})
-        self._writer.finish()
-        self._file.close()
+        try:
+            if end is not None:
+                self._writer.flush()  # the last records' chunk first: the end record comes after them
+                doc = {"records": self.count, **{k: v for k, v in end.items() if v is not None}}
+                self._writer.add_metadata(RUN_END, {k: v if isinstance(v, str) else json.dumps(v) for k, v in doc.items()})
+            self._writer.finish()
+        except OSError as err:
+            raise RecorderWriteError(self.path, err) from None
+        finally:
+            try:
+                self._file.close()
+            except OSError:  # the buffer that could not be written: already said above
+                pass

@@ -1,7 +1,7 @@
 """Zenoh: the live stream, events, liveliness and status of a running component.
 
-Keys (docs/reference/zenoh.md): ``armid/<robot>/joint_state`` (one :mod:`armid.schema.joint_state`
-record per cycle, schema and version in the encoding), ``armid/<robot>/events`` (JSON: faults,
+Keys (docs/reference/zenoh.md): ``armid/<robot>/joint_state`` (:class:`~armid.schema.joint_states.JointStates`
+packed, a cycle per put, schema and version in the encoding), ``armid/<robot>/events`` (JSON: faults,
 start, stop), ``armid/<robot>/status`` (a queryable answering JSON), and a liveliness
 token ``armid/<robot>/alive/<component>``. Sessions are peers. ``session_config`` makes
 the explicit-endpoint, no-multicast configuration tests use; a lab passes its own file
@@ -15,7 +15,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from armid.schema.joint_state import ENCODING, JointStateRecord
+from armid.schema.joint_state import ENCODING
+from armid.schema.joint_states import JointStates
 
 
 def session_config(listen: list[str] | None = None, connect: list[str] | None = None, config_file: str | None = None):  # type: ignore[no-untyped-def]
@@ -95,9 +96,10 @@ class Stream:
     def _on_query(self, query: Any) -> None:
         query.reply(key(self.robot, "status"), json.dumps({"component": self.component, **self._status()}))
 
-    def publish(self, record: JointStateRecord) -> None:
-        self._pub.put(record.pack())
-        self.published += 1
+    def publish(self, states: JointStates) -> None:
+        """Put ``states`` (one cycle, or several in one payload)."""
+        self._pub.put(states.pack())
+        self.published += len(states)
 
     def event(self, kind: str, **fields: Any) -> None:
         self._events.put(json.dumps({"time": time.time(), "event": kind, **fields}))

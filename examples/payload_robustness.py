@@ -24,6 +24,7 @@ from armid.identify.identification import IdentifyOptions, identify
 from armid.identify.payload.rls import ArmModel, PayloadRLS, ReferenceRun
 from armid.identify.preprocess import PrepareOptions, prepare
 from armid.io.rig_file import load_rig
+from armid.schema.joint_states import JointStates
 from armid.sim_bus.offline import simulate
 from armid.sim_bus.physics import Payload, simulation_config
 
@@ -75,7 +76,7 @@ for label, kw in [("none", dict(gain=False, offset=False, load=False)), ("gain",
     for ref in (None, ReferenceRun(arm, unloaded.t, unloaded.position, unloaded.torque)):
         est = PayloadRLS(arm, reference=ref)
         st = EstimateStream(est)
-        docs = st.feed_arrays(np.arange(loaded.t.size), loaded.t, np.ones((loaded.t.size, 6), bool), loaded.position, loaded.torque)
+        docs = st.feed(JointStates.of_log(np.arange(loaded.t.size), loaded.t, np.ones((loaded.t.size, 6), bool), loaded.position, loaded.torque))
         tt = np.array([x['record_time'] for x in docs])
         neg = sum(1 for x in docs if x['mass'] is not None and x['mass'] < 0)
         out=[]

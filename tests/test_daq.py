@@ -22,7 +22,8 @@ from armid.identify.preprocess import PrepareOptions, prepare
 from armid.io.recordings import read_mcap_arrays as read_mcap
 from armid.io.recordings import read_recording
 from armid.io.robot_file import load_robot
-from armid.schema.joint_state import ENCODING, JointStateRecord, check_encoding
+from armid.schema.joint_state import ENCODING, check_encoding
+from armid.schema.joint_states import JointStates
 
 ROOT = Path(__file__).resolve().parent.parent
 HELPERS = Path(__file__).resolve().parent / "helpers"
@@ -38,13 +39,22 @@ def _free_port() -> int:
 def test_record_layout_round_trip_and_refuses_bad_input() -> None:
     s = Sample(7, 1.25, np.array([True, False, True]), np.arange(3.0), -np.arange(3.0), np.array([True, True, False]),
                np.ones(3), 2 * np.ones(3), np.array([0x27, 0x8, 0x27]))
-    data = JointStateRecord(42, s).pack()
-    back = JointStateRecord.unpack(data)
-    assert back.sequence == 42 and back.sample.cycle == 7 and back.sample.time_s == 1.25
+    data = JointStates.of_sample(42, s).pack()
+    assert len(data) == 32 + 3 * 44  # the documented layout (docs/reference/zenoh.md)
+    back = JointStates.unpack(data)
+    assert len(back) == 1 and back.sequence[0] == 42 and back.cycle[0] == 7 and back.time[0] == 1.25
     for name in ("valid", "position", "velocity", "velocity_fresh", "commanded_current", "measured_current", "status"):
-        assert np.array_equal(getattr(back.sample, name), getattr(s, name)), name
-    with pytest.raises(ValueError, match="bytes for 3 joints"):
-        JointStateRecord.unpack(data[:-1])
+        assert np.array_equal(getattr(back, name)[0], getattr(s, name)), name
+    assert np.isnan(back.torque).all()  # a sample without a torque: NaN, never a silent zero
+    with pytest.raises(ValueError, match="bytes for records of 3 joints"):
+        JointStates.unpack(data[:-1])
+    # several records in one payload, back to back: each read as one
+    many = JointStates.concat([back, JointStates.of_sample(43, s)])
+    again = JointStates.unpack(many.pack())
+    assert again.sequence.tolist() == [42, 43] and np.array_equal(again.position, many.position)
+    assert again.pack() == data + JointStates.of_sample(43, s).pack()
+    with pytest.raises(ValueError, match="not a whole number"):
+        JointStates.unpack(many.pack()[:-3])
     with pytest.raises(ValueError, match="is not"):
         check_encoding("application/octet-stream;armid.JointState/1")  # the layout before the torque field
     check_encoding(ENCODING)
@@ -248,7 +258,7 @@ def test_drive_velocity_carried_every_second_cycle_is_interpolated_not_dropped(t
             held = qd[k].copy()
         s = Sample(k + 1, float(t[k]), np.ones(2, bool), q[k].copy(), held.copy(), np.full(2, fresh), np.zeros(2), np.ones(2), np.zeros(2, np.int64),
                    np.ones(2))
-        rec.write(JointStateRecord(k, s))
+        rec.write(JointStates.of_sample(k, s))
     rec.close()
     back = read_recording(tmp_path / "run.mcap", robot)
     assert back.qd is not None, back.notes

@@ -14,7 +14,7 @@ import sys
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +42,7 @@ from armid.identify.payload.rls import (
 )
 from armid.io.recordings import read_mcap_arrays
 from armid.io.rig_file import load_rig
+from armid.schema.joint_states import JointStates
 from armid.sim_bus.offline import simulate
 from armid.sim_bus.physics import Payload, simulation_config
 from armid.simulated import excitation_session
@@ -185,7 +186,7 @@ def test_payload_attached_and_removed_is_tracked_within_2_s_offline() -> None:
     run = simulate(arm.robot, cfg, plan.evaluate, plan.duration_s, payloads=[(t_on, PAYLOAD), (t_off, None)], seed=9)
     est = PayloadRLS(arm)
     stream = EstimateStream(est, publish_every=10)
-    docs = stream.feed((k, float(run.t[k]), np.ones(6, bool), run.position[k], run.torque[k]) for k in range(run.t.size))
+    docs = stream.feed(JointStates.of_log(np.arange(run.t.size), run.t, np.ones(run.position.shape, bool), run.position, run.torque))
     times = np.array([d["record_time"] for d in docs])
     assert len(docs) >= run.t.size // 10 - 1  # 50 Hz
     _check_tracking(times, docs, t_on, t_off)
@@ -203,7 +204,7 @@ def test_what_is_published_does_not_depend_on_how_the_records_are_batched() -> N
     arm, plan, cfg = _arm_and_design()
     t_on = plan.lead_in_s + 1.0
     run = simulate(arm.robot, cfg, plan.evaluate, t_on + 2.5, payloads=[(t_on, PAYLOAD)], seed=9)
-    rows = [(k, float(run.t[k]), np.ones(6, bool), run.position[k], run.torque[k]) for k in range(run.t.size)]
+    rows = JointStates.of_log(np.arange(run.t.size), run.t, np.ones(run.position.shape, bool), run.position, run.torque)
     whole = EstimateStream(PayloadRLS(arm)).feed(rows)
     live_stream = EstimateStream(PayloadRLS(arm))
     live = [d for k in range(0, len(rows), 7) for d in live_stream.feed(rows[k : k + 7])]
@@ -233,19 +234,19 @@ def test_what_is_published_does_not_depend_on_where_the_stream_began() -> None:
     valid = np.ones(q.shape, bool)
     valid[[700, 1100], [2, 4]] = False  # a joint's frame missed: the derivatives restart there
     seq = np.arange(t.size)
-    live = _feed_arrays_in_batches(EstimateStream(PayloadRLS(arm)), seq, t, valid, q, tau)
-    replay = EstimateStream(PayloadRLS(arm)).feed_arrays(seq[held:], t[held:], valid[held:], q[held:], tau[held:])
+    records = JointStates.of_log(seq, t, valid, q, tau)
+    live = _feed_states_in_batches(EstimateStream(PayloadRLS(arm)), records)
+    replay = EstimateStream(PayloadRLS(arm)).feed(records[held:])
     a, b = {d["sequence"]: d for d in live}, {d["sequence"]: d for d in replay}
     both = [k for k in sorted(set(a) & set(b)) if b[k]["mass"] is not None]
     assert len(both) >= 0.9 * len(b) and max(both) > 1100
     assert all(a[k]["unconstrained"] == b[k]["unconstrained"] for k in both), next(k for k in both if a[k]["unconstrained"] != b[k]["unconstrained"])
 
 
-def _feed_arrays_in_batches(stream: EstimateStream, seq: np.ndarray, t: np.ndarray, valid: np.ndarray, q: np.ndarray, tau: np.ndarray,
-                            batch: int = 7) -> list[dict]:
+def _feed_states_in_batches(stream: EstimateStream, records: JointStates, batch: int = 7) -> list[dict]:
     docs: list[dict] = []
-    for a in range(0, t.size, batch):
-        docs += stream.feed_arrays(seq[a:a + batch], t[a:a + batch], valid[a:a + batch], q[a:a + batch], tau[a:a + batch])
+    for a in range(0, len(records), batch):
+        docs += stream.feed(records[a : a + batch])
     return docs
 
 
@@ -266,12 +267,11 @@ class _FedStream(EstimateStream):
 
     def __init__(self, estimator: PayloadRLS) -> None:
         super().__init__(estimator)
-        self.records: list[tuple[int, float, np.ndarray, np.ndarray, np.ndarray]] = []
+        self.records: list[JointStates] = []
 
-    def feed(self, records: Iterable[tuple[int, float, np.ndarray, np.ndarray, np.ndarray]]) -> list[dict]:
-        rows = list(records)
-        self.records.extend(rows)
-        return super().feed(rows)
+    def feed(self, records: JointStates) -> list[dict]:
+        self.records.append(records)
+        return super().feed(records)
 
 
 @pytest.mark.slow
@@ -329,11 +329,12 @@ def test_live_estimates_over_zenoh_reach_another_process_and_agree_with_replay(t
     a, _, notes = read_mcap_arrays(tmp_path / "run" / "run.mcap")
     assert not notes
     # what the live estimator took is what was recorded, bit for bit (from the recording's first record on)
-    live_seq = np.array([r[0] for r in fed.records])
+    taken = JointStates.concat(fed.records)
+    live_seq = taken.sequence
     at = np.searchsorted(live_seq, a["sequence"])
     assert np.array_equal(live_seq[np.minimum(at, live_seq.size - 1)], a["sequence"]), "a recorded record the live estimator never took"
-    for name, k, rec in (("time", 1, a["t"]), ("valid", 2, a["valid"]), ("position", 3, a["position"]), ("torque", 4, a["torque"])):
-        live_col = np.array([fed.records[i][k] for i in at])
+    for name, rec in (("time", a["t"]), ("valid", a["valid"]), ("position", a["position"]), ("torque", a["torque"])):
+        live_col = getattr(taken, name)[at]
         differ = np.flatnonzero((live_col != rec).reshape(rec.shape[0], -1).any(axis=1))
         assert differ.size == 0, f"live {name} differs from the recording's at records {a['sequence'][differ][:5].tolist()}"
     seq_of_cycle = dict(zip(a["cycle"].tolist(), a["sequence"].tolist()))
@@ -374,7 +375,8 @@ def test_the_service_falls_behind_by_time_not_by_record_count() -> None:
     could not catch up: it skips to the newest and says so with the figures. Real Zenoh
     sessions, peer to peer on loopback; the worker is held inside its publishing callback
     while the records queue."""
-    from armid.schema.joint_state import JointStateRecord, Sample
+    from armid.schema.joint_state import Sample
+    from armid.schema.joint_states import JointStates
 
     arm, _, _ = _arm_and_design()
     robot = arm.robot.name
@@ -408,7 +410,7 @@ def test_the_service_falls_behind_by_time_not_by_record_count() -> None:
             q = start + 0.2 * np.sin(2 * np.pi * 0.5 * t + np.arange(6))
             s = Sample(state["seq"], t, np.ones(6, bool), q, np.zeros(6), np.ones(6, bool), np.zeros(6), np.zeros(6), np.zeros(6, np.int64),
                        torque=np.zeros(6))
-            stream.publish(JointStateRecord(state["seq"], s))
+            stream.publish(JointStates.of_sample(state["seq"], s))
             state["seq"] += 1
 
     def queue_while_held(first: int, count: int, step: float) -> None:
@@ -637,7 +639,8 @@ def robustness_runs(gain: bool = True, offset: bool = True, load: bool = True, d
     references = {"alone": None, "reference": ReferenceRun(arm, unloaded.t, unloaded.position, unloaded.torque)}
     for name in modes:
         stream = EstimateStream(PayloadRLS(arm, reference=references[name]))
-        out[name] = stream.feed((k, float(loaded.t[k]), np.ones(6, bool), loaded.position[k], loaded.torque[k]) for k in range(loaded.t.size))
+        out[name] = stream.feed(JointStates.of_log(np.arange(loaded.t.size), loaded.t, np.ones(loaded.position.shape, bool), loaded.position,
+                                                   loaded.torque))
         out[f"{name}_final"] = [stream.final()]
     out["t_on"] = [{"t": t_on}]
     return out
@@ -843,11 +846,7 @@ def _loaded_run_2_ms() -> object:
 
 
 def _feed_in_batches(stream: EstimateStream, seq: np.ndarray, t: np.ndarray, q: np.ndarray, tau: np.ndarray, batch: int = 7) -> list[dict]:
-    valid = np.ones(q.shape, bool)
-    docs: list[dict] = []
-    for a in range(0, t.size, batch):
-        docs += stream.feed_arrays(seq[a:a + batch], t[a:a + batch], valid[a:a + batch], q[a:a + batch], tau[a:a + batch])
-    return docs
+    return _feed_states_in_batches(stream, JointStates.of_log(seq, t, np.ones(q.shape, bool), q, tau), batch)
 
 
 def test_bad_records_in_a_live_stream_are_dropped_counted_and_the_estimate_goes_on() -> None:
@@ -888,7 +887,8 @@ def test_the_service_drops_unreadable_foreign_and_late_records_and_goes_on() -> 
     payload and a truncated one, after every 500 a record of a 5-joint arm, and the records sent
     in reversed groups of 4. The service publishes estimates to the end, counts each class in its
     status and documents, and has no error of its own."""
-    from armid.schema.joint_state import JointStateRecord, Sample
+    from armid.schema.joint_state import Sample
+    from armid.schema.joint_states import JointStates
 
     arm, _, _ = _arm_and_design()
     robot = arm.robot.name
@@ -904,7 +904,7 @@ def test_the_service_drops_unreadable_foreign_and_late_records_and_goes_on() -> 
         z = np.zeros(joints)
         s = Sample(k, float(run.t[k]), np.ones(joints, bool), run.position[k, :joints], z, np.ones(joints, bool), z, z,  # type: ignore[attr-defined]
                    np.zeros(joints, np.int64), torque=run.torque[k, :joints])  # type: ignore[attr-defined]
-        return JointStateRecord(k, s).pack()
+        return JointStates.of_sample(k, s).pack()
 
     try:
         assert wait_for(lambda: any(r.ok is not None for r in publisher.liveliness().get(  # type: ignore[attr-defined]

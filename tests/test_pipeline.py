@@ -42,7 +42,8 @@ def _relative(a: np.ndarray, b: np.ndarray) -> float:
 def _records(csv: str, first: int, seed: int) -> list[bytes]:
     """The example run as the drives stream it: 2 ms cycles numbered from ``first``, encoder and
     current noise drawn from ``seed``."""
-    from armid.schema.joint_state import JointStateRecord, Sample
+    from armid.schema.joint_state import Sample
+    from armid.schema.joint_states import JointStates
 
     a = np.loadtxt(ROOT / "examples" / csv, delimiter=",", skiprows=1)[:ROWS]
     rng = np.random.default_rng(seed)
@@ -50,7 +51,7 @@ def _records(csv: str, first: int, seed: int) -> list[bytes]:
     qd = a[:, 7:13] + rng.normal(0.0, 2e-2, (ROWS, 6))
     tau = a[:, 13:19] + rng.normal(0.0, 0.05, (ROWS, 6))
     ones, zeros = np.ones(6, bool), np.zeros(6)
-    return [JointStateRecord(first + k, Sample(first + k, PERIOD_S * k, ones, q[k], qd[k], ones, zeros, zeros, np.full(6, 0x27, np.int64),
+    return [JointStates.of_sample(first + k, Sample(first + k, PERIOD_S * k, ones, q[k], qd[k], ones, zeros, zeros, np.full(6, 0x27, np.int64),
                                                torque=tau[k])).pack() for k in range(ROWS)]
 
 
@@ -60,7 +61,7 @@ def _write_run(records: list[bytes], folder: Path) -> tuple[Path, Path]:
     from armid.daq.recorder import McapRecorder
     from armid.io.recordings import read_recording
     from armid.io.robot_file import load_robot
-    from armid.schema.joint_state import JointStateRecord
+    from armid.schema.joint_states import JointStates
 
     robot = load_robot(ROBOT)
     folder.mkdir(parents=True)
@@ -68,7 +69,7 @@ def _write_run(records: list[bytes], folder: Path) -> tuple[Path, Path]:
     rec = McapRecorder(mcap, [j.name for j in robot.joints], {"robot": robot.name, "period_s": PERIOD_S})
     try:
         for data in records:
-            rec.write(JointStateRecord.unpack(data))
+            rec.write(JointStates.unpack(data))
     finally:
         rec.close()
     r = read_recording(mcap, robot)
@@ -117,6 +118,7 @@ def _service_fits(runs: dict, tmp_path: Path, whole_arm: str) -> dict:
     from armid.daq.experiment_stream import CollectedExperiment
     from armid.daq.stream import session_config
     from armid.io.robot_file import load_robot
+    from armid.schema.joint_states import JointStates
     from armid.serve import EstimatorService, ServiceOptions
 
     session = zenoh.open(session_config(listen=[f"tcp/127.0.0.1:{_free_port()}"]))
@@ -128,7 +130,8 @@ def _service_fits(runs: dict, tmp_path: Path, whole_arm: str) -> dict:
             seqs = list(range(r["first"], r["first"] + ROWS))
             stop = {"completed": True, "experiment": experiment, "window_s": [0.0, 1e9], "first_cycle": r["first"],
                     "first_sequence": seqs[0], "last_sequence": seqs[-1]}
-            service.process(CollectedExperiment(name, {"experiment": experiment}, stop, r["records"], seqs, 0, [[seqs[0], seqs[-1]]]))
+            records = JointStates.unpack(b"".join(r["records"]))  # the payloads back to back: one payload of many records
+            service.process(CollectedExperiment(name, {"experiment": experiment}, stop, records, 0, [[seqs[0], seqs[-1]]]))
         assert not service.errors, service.errors
         assert service._whole_docs["a"]["validated_on"] == ["b"]
         return dict(service.whole_fits)

@@ -474,13 +474,13 @@ def test_once_the_arm_is_identified_the_service_estimates_a_payload_on_the_live_
             assert active.first_cycle is not None
             # the plan's cycle k is the arm's step k (one step per SYNC, from time 0)
             physics.attach_payload(truth, at_time_s=(active.first_cycle - 1) * rig.period_s + plan.lead_in_s + 1.5)
-            last = s.control.last_record
+            last = s.acquisition.last
             assert last is not None
-            offset = last.sequence - last.sample.cycle  # a record's sequence number less its SYNC cycle
+            offset = int(last.sequence[0] - last.cycle[0])  # a record's sequence number less its SYNC cycle
             assert active.done.wait(plan.duration_s + 60)
             assert s.control.stop_reason is None, s.control.stop_reason
-            last = s.control.last_record
-            assert last is not None and last.sequence - last.sample.cycle == offset  # no SYNC lost while it worked
+            last = s.acquisition.last
+            assert last is not None and int(last.sequence[0] - last.cycle[0]) == offset  # no SYNC lost while it worked
             first_work = active.first_cycle + offset
             end = active.first_cycle + active.cycles + offset
         wait(lambda: estimates and estimates[-1]["sequence"] >= end - 10, 20)
@@ -542,20 +542,21 @@ def test_a_run_that_claims_no_joint_or_moves_nothing_never_becomes_the_arms_para
     from armid.daq.experiment_stream import CollectedExperiment
     from armid.daq.stream import session_config
     from armid.io.robot_file import load_robot
-    from armid.schema.joint_state import JointStateRecord, Sample
+    from armid.schema.joint_state import Sample
+    from armid.schema.joint_states import JointStates
     from armid.serve import EstimatorService
 
     robot = load_robot(ROBOT)
     session = zenoh.open(session_config(listen=[f"tcp/127.0.0.1:{_free_port()}"]))
     service = EstimatorService(session, robot, tmp_path / "serve")
     z = np.zeros(6)
-    still = [JointStateRecord(k, Sample(k, 0.002 * k, np.ones(6, bool), np.full(6, 0.3), z, np.ones(6, bool), z, z, np.zeros(6, np.int64),
-                                        torque=np.ones(6))).pack() for k in range(3000)]
+    still = JointStates.concat([JointStates.of_sample(k, Sample(k, 0.002 * k, np.ones(6, bool), np.full(6, 0.3), z, np.ones(6, bool), z, z,
+                                                                np.zeros(6, np.int64), torque=np.ones(6))) for k in range(3000)])
 
     def run(name: str, kind: str, link: object = None) -> dict:
         experiment = {"kind": kind, **({"link": link} if link is not None else {}), "metadata": {"period_s": 0.002}}
         exp = CollectedExperiment(name, {"experiment": experiment}, {"completed": True, "experiment": experiment, "window_s": [0.0, 6.0]},
-                                  still, list(range(3000)), 0, [[0, 2999]])
+                                  still, 0, [[0, 2999]])
         service.process(exp)
         return service.experiments[-1]
 
@@ -582,7 +583,8 @@ def test_a_run_the_analysis_fails_on_is_published_with_its_reason(tmp_path: Path
     from armid.daq.experiment_stream import CollectedExperiment
     from armid.daq.stream import session_config
     from armid.io.robot_file import load_robot
-    from armid.schema.joint_state import JointStateRecord, Sample
+    from armid.schema.joint_state import Sample
+    from armid.schema.joint_states import JointStates
     from armid.serve import EstimatorService
 
     robot = load_robot(ROBOT)
@@ -592,12 +594,12 @@ def test_a_run_the_analysis_fails_on_is_published_with_its_reason(tmp_path: Path
     (tmp_path / "serve").mkdir(exist_ok=True)
     (tmp_path / "serve" / "blocked").write_text("not a folder\n")
     z = np.zeros(6)
-    records = [JointStateRecord(k, Sample(k, 0.002 * k, np.ones(6, bool), np.full(6, 0.3), z, np.ones(6, bool), z, z, np.zeros(6, np.int64),
-                                          torque=np.ones(6))).pack() for k in range(500)]
+    records = JointStates.concat([JointStates.of_sample(k, Sample(k, 0.002 * k, np.ones(6, bool), np.full(6, 0.3), z, np.ones(6, bool), z, z,
+                                                                  np.zeros(6, np.int64), torque=np.ones(6))) for k in range(500)])
     experiment = {"kind": "whole_arm", "metadata": {"period_s": 0.002}}
     try:
         service._jobs.append(CollectedExperiment("blocked", {"experiment": experiment}, {"completed": True, "experiment": experiment},
-                                                 records, list(range(500)), 0, [[0, 499]]))
+                                                 records, 0, [[0, 499]]))
         service._job_ready.set()
         deadline = time.monotonic() + 30
         while not docs and time.monotonic() < deadline:
@@ -622,7 +624,8 @@ def test_a_run_with_nan_fields_in_a_few_records_is_identified_as_the_clean_one(t
     from armid.daq.experiment_stream import CollectedExperiment
     from armid.daq.stream import session_config
     from armid.io.robot_file import load_robot
-    from armid.schema.joint_state import JointStateRecord, Sample
+    from armid.schema.joint_state import Sample
+    from armid.schema.joint_states import JointStates
     from armid.serve import EstimatorService
 
     a = np.loadtxt(ROOT / "examples" / "puma560_excitation.csv", delimiter=",", skiprows=1)
@@ -641,10 +644,10 @@ def test_a_run_with_nan_fields_in_a_few_records_is_identified_as_the_clean_one(t
                 stamp = np.nan
             s = Sample(k, stamp, np.ones(6, bool), position, qd[k], np.ones(6, bool), np.zeros(6), np.zeros(6), np.full(6, 0x27, np.int64),
                        torque=tau[k])
-            records.append(JointStateRecord(k, s).pack())
+            records.append(JointStates.unpack(JointStates.of_sample(k, s).pack()))  # as the service receives it
         experiment = {"kind": "whole_arm", "metadata": {"period_s": 0.002}}
         service.process(CollectedExperiment(name, {"experiment": experiment}, {"completed": True, "experiment": experiment, "window_s": [0.0, 10.0]},
-                                            records, list(range(t.size)), 0, [[0, t.size - 1]]))
+                                            JointStates.concat(records), 0, [[0, t.size - 1]]))
 
     try:
         run("clean", range(0))
@@ -671,7 +674,8 @@ def test_two_whole_arm_runs_of_one_name_are_each_validated_on_the_other(tmp_path
     from armid.daq.experiment_stream import CollectedExperiment
     from armid.daq.stream import session_config
     from armid.io.robot_file import load_robot
-    from armid.schema.joint_state import JointStateRecord, Sample
+    from armid.schema.joint_state import Sample
+    from armid.schema.joint_states import JointStates
     from armid.serve import EstimatorService
 
     robot = load_robot(ROBOT)
@@ -683,10 +687,11 @@ def test_two_whole_arm_runs_of_one_name_are_each_validated_on_the_other(tmp_path
         for csv in ("puma560_excitation.csv", "puma560_validation.csv"):
             a = np.loadtxt(ROOT / "examples" / csv, delimiter=",", skiprows=1)
             seqs = list(range(first, first + a.shape[0]))
-            records = [JointStateRecord(k, Sample(k, row[0], np.ones(6, bool), row[1:7], row[7:13], np.ones(6, bool), np.zeros(6), np.zeros(6),
-                                                  np.full(6, 0x27, np.int64), torque=row[13:19])).pack() for k, row in zip(seqs, a)]
+            records = JointStates.concat([JointStates.of_sample(k, Sample(k, row[0], np.ones(6, bool), row[1:7], row[7:13], np.ones(6, bool), np.zeros(6),
+                                                                          np.zeros(6), np.full(6, 0x27, np.int64), torque=row[13:19]))
+                                          for k, row in zip(seqs, a)])
             stop = {"completed": True, "experiment": experiment, "window_s": [0.0, 10.0], "first_sequence": seqs[0], "last_sequence": seqs[-1]}
-            service.process(CollectedExperiment("whole", {"experiment": experiment}, stop, records, seqs, 0, [[seqs[0], seqs[-1]]]))
+            service.process(CollectedExperiment("whole", {"experiment": experiment}, stop, records, 0, [[seqs[0], seqs[-1]]]))
             first += a.shape[0] + 100
         runs = [e["run"] for e in service.experiments]
         assert runs == ["whole", "whole@5100"], runs

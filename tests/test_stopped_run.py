@@ -21,7 +21,7 @@ from armid.daq.recorder import McapRecorder
 from armid.drivers.interface import Sample
 from armid.io.recordings import read_mcap_arrays, read_recording
 from armid.io.robot_file import load_robot
-from armid.schema.joint_state import JointStateRecord
+from armid.schema.joint_states import JointStates
 
 ROOT = Path(__file__).resolve().parent.parent
 PUMA = ROOT / "config" / "robots" / "puma560.yaml"
@@ -40,7 +40,7 @@ def _record(path: Path, end: dict[str, object] | None) -> Path:
     assert rec.qd is not None
     for k in range(RECORDS):
         current = rec.tau[k] / kt
-        recorder.write(JointStateRecord(k, Sample(k, float(rec.t[k]), np.ones(n, bool), rec.q[k], rec.qd[k], np.ones(n, bool),
+        recorder.write(JointStates.of_sample(k, Sample(k, float(rec.t[k]), np.ones(n, bool), rec.q[k], rec.qd[k], np.ones(n, bool),
                                                   current, current, np.full(n, 0x27), rec.tau[k])))
     recorder.close(end)
     return path

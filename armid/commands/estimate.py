@@ -12,20 +12,21 @@ from typing import Any
 import numpy as np
 
 from armid.schema.errors import RecordingError, UsageError
+from armid.schema.joint_states import JointStates
 
 from .arguments import load_robot_argument
 from .output import _show
 from .session import add_zenoh_arguments, open_zenoh
 
 
-def _replay_records(path: Path, robot: Any, period_s: float | None) -> tuple[tuple[np.ndarray, ...], list[str]]:
+def _replay_records(path: Path, robot: Any, period_s: float | None) -> tuple[JointStates, list[str]]:
     """The replay's records by :func:`armid.pipeline.replay_records` (identify's checks: ms stamps,
     degrees refused; their warnings held), and ``--period`` against their stamps."""
     from ..pipeline import replay_records
 
     records, notes, found = replay_records(path, robot)
     _show(found)
-    t = records[1]
+    t = records.time
     if t.size >= 2 and period_s is not None:
         step = float(np.median(np.diff(t)))
         if abs(step - period_s) > 0.1 * period_s:
@@ -124,9 +125,9 @@ def _estimate(args: argparse.Namespace) -> int:
         ref_records, ref_notes = _replay_records(Path(args.reference), robot, args.period)
         for note in ref_notes:
             print(f"{args.reference}: {note}", file=sys.stderr)
-        keep = ref_records[2].all(axis=1)
+        kept = ref_records[np.flatnonzero(ref_records.valid.all(axis=1))]
         try:
-            reference = ReferenceRun(arm, ref_records[1][keep], ref_records[3][keep], ref_records[4][keep])
+            reference = ReferenceRun(arm, kept.time, kept.position, kept.torque)
         except ValueError as err:
             raise RecordingError(args.reference, str(err)) from None
     estimator = PayloadRLS(arm, forgetting=args.forgetting, reference=reference)
@@ -140,14 +141,14 @@ def _estimate(args: argparse.Namespace) -> int:
     try:
         if args.replay:
             start = time.perf_counter()
-            docs = stream.feed_arrays(*records)
+            docs = stream.feed(records)
             if docs:  # the run's one answer, over all it excited since the last restart
                 docs.append(stream.final())
             for d in docs:
                 out.write(json.dumps(d, allow_nan=False) + "\n")
             seconds = time.perf_counter() - start
             print(_estimate_summary(estimator.n_updates_ if hasattr(estimator, "n_updates_") else 0, docs, seconds, stream), file=sys.stderr)
-            problem = _replay_problem(len(records[0]), docs, stream)
+            problem = _replay_problem(len(records), docs, stream)
             if problem is not None:  # the estimates made are written; the input is named
                 raise RecordingError(str(args.replay), problem)
             return 0
@@ -156,7 +157,10 @@ def _estimate(args: argparse.Namespace) -> int:
 
         ordinary_priority()  # the arithmetic never at a real-time policy inherited from what started it
         session = open_zenoh(args)
-        service = PayloadService(session, robot.name, stream, on_estimate=lambda d: out.write(json.dumps(d, allow_nan=False) + "\n"),
+        def write(doc: dict[str, Any]) -> None:
+            out.write(json.dumps(doc, allow_nan=False) + "\n")
+
+        service = PayloadService(session, robot.name, stream, on_estimate=write,
                                  log=lambda line: print(f"armid estimate: {line}", file=sys.stderr, flush=True))
         # SIGINT and SIGTERM stop it through handlers of its own: a process started in the
         # background by a shell inherits SIGINT ignored, and a stop sent to it (the demo's,

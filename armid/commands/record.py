@@ -16,7 +16,7 @@ from .session import add_zenoh_arguments, open_zenoh
 def _record(args: argparse.Namespace) -> int:
     import time
 
-    from armid.daq.acquisition import Acquisition, Sink
+    from armid.daq.acquisition import Acquisition, Sink, SinkFailure
     from armid.daq.recorder import McapRecorder
     from armid.schema import versions
 
@@ -83,23 +83,29 @@ def _record(args: argparse.Namespace) -> int:
                     elapsed = acq.sequence * rig.period_s if driver.paced else time.monotonic() - start
                     if args.duration and elapsed >= args.duration:
                         break
-                    if acq.error:
+                    if acq.error or (can_log is not None and can_log.failure):
                         break
             acq.stop()
             supervision.events(driver.events())
             # how the run ended, in the recording: a run cut short says so wherever it is read
-            recorder.close({"completed": acq.error is None, "stop": acq.error})
             if can_log is not None:
                 can_log.stop()
+            log_failure = can_log.failure if can_log is not None else None
+            stop_line = acq.error or log_failure
+            closed = _close(recorder, {"completed": stop_line is None, "stop": stop_line})
             if stream:
-                stream.event("stop", rig=rig.name, run=run_name, experiment=experiment, records=recorder.count, completed=acq.error is None,
-                             reason=acq.error, first_sequence=0, last_sequence=acq.sequence - 1, first_cycle=0, window_s=None)
+                stream.event("stop", rig=rig.name, run=run_name, experiment=experiment, records=recorder.count, completed=stop_line is None,
+                             reason=stop_line, first_sequence=0, last_sequence=acq.sequence - 1, first_cycle=0, window_s=None)
             print(f"armid record: {acq.sequence} records, invalid per joint {acq.invalid.tolist()}, lost cycles per joint "
                   f"{driver.lost_cycles.tolist()}" + (f", dropped by the stream {sinks[-1].dropped}" if stream else ""), file=sys.stderr)
             for line in supervision.summary():
                 print(f"armid record: {line}", file=sys.stderr)
             if supervision.failed:
                 print(f"armid record: {supervision.verdict()} ({out / 'run.mcap'} holds every record)", file=sys.stderr)
+            failure = acq.error if acq.failed is not None else log_failure or closed
+            if failure is not None:  # a sink failed (a full disk): the run stopped on it
+                raise SinkFailure(f"{failure}; the run stopped after {acq.sequence} records: what reached {out / 'run.mcap'} "
+                                  "before it reads back")
             return 1 if acq.error or supervision.failed else 0
         finally:
             driver.close()
@@ -109,6 +115,18 @@ def _record(args: argparse.Namespace) -> int:
                 session.close()
             if sim is not None:
                 sim.close()
+
+
+def _close(recorder: Any, end: dict[str, Any]) -> str | None:
+    """Close the recording; why it could not be (a full disk), None when it closed. After a
+    sink's failure the file may not take its summary either: what it holds reads without one."""
+    from armid.daq.recorder import RecorderWriteError
+
+    try:
+        recorder.close(end)
+    except RecorderWriteError as err:
+        return str(err)
+    return None
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

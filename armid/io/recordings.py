@@ -29,10 +29,11 @@ from mcap.records import Channel, Chunk, ChunkIndex, Footer, Metadata, Statistic
 from mcap.stream_reader import CRCValidationError, StreamReader, get_chunk_data_stream
 
 from armid.identify.errors import RecordingError
-from armid.identify.recordings import Recording
+from armid.identify.recordings import Recording, recording_of
 from armid.identify.robot import Robot
 from armid.schema import Array
 from armid.schema.joint_state import EXTRA_TOPIC, EXTRA_TYPE, JOINT_STATE_TYPE, JOINT_STATES_TOPIC
+from armid.schema.joint_states import JointStates
 
 from .ros2_cdr import decoded_columns, kind_of, ros2_columns, same_length
 
@@ -73,30 +74,7 @@ def _read_mcap(path: Path, robot: Robot) -> Recording:
     if recorded is None:
         notes.append(f"its metadata names no robot (no armid.run record): read as {robot.name}, on the word of --robot "
                      f"{robot.source} alone")
-    n = arrays["position"].shape[1]
-    if n != robot.n_joints:
-        raise RecordingError(str(path), f"{n} joints recorded, robot {robot.name} has {robot.n_joints}")
-    order = np.argsort(arrays["sequence"], kind="stable")
-    if np.any(order != np.arange(order.size)):
-        arrays = {k: v[order] for k, v in arrays.items()}
-        notes.append("records stored out of sequence order: put back in order by their sequence numbers")
-    t_all = arrays["t"]
-    ahead = np.concatenate([[True], t_all[1:] > np.maximum.accumulate(t_all)[:-1]])
-    if not ahead.all():
-        first = int(np.flatnonzero(~ahead)[0])
-        notes.append(f"time goes backwards at sequence {int(arrays['sequence'][first])} (t {t_all[first - 1]:.6f} -> "
-                     f"{t_all[first]:.6f} s): left out {int((~ahead).sum())} records stamped no later than an earlier one")
-    valid = arrays["valid"].all(axis=1)
-    if not valid.all():
-        notes.append(f"left out {int((~valid).sum())} cycles with a joint marked invalid")
-    keep = valid & ahead
-    if keep.sum() < 2:
-        raise RecordingError(str(path), f"only {int(keep.sum())} usable records of {keep.size} (" + "; ".join(notes) + ")")
-    t = t_all[keep]
-    velocity = _drive_velocity(t, arrays["velocity"][keep], arrays["velocity_fresh"][keep], notes)
-    tau, how = arrays["torque"][keep], "torque as recorded (the driver's measured current x torque constant)"
-    return Recording(str(path), t, arrays["position"][keep], tau, velocity, None, None, notes + [how], torque_held=True,
-                     cycle=arrays["cycle"][keep], period_s=_period(metadata), torque_from_current=True, stopped=stop_line(metadata))
+    return recording_of(JointStates.from_columns(arrays), robot, str(path), notes, run_period(metadata), stop_line(metadata))
 
 
 def stop_line(metadata: dict[str, str]) -> str | None:
@@ -111,35 +89,13 @@ def stop_line(metadata: dict[str, str]) -> str | None:
     return None
 
 
-def _period(metadata: dict[str, str]) -> float | None:
+def run_period(metadata: dict[str, str]) -> float | None:
     """The rig's SYNC period the run's metadata gives (``armid excite`` writes it), else None."""
     try:
         value = float(metadata["period_s"])
     except (KeyError, TypeError, ValueError):
         return None
     return value if np.isfinite(value) and value > 0 else None
-
-
-def _drive_velocity(t: Array, velocity: Array, fresh: Array, notes: list[str]) -> Array | None:
-    """The drives' velocity at every sample. A PDO plan may carry it every k-th cycle only;
-    it is then interpolated (cubic) through the cycles that carried it: the drives' own
-    velocity beats differentiating quantised positions, which needs a low-pass that smears
-    the Coulomb step at every reversal (measured: viscous friction 14 % low at 20 Hz)."""
-    if fresh.all():
-        return velocity
-    share = fresh.mean(axis=0)
-    if t.size < 8 or share.min() < 0.2:
-        notes.append("drive velocity too sparse to use: velocity from the positions")
-        return None
-    from scipy.interpolate import CubicSpline
-
-    out = velocity.copy()
-    for j in range(velocity.shape[1]):
-        f = fresh[:, j]
-        if not f.all():
-            out[:, j] = CubicSpline(t[f], velocity[f, j])(t)
-    notes.append(f"drive velocity reported on {100 * share.min():.0f} % of the cycles: interpolated (cubic) onto the others")
-    return out
 
 
 def _read_csv(path: Path, robot: Robot) -> Recording:

@@ -1,4 +1,4 @@
-"""The bottom layer: the joint-state record and its units, its codec, and the exception tree.
+"""The bottom layer: the joint-state record (:class:`JointStates`) and its units, its codecs, and the exception tree.
 
 Every other part of armid imports from here; this package imports nothing of armid's.
 """
@@ -7,8 +7,9 @@ from __future__ import annotations
 
 from .errors import ArmidError, InputError
 from .joint_state import Array, JointStateRecord, Sample
+from .joint_states import JointStates
 
-__all__ = ["Array", "ArmidError", "InputError", "JointStateRecord", "Sample", "versions"]
+__all__ = ["Array", "ArmidError", "InputError", "JointStateRecord", "JointStates", "Sample", "versions"]
 
 
 def versions(*distributions: str) -> dict[str, str]:

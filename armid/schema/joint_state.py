@@ -13,8 +13,9 @@ encoding (``application/octet-stream;armid.JointState/2``), so a subscriber know
 holds before it decodes a byte. Layout, little-endian: a 32-byte header (sequence u64,
 cycle u64, time f64, joint count u16, flags u16, reserved u32), then 44 bytes per joint
 (valid u8, velocity fresh u8, statusword u16, position, velocity, commanded current,
-measured current, torque f64). ``sequence`` counts records without gaps, so that a
-subscriber can see what it missed.
+measured current, torque f64); a payload holds one such record or several back to back.
+``sequence`` counts records without gaps, so that a subscriber can see what it missed. The
+codec is :class:`~armid.schema.joint_states.JointStates`' (the record as columns).
 
 Recordings (MCAP) carry the same record as ROS 2 messages: ``sensor_msgs/msg/JointState``
 on ``/joint_states`` (position, velocity, effort = torque) and the rest in
@@ -24,7 +25,6 @@ codec is :mod:`armid.io.ros2_cdr`).
 
 from __future__ import annotations
 
-import struct
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,9 +37,6 @@ Array = NDArray[np.float64]
 SCHEMA = "armid.JointState"
 VERSION = 2
 ENCODING = f"application/octet-stream;{SCHEMA}/{VERSION}"
-_HEADER = struct.Struct("<QQdHHI")
-_JOINT = np.dtype([("valid", "u1"), ("fresh", "u1"), ("status", "<u2"), ("position", "<f8"), ("velocity", "<f8"),
-                   ("commanded", "<f8"), ("measured", "<f8"), ("torque", "<f8")])
 
 
 @dataclass
@@ -78,51 +75,17 @@ class Sample:
 
 @dataclass
 class JointStateRecord:
+    """One numbered sample: a cycle of :class:`~armid.schema.joint_states.JointStates` as the ROS 2
+    writer takes it (:meth:`JointStates.record <armid.schema.joint_states.JointStates.record>`)."""
+
     sequence: int
     sample: Sample
-
-    def pack(self) -> bytes:
-        s = self.sample
-        n = s.position.shape[0]
-        joints = np.zeros(n, _JOINT)
-        joints["valid"], joints["fresh"], joints["status"] = s.valid, s.velocity_fresh, s.status
-        joints["position"], joints["velocity"] = s.position, s.velocity
-        joints["commanded"], joints["measured"], joints["torque"] = s.commanded_current, s.measured_current, s.joint_torque()
-        return _HEADER.pack(self.sequence, s.cycle, s.time_s, n, 0, 0) + joints.tobytes()
-
-    @staticmethod
-    def unpack(data: bytes) -> JointStateRecord:
-        if len(data) < _HEADER.size:
-            raise RecordFormatError(f"{SCHEMA}/{VERSION}: {len(data)} bytes, shorter than the {_HEADER.size}-byte header")
-        seq, cycle, t, n, _, _ = _HEADER.unpack_from(data)
-        if len(data) != _HEADER.size + n * _JOINT.itemsize:
-            raise RecordFormatError(f"{SCHEMA}/{VERSION}: {len(data)} bytes for {n} joints, expected {_HEADER.size + n * _JOINT.itemsize}")
-        j = np.frombuffer(data, _JOINT, n, _HEADER.size)
-        sample = Sample(int(cycle), float(t), j["valid"].astype(bool), j["position"].copy(), j["velocity"].copy(),
-                        j["fresh"].astype(bool), j["commanded"].copy(), j["measured"].copy(), j["status"].astype(np.int64),
-                        j["torque"].copy())
-        return JointStateRecord(int(seq), sample)
 
 
 def check_encoding(encoding: str) -> None:
     """Refuse a record whose schema or version this code does not read."""
     if not encoding.endswith(f";{SCHEMA}/{VERSION}"):
         raise RecordFormatError(f"encoding {encoding!r} is not {ENCODING!r}")
-
-
-def as_arrays(records: list[JointStateRecord]) -> dict[str, Array]:
-    """Records as columns: ``sequence, cycle, t`` (n,), the joint fields (n, N)."""
-    return {
-        "sequence": np.array([r.sequence for r in records]),
-        "cycle": np.array([r.sample.cycle for r in records]),
-        "t": np.array([r.sample.time_s for r in records]),
-        "valid": np.array([r.sample.valid for r in records]),
-        "position": np.array([r.sample.position for r in records]),
-        "velocity": np.array([r.sample.velocity for r in records]),
-        "commanded_current": np.array([r.sample.commanded_current for r in records]),
-        "measured_current": np.array([r.sample.measured_current for r in records]),
-        "torque": np.array([r.sample.joint_torque() for r in records]),
-    }
 
 
 # --- the same record as ROS 2 messages (MCAP recordings) ---

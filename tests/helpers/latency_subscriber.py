@@ -13,7 +13,7 @@ import time
 import zenoh
 
 from armid.daq.stream import key, session_config
-from armid.schema.joint_state import JointStateRecord
+from armid.schema.joint_states import JointStates
 
 robot, endpoint, out, seconds = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4])
 rows: list[tuple[int, float]] = []
@@ -23,8 +23,8 @@ signal.signal(signal.SIGTERM, lambda *_: stop.set())
 
 def on_sample(sample) -> None:  # type: ignore[no-untyped-def]
     now = time.time()
-    r = JointStateRecord.unpack(sample.payload.to_bytes())
-    rows.append((r.sequence, now - r.sample.time_s))
+    r = JointStates.unpack(sample.payload.to_bytes())
+    rows.extend(zip(r.sequence.tolist(), (now - r.time).tolist()))
 
 
 with zenoh.open(session_config(listen=[endpoint])) as session:

@@ -7,7 +7,7 @@ import numpy as np
 
 from armid.daq.recorder import McapRecorder
 from armid.drivers.interface import Sample
-from armid.schema.joint_state import JointStateRecord
+from armid.schema.joint_states import JointStates
 
 rec = McapRecorder(sys.argv[1], [f"j{k + 1}" for k in range(6)], {"robot": "synthetic"})
 k = 0
@@ -16,7 +16,7 @@ while True:
     t = k * 0.002
     s = Sample(k, t, np.ones(6, bool), np.sin(t + np.arange(6)), np.cos(t + np.arange(6)), np.ones(6, bool),
                np.zeros(6), 0.1 * np.sin(t) * np.ones(6), np.full(6, 0x27), 0.1 * np.sin(t) * np.ones(6))
-    rec.write(JointStateRecord(k, s))
+    rec.write(JointStates.of_sample(k, s))
     k += 1
     if k % 100 == 0:
         print(k, flush=True)

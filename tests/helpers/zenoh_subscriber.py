@@ -13,7 +13,8 @@ import time
 import zenoh
 
 from armid.daq.stream import key, session_config
-from armid.schema.joint_state import JointStateRecord, check_encoding
+from armid.schema.joint_state import check_encoding
+from armid.schema.joint_states import JointStates
 
 robot, endpoint, out, seconds = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4])
 slow = float(sys.argv[5]) if len(sys.argv) > 5 else 0.0
@@ -24,7 +25,7 @@ signal.signal(signal.SIGTERM, lambda *_: stop.set())
 
 def on_sample(sample) -> None:  # type: ignore[no-untyped-def]
     check_encoding(str(sample.encoding))
-    seqs.append(JointStateRecord.unpack(sample.payload.to_bytes()).sequence)
+    seqs.extend(JointStates.unpack(sample.payload.to_bytes()).sequence.tolist())
     if slow:
         time.sleep(slow)
 
