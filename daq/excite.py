@@ -258,7 +258,7 @@ class ExcitationSession:
         self.stream = stream
         self.supervision = Supervision(say or (lambda text: None), stream)
         self.limits = Limits.of(self.robot)
-        armature = [u.reflected_inertia for u in (d.units for d in rig.drives)]
+        armature = np.array([d.units.reflected_inertia for d in rig.drives], float)
         q_nominal = rig.simulation.get("initial_position") if rig.simulation else None
         bandwidth_hz = bandwidth_hz or rig.control_bandwidth_hz or LOOP_BANDWIDTH_HZ
         self.controller = ComputedTorque(self.robot, q_nominal=q_nominal, armature=armature, bandwidth_hz=bandwidth_hz,
