@@ -2,11 +2,11 @@
 
 Each effect of the catalogue (the module docstring of :mod:`identify.diagnosis` lists them)
 on each joint, or on the whole arm, is a :class:`Candidate`: a function of the data
-(:class:`~identify.diagnosis_data._Data`) giving its columns, linear in its parameters. An
+(:class:`~identify.diagnosis_data.StackedData`) giving its columns, linear in its parameters. An
 effect with one nonlinear parameter is one candidate per value of it on a grid (a Stribeck
 velocity, a cogging period). What each effect can be mistaken for (:data:`LOOKALIKES`) and
 the experiment that tells the two apart (:data:`SEPARATE`) go with the catalogue, as do the
-parameters a fitted candidate reports (:func:`_parameters`).
+parameters a fitted candidate reports (:func:`candidate_parameters`).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import numpy as np
 from ..dynamics import regressor
 from ..robot import Robot
 from ..spatial import Array
-from .data import _Data, _rate
+from .data import StackedData, torque_rate
 
 LOOKALIKES = {
     "coulomb_friction": "stribeck_friction",
@@ -132,10 +132,10 @@ class Candidate:
     joint: int | None  # 0-based, None for the arm
     setting: tuple[tuple[str, float], ...]
     labels: tuple[str, ...]
-    block: Callable[[_Data], Array] | None = None
-    full: Callable[[_Data], Array] | None = None
+    block: Callable[[StackedData], Array] | None = None
+    full: Callable[[StackedData], Array] | None = None
 
-    def columns(self, d: _Data) -> Array:
+    def columns(self, d: StackedData) -> Array:
         """(rows, k), unweighted."""
         if self.block is not None:
             assert self.joint is not None
@@ -160,7 +160,7 @@ def _stribeck_columns(j: int, vs: float, q: Array, qd: Array, qdd: Array) -> Arr
     return np.column_stack([s, s * np.exp(-((qd[:, j] / vs) ** 2))])
 
 
-def coulomb(d: _Data, j: int) -> Array:
+def coulomb(d: StackedData, j: int) -> Array:
     """(n, 1) joint j's Coulomb column as ``d``'s equations see it (:func:`_coulomb_column`)."""
     return d.filtered(functools.partial(_coulomb_column, j))
 
@@ -172,7 +172,7 @@ def _load_friction_columns(robot: Robot, phi: tuple[float, ...], q: Array, qd: A
     return np.abs(regressor(robot, q, qd, qdd) @ np.asarray(phi)) * np.sign(qd)
 
 
-def _candidates(robot: Robot, data: _Data, present: set[tuple[str, int | None]], ctx: dict[str, Any],
+def candidate_catalogue(robot: Robot, data: StackedData, present: set[tuple[str, int | None]], ctx: dict[str, Any],
                 max_cogging_per_turn: int) -> list[Candidate]:
     """Every candidate of the catalogue not ``present`` (declared, found or set aside) on
     ``data``: per joint the linear effects, a Stribeck term per velocity its motion outruns,
@@ -188,7 +188,7 @@ def _candidates(robot: Robot, data: _Data, present: set[tuple[str, int | None]],
     for j in range(nj):
         revolute = robot.joints[j].revolute
 
-        def lin(name: str, fn: Callable[[_Data], Array], labels: tuple[str, ...], j: int = j, setting: tuple = ()) -> None:  # type: ignore[type-arg]
+        def lin(name: str, fn: Callable[[StackedData], Array], labels: tuple[str, ...], j: int = j, setting: tuple = ()) -> None:  # type: ignore[type-arg]
             if (name, j) not in present:
                 out.append(Candidate(name, j, setting, labels, block=fn))
 
@@ -205,12 +205,12 @@ def _candidates(robot: Robot, data: _Data, present: set[tuple[str, int | None]],
         # level is the robot file's (the declared model's columns are on the filtered motion)
         on_motion = j in declared_coulomb
         for vs in [v for v in STRIBECK_VELOCITIES if v <= outrun]:
-            def strib(d: _Data, j: int = j, vs: float = vs, wc: bool = with_coulomb, on_motion: bool = on_motion) -> Array:
+            def strib(d: StackedData, j: int = j, vs: float = vs, wc: bool = with_coulomb, on_motion: bool = on_motion) -> Array:
                 if on_motion:
                     return _stribeck_columns(j, vs, d.q, d.qd, d.qdd)[:, 1:]
                 return d.filtered(functools.partial(_stribeck_columns, j, vs))[:, 0 if wc else 1 :]
             lin("stribeck_friction", strib, (("fc",) if with_coulomb else ()) + ("fs",), setting=(("velocity", vs),))
-        def load_friction(d: _Data, j: int = j, wc: bool = with_coulomb) -> Array:
+        def load_friction(d: StackedData, j: int = j, wc: bool = with_coulomb) -> Array:
             cols = d.filtered(functools.partial(_load_friction_columns, robot, ctx["load"]))
             return np.column_stack(([coulomb(d, j)[:, 0]] if wc else []) + [cols[:, j]])
         lin("load_dependent_coulomb", load_friction, (("fc",) if with_coulomb else ()) + ("fl",))
@@ -230,7 +230,7 @@ def _candidates(robot: Robot, data: _Data, present: set[tuple[str, int | None]],
     # judged against the whole arm, not N separate one-joint gains
     bare = [j for j in range(nj) if not {("coulomb_friction", j), ("viscous_friction", j), ("torque_offset", j)} & present]
     if len(bare) >= 2 and ("coulomb_friction", None) not in present:
-        def friction(d: _Data, joints: list[int] = bare) -> Array:
+        def friction(d: StackedData, joints: list[int] = bare) -> Array:
             cols = np.zeros((d.q.shape[0] * nj, 3 * len(joints)))
             for k, j in enumerate(joints):
                 cols[j::nj, 3 * k : 3 * k + 3] = np.column_stack([coulomb(d, j)[:, 0], d.qd[:, j], np.ones(d.q.shape[0])])
@@ -239,9 +239,9 @@ def _candidates(robot: Robot, data: _Data, present: set[tuple[str, int | None]],
         out.append(Candidate("coulomb_friction", None, (), labels, full=friction))
     if ("time_delay", None) not in present and not any(e == "time_delay" for e, _ in present):
         # the whole torque channel lags the positions (a current loop, a bus, a filter): one delay
-        out.append(Candidate("time_delay", None, (), ("delay_s",), full=lambda d: -_rate(d, ctx["predict_smooth"](d)).reshape(-1, 1)))
+        out.append(Candidate("time_delay", None, (), ("delay_s",), full=lambda d: -torque_rate(d, ctx["predict_smooth"](d)).reshape(-1, 1)))
     if ("gravity_tilt", None) not in present:
-        def tilt(d: _Data) -> Array:
+        def tilt(d: StackedData) -> Array:
             g = np.asarray(robot.gravity, float)
             cols = []
             for axis in np.eye(3)[:2]:
@@ -253,7 +253,7 @@ def _candidates(robot: Robot, data: _Data, present: set[tuple[str, int | None]],
     return out
 
 
-def _parameters(c: Candidate, gamma: Array) -> dict[str, float]:
+def candidate_parameters(c: Candidate, gamma: Array) -> dict[str, float]:
     g = [float(x) for x in gamma]
     setting = dict(c.setting)
     if c.effect == "torque_gain":

@@ -84,32 +84,42 @@ from ..metrics import masked_summary, summary
 from ..preprocess import Prepared
 from ..robot import Robot
 from ..spatial import Array
-from .candidates import LOOKALIKES, NESTING, SEPARATE, STRIBECK_VELOCITIES, Candidate, _candidates, _parameters, coulomb
+from .candidates import LOOKALIKES, NESTING, SEPARATE, STRIBECK_VELOCITIES, Candidate, candidate_catalogue, candidate_parameters, coulomb
 from .check import where_it_does_not_hold
-from .data import _blocks, _Data, _joint_noise_floors, _noise_floor, _noise_levels, _rel, _stack
+from .data import StackedData, joint_noise_floors, noise_levels, relative_error, split_blocks, stack_experiments, validation_noise_floor
 from .refit import (
-    _coulomb_level,
-    _merge_offset_into_spring,
-    _refine_delays,
-    _rotate,
-    _settled,
-    _sign_reversed,
-    _trial_fit,
-    _update_parameters,
-    _widening,
+    coulomb_level,
     findings_model,
+    merge_offset_into_spring,
+    prior_widening,
+    refine_delays,
+    rotation_matrix,
+    settled_robot,
+    sign_reversed,
+    trial_fit,
+    update_parameters,
 )
 from .report import (
     MATERIALITY,
     Diagnosis,
     Finding,
-    _extrapolated,
+    extrapolated_findings,
     extrapolation_sentence,
     negligible_sentence,
     set_aside_sentence,
 )
-from .scoring import _Absorbed, _fit_round, _phi_hat, _Round, _score, _Scored, f_sf, joint_power_after, round_moments
-from .validation import VETO_BLOCKS, _joint_errors, _material_drop, _validation_error, _worse_on_validation
+from .scoring import (
+    AbsorbedCandidate,
+    RoundModel,
+    ScoredCandidate,
+    f_sf,
+    fit_round,
+    full_parameters,
+    joint_power_after,
+    round_moments,
+    score_candidate,
+)
+from .validation import VETO_BLOCKS, joint_validation_errors, material_drop, validation_error, worse_on_validation
 
 __all__ = ["MATERIALITY", "DiagnoseOptions", "Diagnosis", "Finding", "diagnose", "extrapolation_sentence", "findings_model",
            "negligible_sentence", "set_aside_sentence"]
@@ -180,7 +190,7 @@ class _Pick:
     """The candidate a round adds, with the held-out prediction before and after it and its
     held-out columns (None when it is applied exactly: a tilt, a gain, a delay)."""
 
-    scored: _Scored
+    scored: ScoredCandidate
     columns_v: Array | None
     pred_before: Array
     pred_after: Array
@@ -195,8 +205,8 @@ class _Search:
     def __init__(self, robot: Robot, experiments: list[Prepared], validation: list[Prepared], opts: DiagnoseOptions) -> None:
         self.opts = opts
         self.experiments, self.validation = experiments, validation
-        self.ident_all, self.valid = _stack(experiments), _stack(validation)
-        self.ident, self.held = _blocks(self.ident_all)
+        self.ident_all, self.valid = stack_experiments(experiments), stack_experiments(validation)
+        self.ident, self.held = split_blocks(self.ident_all)
         self.nj = robot.n_joints
         self.robot0 = self.robot = robot
         self._fit_declared()
@@ -226,15 +236,15 @@ class _Search:
         self.modeled = None if np.isnan(phi0).any() else phi0
         self.chosen: list[Candidate] = []
         self.conflicting: list[dict[str, Any]] = []
-        self.settled = _settled(self.robot0, self.result0)
+        self.settled = settled_robot(self.robot0, self.result0)
         # exact fits of the declared model with findings (gates d and f), and their residuals at
         # the validation stamps, by the findings' effects, joints and parameters
         self.fits: dict[str, IdentificationResult] = {}
         self.residuals: dict[str, Array] = {}
         self.validation_segments = [sg for p in validation for sg in p.segments]
         self.tau_validation = np.concatenate([sg.at_stamps.tau for sg in self.validation_segments])
-        self.noise_sd = _noise_levels(experiments, self.nj)
-        self.widening_now = _widening(self.result0)
+        self.noise_sd = noise_levels(experiments, self.nj)
+        self.widening_now = prior_widening(self.result0)
         self.set_aside: set[tuple[str, int | None]] = set()
 
     def _fit_declared(self) -> None:
@@ -267,12 +277,12 @@ class _Search:
         self.wt_v = (np.tile(1.0 / sigma, yv.size // nj) * used_v.reshape(-1))
         self.n_used = int(used_i.sum())
 
-    def _base_columns(self, d: _Data) -> Array:
+    def _base_columns(self, d: StackedData) -> Array:
         """The base parameters' columns of ``d`` with the gravity as tilted so far and the drive gains found so far."""
         cols = stacked_regressor(self.robot, self.effects, d.q, d.qd, d.qdd)[:, self.base.independent]
         return cols if np.all(self.gain_scale == 1.0) else cols * np.tile(self.gain_scale, d.q.shape[0])[:, None]
 
-    def _base_prediction(self, d: _Data, beta: Array) -> Array:
+    def _base_prediction(self, d: StackedData, beta: Array) -> Array:
         """(n, N) the torque of base parameters ``beta`` at the samples of ``d``, as
         :meth:`_base_columns` ``@ beta`` gives it, without a copy of the columns: a delay's
         candidate predicts on each joint's motion shifted either way, every round."""
@@ -283,7 +293,7 @@ class _Search:
     def add_one(self) -> bool:
         """Score every candidate against the model so far and add the best-ranked one that
         clears its gates (module docstring); False when none does (the search ends)."""
-        rnd = _fit_round(self.wi, self.wv, self.extra_i, self.extra_v, self.yi, self.yv, self.wt_i, self.wt_v, self.nj)
+        rnd = fit_round(self.wi, self.wv, self.extra_i, self.extra_v, self.yi, self.yv, self.wt_i, self.wt_v, self.nj)
         self._predictions(rnd)
         scored = self._scored(rnd)
         if not scored:
@@ -295,7 +305,7 @@ class _Search:
         self._add(rnd, scored, pick)
         return True
 
-    def _predictions(self, rnd: _Round) -> None:
+    def _predictions(self, rnd: RoundModel) -> None:
         """What the candidates' columns read of the model so far (``ctx``): its prediction, the
         same without friction's steps, its standard parameters and a load-dependent friction's load."""
         beta, p_base, base = rnd.beta, rnd.p_base, self.base
@@ -304,7 +314,7 @@ class _Search:
         # sample is a spike at every reversal, which would fit friction's misfit near rest
         smooth = beta[:p_base] * np.array([not base.names[c].startswith(("fc", "fs", "fl")) for c in base.independent])
         self.ctx["predict_smooth"] = lambda d, b=smooth: self._base_prediction(d, b)
-        self.ctx["phi"] = _phi_hat(self.robot, base, beta[:p_base], self.n_cols)
+        self.ctx["phi"] = full_parameters(self.robot, base, beta[:p_base], self.n_cols)
         # a load-dependent friction's load: the modeled rigid body where the robot file models
         # every link (the fit so far has the friction it lacks in its rigid-body parameters),
         # else the fit's own (its base parameters in their columns, as identify's passes take it)
@@ -315,21 +325,21 @@ class _Search:
             load = fitted[: self.robot.n_parameters]
         self.ctx["load"] = tuple(float(x) for x in load)
 
-    def _scored(self, rnd: _Round) -> list[_Scored]:
-        """Every candidate not present scored against the round (:func:`_score`); one whose columns
+    def _scored(self, rnd: RoundModel) -> list[ScoredCandidate]:
+        """Every candidate not present scored against the round (:func:`score_candidate`); one whose columns
         lie in the model's span is reported as absorbed."""
-        scored: list[_Scored] = []
-        candidates = _candidates(self.robot, self.ident, self.present | self.absorbed_keys, self.ctx, self.opts.max_cogging_per_turn)
+        scored: list[ScoredCandidate] = []
+        candidates = candidate_catalogue(self.robot, self.ident, self.present | self.absorbed_keys, self.ctx, self.opts.max_cogging_per_turn)
         moments = round_moments(candidates, rnd, self.ident, self.held, self.wt_i, self.wt_v)
         for c in candidates:
-            s = _score(c, rnd, self.ident, self.held, self.wt_i, self.wt_v, self.n_used, self.sample_period, moments.get(id(c)))
-            if isinstance(s, _Absorbed):
+            s = score_candidate(c, rnd, self.ident, self.held, self.wt_i, self.wt_v, self.n_used, self.sample_period, moments.get(id(c)))
+            if isinstance(s, AbsorbedCandidate):
                 self._absorb(c, s.projection, rnd)
             elif s is not None:
                 scored.append(s)
         return scored
 
-    def _absorb(self, c: Candidate, projection: Array, rnd: _Round) -> None:
+    def _absorb(self, c: Candidate, projection: Array, rnd: RoundModel) -> None:
         """A candidate in the span of the model (rotor inertia of a first joint with a vertical
         axis joins ``Izz1``): reported once, with the base parameter it joins."""
         key = (c.effect, c.joint)
@@ -341,7 +351,7 @@ class _Search:
                                   "into": exprs[top] if top < len(exprs) else "an effect found earlier"})
             self.absorbed_keys.add(key)
 
-    def _rank(self, rnd: _Round, scored: list[_Scored]) -> None:
+    def _rank(self, rnd: RoundModel, scored: list[ScoredCandidate]) -> None:
         """Best first by held-out residual power, each added parameter paying its penalty; an
         arm-wide delay claims every joint: it must explain clearly more (arm_margin) than the
         same effect on the one joint that explains most, or that joint's is preferred."""
@@ -354,7 +364,7 @@ class _Search:
         self.rounds.append([(f"{s.candidate.effect}@{s.candidate.joint}", 1.0 - s.rss_v / rnd.rss_v) for s in scored[:5]])
 
     # --- the gates ---
-    def _pick(self, rnd: _Round, scored: list[_Scored]) -> _Pick | None:
+    def _pick(self, rnd: RoundModel, scored: list[ScoredCandidate]) -> _Pick | None:
         """The best-ranked candidate that clears its gates (the ranking still favours the larger
         effect); None when none of the first ``ranked`` does."""
         for ranked in scored[: self.opts.ranked]:
@@ -366,7 +376,7 @@ class _Search:
                     return pick
         return None
 
-    def _gated(self, rnd: _Round, s: _Scored) -> _Pick | None:
+    def _gated(self, rnd: RoundModel, s: ScoredCandidate) -> _Pick | None:
         """``s`` as the round's pick if it clears gates (c), (a)-(b), (e), then (d) and (f)."""
         if s.p_value > self.opts.alpha:
             return None  # (c) the F-test on the identification data
@@ -382,7 +392,7 @@ class _Search:
             return None
         return _Pick(s, cv, pred_before, pred_after)
 
-    def _friction_shape(self, rnd: _Round, scored: list[_Scored], s: _Scored) -> _Scored:
+    def _friction_shape(self, rnd: RoundModel, scored: list[ScoredCandidate], s: ScoredCandidate) -> ScoredCandidate:
         """A joint's friction named by the held-out blocks of its joint: Coulomb, or the shape of
         two parameters with its Coulomb level that leaves the least there (a Stribeck peak at
         its velocity, a load-dependent term) where that leaves less than Coulomb and viscous
@@ -410,11 +420,11 @@ class _Search:
         if ("viscous_friction", j) not in self.present:
             both = Candidate("coulomb_friction", j, (), ("fc", "fv"),
                              block=lambda d: np.column_stack([coulomb(d, j)[:, 0], d.qd[:, j]]))
-            cv = _score(both, rnd, self.ident, self.held, self.wt_i, self.wt_v, self.n_used, self.sample_period)
-            rival = min(rival, joint_power_after(cv, rnd, self.held, self.wt_v)) if isinstance(cv, _Scored) else rival
+            cv = score_candidate(both, rnd, self.ident, self.held, self.wt_i, self.wt_v, self.n_used, self.sample_period)
+            rival = min(rival, joint_power_after(cv, rnd, self.held, self.wt_v)) if isinstance(cv, ScoredCandidate) else rival
         return shape if left[id(shape)] < rival else s
 
-    def _nesting(self, rnd: _Round, scored: list[_Scored], s: _Scored) -> _Scored:
+    def _nesting(self, rnd: RoundModel, scored: list[ScoredCandidate], s: ScoredCandidate) -> ScoredCandidate:
         """A joint's offset named by the one effect that holds it: the spring (``q`` and an offset,
         :data:`NESTING`) where its stiffness passes an F-test at ``alpha`` against the offset's
         refit and removes ``min_gain_joint`` of what the offset leaves on its joint's held-out
@@ -437,7 +447,7 @@ class _Search:
         left_big = joint_power_after(big, rnd, self.held, self.wt_v)
         return big if left_small - left_big >= self.opts.min_gain_joint * left_small else s
 
-    def _refit_prediction(self, rnd: _Round, s: _Scored) -> tuple[Array | None, Array]:
+    def _refit_prediction(self, rnd: RoundModel, s: ScoredCandidate) -> tuple[Array | None, Array]:
         """The candidate's held-out columns (None for one fitted exactly) and the held-out
         prediction of the refit with it."""
         if s.exact_prediction is not None:
@@ -447,7 +457,7 @@ class _Search:
         cv = s.candidate.columns(self.held)
         return cv, rnd.a_v @ beta_c + cv @ s.gamma
 
-    def _clears_held_out(self, rnd: _Round, s: _Scored, pred_before: Array, pred_after: Array) -> bool:
+    def _clears_held_out(self, rnd: RoundModel, s: ScoredCandidate, pred_before: Array, pred_after: Array) -> bool:
         """Gates (a) and (b), on the held-out tenths. A joint's effect is judged by its joint's
         residual (on 6-7 joints a perfect fix of one joint removes about 1/N of the arm's): it
         must remove min_gain_joint of that joint's held-out residual power and cut that joint's
@@ -472,14 +482,14 @@ class _Search:
         own = float(np.sum(rnd.res_v[rows] ** 2))
         if rnd.rss_v - s.rss_v < opts.min_gain_joint * own:
             return False
-        if _rel(yv * rows, pred_after * rows) > (1.0 - opts.min_error_drop) * _rel(yv * rows, pred_before * rows):
+        if relative_error(yv * rows, pred_after * rows) > (1.0 - opts.min_error_drop) * relative_error(yv * rows, pred_before * rows):
             return False  # it whitens the residual but does not move the error anyone reads
         used = self.wt_v > 0
-        if _rel(yv * used, pred_after * used) > (1.0 - opts.min_arm_drop) * _rel(yv * used, pred_before * used):
+        if relative_error(yv * used, pred_after * used) > (1.0 - opts.min_arm_drop) * relative_error(yv * used, pred_before * used):
             return False  # ... nor the arm's: a joint whose torque is a thousandth of the others
         return True
 
-    def _clears_noise(self, s: _Scored, pred_before: Array, pred_after: Array) -> bool:
+    def _clears_noise(self, s: ScoredCandidate, pred_before: Array, pred_after: Array) -> bool:
         """Gate (e): what it changes in the prediction is at least min_noise_fraction of the
         torque's own noise (its joint's, or the arm's); far below it, it is not what anyone
         measuring the torque would see."""
@@ -492,18 +502,18 @@ class _Search:
             return False
         return True
 
-    def _clears_exact_fits(self, s: _Scored) -> bool:
+    def _clears_exact_fits(self, s: ScoredCandidate) -> bool:
         """Gates (g), (d) and (f), judged by exact fits: the model with the finding added as
         `identify` fits it. A further tilt or delay corrects one found before and is not judged
         again. A candidate that fails any is set aside (reported, not taken)."""
         best, opts = s.candidate, self.opts
         if best.effect in ("gravity_tilt", "time_delay") and any(f.effect == best.effect and f.joint == best.joint for f in self.found):
             return True
-        trial = Finding(best.effect, best.joint, _parameters(best, s.gamma), 0.0, 0.0, 0.0)
-        fit_with = self._trial_fit(self.found + [trial])
+        trial = Finding(best.effect, best.joint, candidate_parameters(best, s.gamma), 0.0, 0.0, 0.0)
+        fit_with = self.trial_fit(self.found + [trial])
         if self._held_at_bound(best, trial, fit_with):
             return False
-        widening = _widening(fit_with)
+        widening = prior_widening(fit_with)
         if self.widening_now is not None and (widening is None or widening > opts.max_prior_widening * self.widening_now):
             # (d) on the identification data: the prior's widening with the finding
             self.conflicting.append({"effect": best.effect, "joint": None if best.joint is None else best.joint + 1,
@@ -519,8 +529,8 @@ class _Search:
         res_before, res_with = self._validation_residual(self.found), self._validation_residual(self.found + [trial])
         cols = slice(None) if best.joint is None else [best.joint]
         tau_v = self.tau_validation
-        on_validation = tuple(_rel(tau_v[:, cols], tau_v[:, cols] - r[:, cols]) for r in (res_before, res_with))
-        t_stat = _worse_on_validation(res_before, res_with, best.joint)
+        on_validation = tuple(relative_error(tau_v[:, cols], tau_v[:, cols] - r[:, cols]) for r in (res_before, res_with))
+        t_stat = worse_on_validation(res_before, res_with, best.joint)
         if t_stat > stats.t.isf(opts.veto_alpha, VETO_BLOCKS - 1):
             self.residuals.pop(self._key_of(self.found + [trial]), None)  # a validation-length array no later round needs
             self.conflicting.append({"effect": best.effect, "joint": None if best.joint is None else best.joint + 1,
@@ -539,8 +549,8 @@ class _Search:
         for its sign, as the final fit's check (:meth:`report`) would, before any later round
         builds on a column that explains nothing."""
         fitted = replace(trial, parameters=dict(trial.parameters))
-        _update_parameters([fitted], fit_with)
-        if not _sign_reversed([fitted]):
+        update_parameters([fitted], fit_with)
+        if not sign_reversed([fitted]):
             return False
         self.conflicting.append({"effect": fitted.effect, "joint": fitted.joint + 1, "parameters": fitted.parameters, "reason": "sign"})  # type: ignore[operator]
         self._set_aside(best)
@@ -554,7 +564,7 @@ class _Search:
     def _key_of(found: list[Finding]) -> str:
         return repr([(f.effect, f.joint, sorted(f.parameters.items())) for f in found])
 
-    def _trial_fit(self, found: list[Finding]) -> IdentificationResult:
+    def trial_fit(self, found: list[Finding]) -> IdentificationResult:
         """``identify``'s fit of the declared model with ``found`` (as gates d and f see it);
         with nothing found, the declared model's own fit (``armid identify``'s)."""
         if not found:
@@ -563,25 +573,25 @@ class _Search:
         if key not in self.fits:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", PoorExcitationWarning)
-                self.fits[key] = _trial_fit(self.settled, self.experiments, found, self.load0)
+                self.fits[key] = trial_fit(self.settled, self.experiments, found, self.load0)
         return self.fits[key]
 
     def _validation_residual(self, found: list[Finding]) -> Array:
         """That fit's residual at every validation stamp, against the raw torque (n, N)."""
         key = self._key_of(found)
         if key not in self.residuals:
-            self.residuals[key] = self.tau_validation - self._trial_fit(found).predict_stamps(self.validation_segments)[2]
+            self.residuals[key] = self.tau_validation - self.trial_fit(found).predict_stamps(self.validation_segments)[2]
         return self.residuals[key]
 
     # --- adding a finding ---
-    def _add(self, rnd: _Round, scored: list[_Scored], pick: _Pick) -> None:
+    def _add(self, rnd: RoundModel, scored: list[ScoredCandidate], pick: _Pick) -> None:
         """The picked candidate as a finding (with its look-alike, when one explains nearly as
         much), applied: exactly for a tilt, a gain, a delay; as columns otherwise."""
         s, yv, wt_v = pick.scored, self.yv, self.wt_v
         best, gamma = s.candidate, s.gamma
-        err_before = _rel(yv * (wt_v > 0), pick.pred_before * (wt_v > 0))
-        err_after = _rel(yv * (wt_v > 0), pick.pred_after * (wt_v > 0))
-        finding = Finding(best.effect, best.joint, _parameters(best, gamma), 1.0 - s.rss_v / rnd.rss_v, err_before, err_after)
+        err_before = relative_error(yv * (wt_v > 0), pick.pred_before * (wt_v > 0))
+        err_after = relative_error(yv * (wt_v > 0), pick.pred_after * (wt_v > 0))
+        finding = Finding(best.effect, best.joint, candidate_parameters(best, gamma), 1.0 - s.rss_v / rnd.rss_v, err_before, err_after)
         alt_name = LOOKALIKES.get(best.effect)
         if alt_name:
             alt = next((x for x in scored if x.candidate.effect == alt_name and x.candidate.joint == best.joint), None)
@@ -597,7 +607,7 @@ class _Search:
         else:
             self._add_columns(finding, best, pick.columns_v)
 
-    def _explains_nearly_as_much(self, rnd: _Round, alt: _Scored, s: _Scored) -> bool:
+    def _explains_nearly_as_much(self, rnd: RoundModel, alt: ScoredCandidate, s: ScoredCandidate) -> bool:
         """Whether look-alike ``alt`` removes at least 0.9 of what ``s`` removes from the arm's
         held-out residual. A Stribeck or load-dependent friction against its Coulomb look-alike
         is a question of its term on its joint's rows (as :meth:`_friction_shape` names it):
@@ -613,7 +623,7 @@ class _Search:
         tilted gravity and the search goes on from there (a linearised tilt leaves a residual
         that springs and gains would chase); a further tilt found later is a correction of this
         one (at most two), merged into the same finding."""
-        rotation = _rotate(np.array([gamma[0], gamma[1], 0.0]))
+        rotation = rotation_matrix(np.array([gamma[0], gamma[1], 0.0]))
         self.robot = replace(self.robot, gravity=rotation @ np.asarray(self.robot.gravity, float))
         total = np.array([gamma[0], gamma[1]]) + self.tilt_total
         earlier = next((f for f in self.found if f.effect == "gravity_tilt"), None)
@@ -685,20 +695,20 @@ class _Search:
         declared Coulomb smoothing chosen on the data, weighted least squares): before is the
         declared model exactly as `armid identify` gives it, after the same with the findings
         added to the model (findings_model), so the two differ by the findings alone."""
-        found, _ = _merge_offset_into_spring(self.found, self.chosen)
+        found, _ = merge_offset_into_spring(self.found, self.chosen)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PoorExcitationWarning)
-            _refine_delays(self.settled, found, self.experiments, self.load0)  # the declared settings as chosen: a delay's fit per try
+            refine_delays(self.settled, found, self.experiments, self.load0)  # the declared settings as chosen: a delay's fit per try
             result1 = self._fit_findings(found)
             # friction, inertia or a spring the whole fit holds at its bound (the search saw it
             # positive on its blocks): it explains nothing, so it is not a finding; the rest refitted
-            reversed_sign = _sign_reversed(found)
+            reversed_sign = sign_reversed(found)
             if reversed_sign:
                 self.conflicting += [{"effect": f.effect, "joint": f.joint + 1, "parameters": dict(f.parameters), "reason": "sign"}
                                      for f in reversed_sign if f.joint is not None]
                 # a Stribeck or load term held at 0 leaves the Coulomb level it came with: that
                 # friction stays, in its place in the order found (the Coulomb itself)
-                found = [g for g in (_coulomb_level(f) if f in reversed_sign else f for f in found) if g is not None]
+                found = [g for g in (coulomb_level(f) if f in reversed_sign else f for f in found) if g is not None]
                 result1 = self._fit_findings(found)
             found, result1, negligible = self._material(found, result1)
         self.final_fit = result1
@@ -724,20 +734,20 @@ class _Search:
         segments = self.validation_segments
         kept: list[Finding] = []
         fit_kept = self.result0
-        (_, tau_v, pred), error = fit_kept.predict_stamps(segments), _validation_error(fit_kept)
+        (_, tau_v, pred), error = fit_kept.predict_stamps(segments), validation_error(fit_kept)
         negligible: list[dict[str, Any]] = []
-        floor = _noise_floor(self.validation)["relative_error"] or 0.0
-        if floor >= _validation_error(result1):  # no model beats the noise: the estimate took the torque's own steps for noise
+        floor = validation_noise_floor(self.validation)["relative_error"] or 0.0
+        if floor >= validation_error(result1):  # no model beats the noise: the estimate took the torque's own steps for noise
             floor = 0.0
         for f in found:
             fit = result1 if len(kept) == len(found) - 1 else self._fit_findings(kept + [f])
-            error_with, pred_with = _validation_error(fit), fit.predict_stamps(segments)[2]
-            level = _coulomb_level(f)
+            error_with, pred_with = validation_error(fit), fit.predict_stamps(segments)[2]
+            level = coulomb_level(f)
             if level is not None and error_with < error:  # its peak or load term judged as a finding after its Coulomb level
                 fit_level = self._fit_findings(kept + [level])
-                error_level, pred_level = _validation_error(fit_level), fit_level.predict_stamps(segments)[2]
-                joint_errors = _joint_errors(tau_v, (pred_level, pred_with), _joint_noise_floors(self.validation), f.joint)  # type: ignore[arg-type]
-                if not _material_drop(*joint_errors):
+                error_level, pred_level = validation_error(fit_level), fit_level.predict_stamps(segments)[2]
+                joint_errors = joint_validation_errors(tau_v, (pred_level, pred_with), joint_noise_floors(self.validation), f.joint)  # type: ignore[arg-type]
+                if not material_drop(*joint_errors):
                     rms_term = float(np.sqrt(np.mean((pred_with - pred_level)[:, f.joint] ** 2)))
                     negligible.append({"effect": f.effect, "joint": f.joint + 1, "parameters": dict(f.parameters), "torque_rms": rms_term,  # type: ignore[operator]
                                        "validation_error_before": error_level, "validation_error_with": error_with, "kept": "coulomb_friction",
@@ -750,13 +760,13 @@ class _Search:
             what = {"effect": f.effect, "joint": None if f.joint is None else f.joint + 1, "parameters": dict(f.parameters)}
             if error_with >= error:  # not small: wrong beyond the run it was found on
                 self.conflicting.append({**what, "reason": "validation", "validation_error_before": error, "validation_error_with": error_with})
-            elif _material_drop(error, error_with, floor):
+            elif material_drop(error, error_with, floor):
                 f.validation_before, f.validation_after, f.torque_rms = error, error_with, rms
                 kept.append(f)
                 fit_kept, error, pred = fit, error_with, pred_with
             else:
                 negligible.append({**what, "torque_rms": rms, "validation_error_before": error, "validation_error_with": error_with})
-        _update_parameters(kept, fit_kept)  # the kept findings' parameters as their own fit gives them (the trials moved them)
+        update_parameters(kept, fit_kept)  # the kept findings' parameters as their own fit gives them (the trials moved them)
         return kept, fit_kept, negligible
 
     def _fit_findings(self, found: list[Finding]) -> IdentificationResult:
@@ -767,9 +777,9 @@ class _Search:
         # from the modeled values and would widen the prior for the whole model; on the KUKA
         # LWR4+ (1 -> 3) that cost more on another trajectory than the tilt gained
         if self.widening_now is not None:
-            model_options = replace(model_options, prior_widening=min(_widening(self.result0) or np.inf, self.widening_now))
+            model_options = replace(model_options, prior_widening=min(prior_widening(self.result0) or np.inf, self.widening_now))
         result = identify(model, self.experiments, self.validation, model_options) if found else self.result0
-        _update_parameters(found, result)
+        update_parameters(found, result)
         return result
 
     def _measured(self, found: list[Finding], result1: IdentificationResult) -> Diagnosis:
@@ -787,13 +797,13 @@ class _Search:
         after = summary(tau_s, after_stamps)
         before["moving_equations"] = masked_summary(valid.tau, before_pred, used_v)
         after["moving_equations"] = masked_summary(valid.tau, after_pred, used_v)
-        noise = _noise_floor(self.validation)
+        noise = validation_noise_floor(self.validation)
         return Diagnosis(found, self.absorbed, before, after, [f"{e.effect}@{e.joint + 1}" for e in self.effects], self.rounds,
                          (valid.tau, before_pred), (valid.tau, after_pred), (t_v, valid.q, valid.qd, valid.qdd), used_v,
                          (np.asarray(t_s), tau_s, after_stamps), noise, self.conflicting,
-                         _extrapolated(found, self.ident_all.q, valid.q))
+                         extrapolated_findings(found, self.ident_all.q, valid.q))
 
 
-def _moving(d: _Data, opts: DiagnoseOptions) -> Array:
+def _moving(d: StackedData, opts: DiagnoseOptions) -> Array:
     """(n, N): the equations whose joint moves clear of rest and of a reversal."""
     return np.abs(d.qd) >= np.maximum(opts.min_speed, np.abs(d.qdd) * opts.reversal_margin_s)

@@ -3,7 +3,7 @@
 The payload estimator's derivatives (:mod:`identify.payload`): the degree-4 least-squares
 polynomial through every record within ``HALF_WINDOW_S`` of each one, a window of fixed
 *time* on the records' own stamps (:func:`local_polynomial`), non-causal on a recording
-(:func:`derivatives_on_times`) and causal on a stream (:class:`_Filter`: each record's
+(:func:`derivatives_on_times`) and causal on a stream (:class:`StreamFilter`: each record's
 equations once its window has come, the same however the records are batched; gaps restart
 the derivatives, rate changes are counted).
 """
@@ -105,7 +105,7 @@ def _within(a: float, b: float, ratio: float) -> bool:
 
 
 @dataclass
-class _Filter:
+class StreamFilter:
     """Causal :func:`local_polynomial` of a stream: records (t, positions, torques) in, in
     batches of any size; out, each record's smoothed position and torque with its velocity
     and acceleration, once every record within ``half_window_s`` after it has come (the
