@@ -25,7 +25,7 @@ from armid.daq.payload_service import EstimateStream, PayloadService, wait_for
 from armid.daq.stream import Stream, session_config
 from armid.demo import true_parameters
 from armid.identify import excitation as ex
-from armid.identify.differentiation import five_point_derivative
+from armid.identify.differentiation import derivatives_on_times, five_point_derivative, local_polynomial
 from armid.identify.identification import declared_effects, stacked_regressor, structural_base
 from armid.identify.payload.projection import phi_of_pseudo
 from armid.identify.payload.rls import (
@@ -33,9 +33,7 @@ from armid.identify.payload.rls import (
     ArmModel,
     PayloadRLS,
     ReferenceRun,
-    derivatives_on_times,
     identification_document,
-    local_polynomial,
     project_feasible,
     project_feasible_many,
     pseudo_inertia,

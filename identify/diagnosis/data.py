@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from ..differentiation import central_difference
 from ..effects import ColumnFunction
 from ..preprocess import Prepared
 from ..spatial import Array
@@ -110,9 +111,7 @@ def stack_experiments(prepared: list[Prepared]) -> StackedData:
 
 def torque_rate(d: StackedData, tau: Array) -> Array:
     """d(tau)/dt along the samples (n, N), by their stamps where they have them."""
-    if tau.shape[0] < 2:
-        return np.zeros_like(tau)
-    return np.gradient(tau, d.t, axis=0) if d.t is not None and np.all(np.diff(d.t) > 0) else np.gradient(tau, d.period, axis=0)
+    return central_difference(tau, d.period, d.t)
 
 
 def split_blocks(d: StackedData, parts: int = 10) -> tuple[StackedData, StackedData]:

@@ -12,7 +12,7 @@ information form (:meth:`PayloadRLS._fold_information`).
 
 - **The record's own clock.** Position, velocity and acceleration are the degree-4
   least-squares polynomial through the records within ``HALF_WINDOW_S`` (50 ms) of each
-  record, on their time stamps (:func:`local_polynomial`): a window of fixed *time*, so the
+  record, on their time stamps (:func:`identify.differentiation.local_polynomial`): a window of fixed *time*, so the
   filter's bias does not grow with the sample period (the 5-point filter applied twice
   spanned 80 ms at 10 ms and biased the mass by 1 %). The torque is filtered alike. Each
   equation is made once every record of its window has come (50 ms late), the same however
@@ -67,15 +67,16 @@ import numpy as np
 
 from armid.schema.json_text import json_safe
 
+from ..differentiation import HALF_WINDOW_S
 from ..robot import inertial_from_parameters
 from ..spatial import Array
 from .arm import ArmModel, ReferenceRun, arm_model_from_identification, identification_document
 from .band import MIN_BATCHES, Batches, batch_means_covariance, torque_constant_covariance
-from .filter import HALF_WINDOW_S, StreamFilter, derivatives_on_times, local_polynomial
+from .filter import StreamFilter
 from .projection import project_feasible, project_feasible_many, pseudo_inertia
 
-__all__ = ["ArmModel", "PayloadRLS", "ReferenceRun", "arm_model_from_identification", "derivatives_on_times", "identification_document",
-           "local_polynomial", "project_feasible", "project_feasible_many", "pseudo_inertia"]
+__all__ = ["ArmModel", "PayloadRLS", "ReferenceRun", "arm_model_from_identification", "identification_document",
+           "project_feasible", "project_feasible_many", "pseudo_inertia"]
 """The estimator's public names; the derivatives on the records' stamps, the arm model and the
 projection onto possible payloads live in ``identify/payload_*.py``."""
 
