@@ -52,8 +52,8 @@ import numpy as np
 
 from armid.daq.experiment_stream import CollectedExperiment, ExperimentCollector, event_of
 from armid.daq.stream import key
+from armid.identify.plausibility import joint_spans
 from armid.identify.robot import Robot
-from armid.identify.single_link import joint_spans
 from armid.schema.joint_state import JointStateRecord, check_encoding
 
 from .pipeline import RECIPES

@@ -158,14 +158,14 @@ def not_identified(std: float, physical_range: float | None) -> str:
 def _single_joint_run(path: str, robot: Any) -> tuple[Any, int]:
     """The recording, cut to its excitation window where ``armid excite``'s ``runs.json`` gives
     it, and the one joint (0-based) that moved in it."""
-    from armid.identify.single_link import MOVING_RAD, joint_spans
+    from armid.identify.plausibility import MOVING_RAD, moving_joints
 
     from ..pipeline import read
 
     rec, found = read(path, robot, need_motion=False)
     show_warnings(found)
     rec = _excitation_window(Path(path), rec)
-    moved = np.flatnonzero(joint_spans(rec.q) > MOVING_RAD)
+    moved = np.flatnonzero(moving_joints(rec.q))
     if moved.size != 1:
         what = "no joint moved" if moved.size == 0 else f"joints {', '.join(str(j + 1) for j in moved)} moved"
         raise RecordingError(path, f"{what} (by more than {MOVING_RAD} rad): a single-link experiment moves one joint alone "
