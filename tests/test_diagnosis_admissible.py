@@ -294,7 +294,7 @@ def test_a_stribeck_peak_below_the_materiality_leaves_its_coulomb_friction(monke
     1.799 % (a wrist's peak under a shoulder's noise: blind Stribeck seed 13)."""
     n = 1000
     tau = np.column_stack([np.full(n, 50.0), np.ones(n)])
-    monkeypatch.setattr(diagnosis, "_joint_noise_floors", lambda validation: np.array([0.0, 0.05 * np.sqrt(n)]))
+    monkeypatch.setattr(diagnosis, "joint_noise_floors", lambda validation: np.array([0.0, 0.05 * np.sqrt(n)]))
     for arm_with, joint_with, expect in ((0.0170, 0.0999, "coulomb_friction"), (0.01799, 0.060, "stribeck_friction")):
         stribeck = Finding("stribeck_friction", 1, {"fc": 2.0, "fs": 0.5, "velocity": 0.1}, 0.1, 0.02, 0.01)
         fits = {(): _Fit(0.0200, tau - [0.0, 0.2], tau), ("stribeck_friction",): _Fit(arm_with, tau - [0.0, joint_with], tau),
