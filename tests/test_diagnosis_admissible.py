@@ -24,7 +24,8 @@ from armid.identify.diagnosis import search as diagnosis
 from armid.identify.diagnosis.candidates import Candidate
 from armid.identify.diagnosis.data import StackedData
 from armid.identify.diagnosis.scoring import ScoredCandidate, fit_round, score_candidate
-from armid.identify.diagnosis.search import MATERIALITY, Finding, _Search, negligible_sentence, set_aside_sentence
+from armid.identify.diagnosis.search import MATERIALITY, DiagnosisSearch, Finding, negligible_sentence, set_aside_sentence
+from armid.identify.diagnosis.state import FindingsSoFar
 from armid.identify.estimation import bounded_quadratic
 from armid.io.recordings import read_recording
 from armid.io.robot_file import load_robot
@@ -216,7 +217,7 @@ def test_a_gain_planted_on_torque_data_is_not_tested(tmp_path: Path) -> None:
 
 
 class _Fit:
-    """What ``_Search._material`` reads of an ``identify`` fit: its validation error and its
+    """What ``DiagnosisSearch._material`` reads of an ``identify`` fit: its validation error and its
     prediction at the validation stamps."""
 
     def __init__(self, error: float, pred: np.ndarray, tau: np.ndarray | None = None) -> None:
@@ -232,6 +233,13 @@ class _Fit:
         return np.zeros(0), np.zeros(0)
 
 
+def _material_search(fits: dict[tuple[str, ...], _Fit]) -> SimpleNamespace:
+    """What ``DiagnosisSearch._material`` reads of the search: no validation (no noise floor:
+    all the power is the model's), the declared fit, and the fits with findings, by their effects."""
+    return SimpleNamespace(data=SimpleNamespace(validation_segments=[], validation=[]), model=SimpleNamespace(result0=fits[()]),
+                           findings=FindingsSoFar(set()), _fit_findings=lambda found: fits[tuple(f.effect for f in found)])
+
+
 def test_a_finding_below_the_materiality_is_negligible_with_its_size() -> None:
     """Three findings in the order found: a viscous friction that takes 2.00 % to 1.80 %
     (found), a spring of 0.003 N*m rms that takes 1.80 % to 1.79 % (1.1 % of the error's
@@ -243,10 +251,9 @@ def test_a_finding_below_the_materiality_is_negligible_with_its_size() -> None:
     fits = {(): _Fit(0.0200, base), ("viscous_friction",): _Fit(0.0180, base + [0.5, 0.0]),
             ("viscous_friction", "spring"): _Fit(0.0179, base + [0.5, 0.003]),
             ("viscous_friction", "cogging"): _Fit(0.0170, base + [0.5, 0.04])}
-    search = SimpleNamespace(validation_segments=[], validation=[], result0=fits[()],  # no noise floor: all the power is the model's
-                             _fit_findings=lambda found: fits[tuple(f.effect for f in found)])
+    search = _material_search(fits)  # no noise floor: all the power is the model's
     found = [viscous, spring, cogging]
-    kept, fit, negligible = _Search._material(search, found, fits[("viscous_friction", "cogging")])  # type: ignore[arg-type]
+    kept, fit, negligible = DiagnosisSearch._material(search, found, fits[("viscous_friction", "cogging")])  # type: ignore[arg-type]
     assert kept == [viscous, cogging] and fit is fits[("viscous_friction", "cogging")]
     assert (viscous.validation_before, viscous.validation_after) == (0.0200, 0.0180)
     assert (cogging.validation_before, cogging.validation_after) == (0.0180, 0.0170)
@@ -271,11 +278,10 @@ def test_a_finding_that_raises_the_validation_error_is_set_aside_not_negligible(
     fits = {(): _Fit(0.0200, base), ("viscous_friction",): _Fit(0.0180, base + [0.5, 0.0]),
             ("viscous_friction", "cogging"): _Fit(0.0190, base + [0.5, 0.02]),
             ("viscous_friction", "spring"): _Fit(0.0170, base + [0.5, 0.04])}
-    search = SimpleNamespace(validation_segments=[], validation=[], result0=fits[()], conflicting=[],
-                             _fit_findings=lambda found: fits[tuple(f.effect for f in found)])
-    kept, fit, negligible = _Search._material(search, [viscous, cogging, spring], fits[("viscous_friction", "spring")])  # type: ignore[arg-type]
+    search = _material_search(fits)
+    kept, fit, negligible = DiagnosisSearch._material(search, [viscous, cogging, spring], fits[("viscous_friction", "spring")])  # type: ignore[arg-type]
     assert kept == [viscous, spring] and negligible == [] and fit is fits[("viscous_friction", "spring")]
-    (x,) = search.conflicting
+    (x,) = search.findings.conflicting
     assert (x["effect"], x["joint"], x["reason"]) == ("cogging", 2, "validation")
     assert (x["validation_error_before"], x["validation_error_with"]) == (0.0180, 0.0190)
     text = set_aside_sentence(x)
@@ -299,9 +305,8 @@ def test_a_stribeck_peak_below_the_materiality_leaves_its_coulomb_friction(monke
         stribeck = Finding("stribeck_friction", 1, {"fc": 2.0, "fs": 0.5, "velocity": 0.1}, 0.1, 0.02, 0.01)
         fits = {(): _Fit(0.0200, tau - [0.0, 0.2], tau), ("stribeck_friction",): _Fit(arm_with, tau - [0.0, joint_with], tau),
                 ("coulomb_friction",): _Fit(0.0180, tau - [0.0, 0.1], tau)}
-        search = SimpleNamespace(validation_segments=[], validation=[], result0=fits[()], conflicting=[],
-                                 _fit_findings=lambda found, fits=fits: fits[tuple(f.effect for f in found)])
-        kept, fit, negligible = _Search._material(search, [stribeck], fits[("stribeck_friction",)])  # type: ignore[arg-type]
+        search = _material_search(fits)
+        kept, fit, negligible = DiagnosisSearch._material(search, [stribeck], fits[("stribeck_friction",)])  # type: ignore[arg-type]
         assert [f.effect for f in kept] == [expect]
         if expect == "coulomb_friction":
             assert kept[0].parameters == {"fc": 2.0} and fit is fits[("coulomb_friction",)]
@@ -332,18 +337,17 @@ def test_a_candidate_the_exact_fit_holds_at_its_bound_is_set_aside_in_the_search
     with it, three fixed-point passes, then without it). A positive ``fl`` clears the gate."""
     candidate = Candidate("load_dependent_coulomb", 2, (), ("fl",), block=lambda d: d.qd[:, 2:3])
     for fl, held in ((0.0, True), (0.03, False)):
-        search = SimpleNamespace(conflicting=[], present=set(), set_aside=set())
-        search._set_aside = lambda c, search=search: _Search._set_aside(search, c)  # type: ignore[arg-type]
+        search = SimpleNamespace(findings=FindingsSoFar(set()))
         trial = Finding("load_dependent_coulomb", 2, {"fl": 0.05}, 0.0, 0.0, 0.0)
-        assert _Search._held_at_bound(search, candidate, trial, _Parameters(fl3=fl)) is held  # type: ignore[arg-type]
+        assert DiagnosisSearch._held_at_bound(search, candidate, trial, _Parameters(fl3=fl)) is held  # type: ignore[arg-type]
         assert trial.parameters == {"fl": 0.05}  # the search's own finding untouched
         if held:
-            (x,) = search.conflicting
+            (x,) = search.findings.conflicting
             assert (x["effect"], x["joint"], x["reason"], x["parameters"]) == ("load_dependent_coulomb", 3, "sign", {"fl": 0.0})
-            assert search.set_aside == search.present == {("load_dependent_coulomb", 2)}
+            assert search.findings.set_aside == search.findings.present == {("load_dependent_coulomb", 2)}
             assert "holds fl at 0" in set_aside_sentence(x)
         else:
-            assert search.conflicting == [] and search.set_aside == set()
+            assert search.findings.conflicting == [] and search.findings.set_aside == set()
 
 
 @pytest.mark.parametrize("index", [1, 3])  # jittered clean blind cases: 200 Hz medium noise, 1 kHz low noise

@@ -14,7 +14,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Protocol
 
 import numpy as np
 
@@ -172,16 +172,31 @@ def _load_friction_columns(robot: Robot, phi: tuple[float, ...], q: Array, qd: A
     return np.abs(regressor(robot, q, qd, qdd) @ np.asarray(phi)) * np.sign(qd)
 
 
-def candidate_catalogue(robot: Robot, data: StackedData, present: set[tuple[str, int | None]], ctx: dict[str, Any],
-                max_cogging_per_turn: int) -> list[Candidate]:
+class CurrentModel(Protocol):
+    """What a candidate's columns read of the model they are scored against, when they are
+    computed: its prediction (and the same without friction's steps, for a delay's
+    derivative), its standard parameters ``phi`` (a tilt's columns) and a load-dependent
+    friction's load (``load``, standard rigid-body parameters)."""
+
+    @property
+    def phi(self) -> Array: ...
+
+    @property
+    def load(self) -> tuple[float, ...]: ...
+
+    def predict(self, d: StackedData) -> Array: ...
+
+    def predict_smooth(self, d: StackedData) -> Array: ...
+
+
+def candidate_catalogue(robot: Robot, data: StackedData, present: set[tuple[str, int | None]], model: CurrentModel,
+                        max_cogging_per_turn: int) -> list[Candidate]:
     """Every candidate of the catalogue not ``present`` (declared, found or set aside) on
     ``data``: per joint the linear effects, a Stribeck term per velocity its motion outruns,
     cogging per whole number of periods per turn its motion spans (up to
     ``max_cogging_per_turn``), a drive gain and a late position; for the arm friction on every
-    bare joint, a delay of the torque channel and a tilt of gravity. ``ctx`` holds what the
-    model so far gives: its prediction (``predict``, and ``predict_smooth`` without friction's
-    steps), its standard parameters (``phi``) and a load-dependent friction's load (``load``),
-    read when the columns are computed."""
+    bare joint, a delay of the torque channel and a tilt of gravity. The columns read ``model``
+    (:class:`CurrentModel`) when they are computed."""
     out: list[Candidate] = []
     nj = robot.n_joints
     declared_coulomb = {k for e in robot.effects if e.effect == "coulomb_friction" for k in (range(nj) if e.joint is None else [e.joint - 1])}
@@ -211,7 +226,7 @@ def candidate_catalogue(robot: Robot, data: StackedData, present: set[tuple[str,
                 return d.filtered(functools.partial(_stribeck_columns, j, vs))[:, 0 if wc else 1 :]
             lin("stribeck_friction", strib, (("fc",) if with_coulomb else ()) + ("fs",), setting=(("velocity", vs),))
         def load_friction(d: StackedData, j: int = j, wc: bool = with_coulomb) -> Array:
-            cols = d.filtered(functools.partial(_load_friction_columns, robot, ctx["load"]))
+            cols = d.filtered(functools.partial(_load_friction_columns, robot, model.load))
             return np.column_stack(([coulomb(d, j)[:, 0]] if wc else []) + [cols[:, j]])
         lin("load_dependent_coulomb", load_friction, (("fc",) if with_coulomb else ()) + ("fl",))
         if revolute:
@@ -223,9 +238,9 @@ def candidate_catalogue(robot: Robot, data: StackedData, present: set[tuple[str,
                 lin("cogging", lambda d, fn=cog, i=i: d.filtered(fn)[:, 2 * i : 2 * i + 2], ("a", "b"),  # type: ignore[misc]
                     setting=(("period_rad", period),))
         if ("torque_gain", j) not in present:
-            out.append(Candidate("torque_gain", j, (), ("c",), block=lambda d, j=j: ctx["predict"](d)[:, j : j + 1]))  # type: ignore[misc]
+            out.append(Candidate("torque_gain", j, (), ("c",), block=lambda d, j=j: model.predict(d)[:, j : j + 1]))  # type: ignore[misc]
         if ("time_delay", j) not in present:  # joint j's drive reports its position late: every joint's torque leads it
-            out.append(Candidate("time_delay", j, (), ("delay_s",), full=lambda d, j=j: ((ctx["predict_smooth"](d.shifted(j, 1)) - ctx["predict_smooth"](d.shifted(j, -1))) / (2 * d.period)).reshape(-1, 1)))  # type: ignore[misc]
+            out.append(Candidate("time_delay", j, (), ("delay_s",), full=lambda d, j=j: ((model.predict_smooth(d.shifted(j, 1)) - model.predict_smooth(d.shifted(j, -1))) / (2 * d.period)).reshape(-1, 1)))  # type: ignore[misc]
     # friction on every joint (what a real arm's residual mostly is) as one arm-wide candidate:
     # judged against the whole arm, not N separate one-joint gains
     bare = [j for j in range(nj) if not {("coulomb_friction", j), ("viscous_friction", j), ("torque_offset", j)} & present]
@@ -239,7 +254,7 @@ def candidate_catalogue(robot: Robot, data: StackedData, present: set[tuple[str,
         out.append(Candidate("coulomb_friction", None, (), labels, full=friction))
     if ("time_delay", None) not in present and not any(e == "time_delay" for e, _ in present):
         # the whole torque channel lags the positions (a current loop, a bus, a filter): one delay
-        out.append(Candidate("time_delay", None, (), ("delay_s",), full=lambda d: -torque_rate(d, ctx["predict_smooth"](d)).reshape(-1, 1)))
+        out.append(Candidate("time_delay", None, (), ("delay_s",), full=lambda d: -torque_rate(d, model.predict_smooth(d)).reshape(-1, 1)))
     if ("gravity_tilt", None) not in present:
         def tilt(d: StackedData) -> Array:
             g = np.asarray(robot.gravity, float)
@@ -247,7 +262,7 @@ def candidate_catalogue(robot: Robot, data: StackedData, present: set[tuple[str,
             for axis in np.eye(3)[:2]:
                 tilted = replace(robot, gravity=np.cross(axis, g))
                 z = np.zeros_like(d.q)
-                cols.append((regressor(tilted, d.q, z, z) @ ctx["phi"]).reshape(-1))
+                cols.append((regressor(tilted, d.q, z, z) @ model.phi).reshape(-1))
             return np.column_stack(cols)
         out.append(Candidate("gravity_tilt", None, (), ("tilt_x_rad", "tilt_y_rad"), full=tilt))
     return out

@@ -251,6 +251,21 @@ def _tenths(data: list[Prepared], times: list[Array]) -> Array:
     return np.concatenate(out)
 
 
+@dataclass(frozen=True)
+class _FixedView:
+    """The fixed model as the candidates read it (:class:`~identify.diagnosis.candidates.CurrentModel`)."""
+
+    model: FixedModel
+    phi: Array
+    load: tuple[float, ...]
+
+    def predict(self, d: StackedData) -> Array:
+        return self.model.torque(d.q, d.qd, d.qdd)
+
+    def predict_smooth(self, d: StackedData) -> Array:
+        return _rigid_torque(self.model, d)
+
+
 class _Search:
     """Greedy forward selection of changes on the fixed model's residual, cross-fitted over two folds."""
 
@@ -284,13 +299,12 @@ class _Search:
         self.reach = ArmSize.of(robot).reach_m
         self.rss_scale = float(self.rw @ self.rw)
         phi = tuple(float(x) for x in model.rigid_phi())
-        self.ctx: dict[str, Any] = {"predict": lambda d: model.torque(d.q, d.qd, d.qdd),
-                                    "predict_smooth": lambda d: _rigid_torque(model, d), "phi": np.asarray(phi), "load": phi}
+        self.view = _FixedView(model, np.asarray(phi), phi)
         present: set[tuple[str, int | None]] = {(e.effect, e.joint) for e in model.effects}
         if any(p.torque_from_current is False for p in data):  # a joint torque sensor has no torque constant to change
             present |= {("torque_gain", j) for j in range(self.nj)}
             self.notes.append("torque gain not tested: the recordings give joint torque, not current")
-        self.candidates = [c for c in candidate_catalogue(robot, self.d, present, self.ctx, opts.max_cogging_per_turn)
+        self.candidates = [c for c in candidate_catalogue(robot, self.d, present, self.view, opts.max_cogging_per_turn)
                            if c.effect != "time_delay"] + [self._payload()]
 
     def _payload(self) -> Candidate:
