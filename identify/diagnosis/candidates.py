@@ -39,7 +39,7 @@ LOOKALIKES = {
 NESTING = {"torque_offset": "spring"}
 """A one-joint effect and the one that holds it (its columns and one more): an offset is a
 spring's torque at its rest position (``spring``: ``q`` and an offset). The diagnosis names
-the larger where its extra term is a finding beside the smaller (``_Search._nesting``)."""
+the larger where its extra term is a finding beside the smaller (``DiagnosisSearch._nesting``)."""
 
 
 SEPARATE = {

@@ -125,10 +125,10 @@ from .state import (
 )
 from .validation import VETO_BLOCKS, joint_validation_errors, material_drop, validation_error, worse_on_validation
 
-__all__ = ["MATERIALITY", "DiagnoseOptions", "Diagnosis", "Finding", "diagnose", "extrapolation_sentence", "findings_model",
+__all__ = ["MATERIALITY", "DiagnoseOptions", "DiagnosisSearch", "Diagnosis", "Finding", "diagnose", "extrapolation_sentence", "findings_model",
            "negligible_sentence", "set_aside_sentence"]
-"""The diagnosis's public names; the catalogue, the data, the scoring, the report and the refits
-live in ``identify/diagnosis_*.py``."""
+"""The diagnosis's public names; the catalogue, the data, the search's state, the scoring, the
+report and the refits live in the other modules of ``identify/diagnosis/``."""
 
 
 def diagnose(robot: Robot, experiments: list[Prepared], validation: list[Prepared], options: DiagnoseOptions | None = None) -> Diagnosis:

@@ -77,8 +77,9 @@ from .projection import project_feasible, project_feasible_many, pseudo_inertia
 
 __all__ = ["ArmModel", "PayloadRLS", "ReferenceRun", "arm_model_from_identification", "identification_document",
            "project_feasible", "project_feasible_many", "pseudo_inertia"]
-"""The estimator's public names; the derivatives on the records' stamps, the arm model and the
-projection onto possible payloads live in ``identify/payload_*.py``."""
+"""The estimator's public names; the arm model, the stream's filter and the projection onto
+possible payloads live in the other modules of ``identify/payload/``, the derivatives on the
+records' stamps in :mod:`identify.differentiation`."""
 
 MIN_SPEED = 0.02
 REVERSAL_MARGIN_S = 0.025
