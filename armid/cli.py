@@ -15,7 +15,7 @@ from armid.schema.errors import ArmidError, InputError
 from .commands import check, demo, diagnose, estimate, excite, identify, record, serve, sim, watch
 from .commands.arguments import ROBOT_HELP, load_robot_argument
 from .commands.excite import load_trajectory
-from .commands.output import _WARNINGS, _one_line
+from .commands.output import HELD_WARNINGS, one_line
 from .commands.session import open_zenoh
 from .fleet import command as fleet
 from .schema.json_text import strict_json
@@ -70,13 +70,13 @@ def main(argv: list[str] | None = None) -> int:
     """Run one command. The one boundary: whatever a command raises ends as one line on
     stderr and an exit code; a traceback only with ``ARMID_DEBUG=1``."""
     args = build_parser().parse_args(argv)
-    _WARNINGS.command, _WARNINGS.held = args.command, []
+    HELD_WARNINGS.command, HELD_WARNINGS.held = args.command, []
     try:
         with warnings.catch_warnings():
-            warnings.showwarning = _WARNINGS.show
+            warnings.showwarning = HELD_WARNINGS.show
             extras.require(args.command)  # one line naming the extra before anything starts
             code = int(args.run(args))
-        _WARNINGS.release()
+        HELD_WARNINGS.release()
         return code
     except KeyboardInterrupt:
         print(f"armid {args.command}: interrupted", file=sys.stderr)
@@ -87,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
 
             traceback.print_exc()
         code, message = _exit_code(err, args.command)
-        print(f"armid {args.command}: error: {_one_line(message)}", file=sys.stderr)
+        print(f"armid {args.command}: error: {one_line(message)}", file=sys.stderr)
         return code
 
 

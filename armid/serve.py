@@ -56,8 +56,8 @@ import numpy as np
 
 from armid.daq.experiment_stream import CollectedExperiment, ExperimentCollector, event_of
 from armid.daq.stream import key
+from armid.identify.plausibility import MOVING_RAD, moving_joints
 from armid.identify.robot import Robot
-from armid.identify.single_link import joint_spans
 from armid.schema.joint_state import check_encoding
 from armid.schema.joint_states import JointStates
 
@@ -69,8 +69,6 @@ WHOLE_ARM_PIPELINES = tuple(RECIPES)
 recording, low-pass chosen from the data, weighted least squares); ``drives`` as ``armid demo``
 does (:data:`~armid.pipeline.DRIVE_RUN`: the excitation window, the drives' velocity, no
 low-pass, reversals left out)."""
-MIN_MOTION_RAD = 0.05
-"""A joint whose position spans less than this in a run did not move in it."""
 
 
 @dataclass(frozen=True)
@@ -378,17 +376,17 @@ class EstimatorService:
         n = self.robot.n_joints
         if kind == "single_link" and not (isinstance(link, int) and not isinstance(link, bool) and 1 <= link <= n):
             return f"the run claims link {link!r}, not a joint of {self.name} (1..{n}): not identified"
-        moved = joint_spans(rec.q) > MIN_MOTION_RAD
+        moved = moving_joints(rec.q)
         still = [j + 1 for j in range(n) if not moved[j]]
         if kind == "single_link" and not moved[link - 1]:
-            return f"not excited: link {link} did not move (range below {MIN_MOTION_RAD} rad): not identified"
+            return f"not excited: link {link} did not move (range below {MOVING_RAD} rad): not identified"
         if kind == "whole_arm" and still:
-            return f"not excited: joints {', '.join(map(str, still))} did not move (range below {MIN_MOTION_RAD} rad): not identified"
+            return f"not excited: joints {', '.join(map(str, still))} did not move (range below {MOVING_RAD} rad): not identified"
         return None
 
     def _kind_from_motion(self, rec: Any) -> tuple[str, np.ndarray[Any, np.dtype[np.intp]]]:
         """What a plain recording was, from which joints moved (and those joints)."""
-        moving = np.flatnonzero(joint_spans(rec.q) > MIN_MOTION_RAD)
+        moving = np.flatnonzero(moving_joints(rec.q))
         if moving.size == self.robot.n_joints:
             return "whole_arm", moving
         return ("single_link" if moving.size == 1 else "partial"), moving

@@ -4,7 +4,7 @@ Each sample gives one equation per joint, ``tau_j = W_j(q, qd, qdd) phi``, with 
 effects' columns after the 10 N rigid-body ones (:func:`column_count`). Whatever filters the
 motion filters the torque: each segment's regressor rows and torque go through the same
 zero-phase low-pass and decimation (its ``ParallelFilter``), joint by joint, into one system
-``(N, p + 1, n)`` that LAPACK factors without a transpose (:func:`_system`). A found drive
+``(N, p + 1, n)`` that LAPACK factors without a transpose (:func:`regression_system`). A found drive
 gain or torque delay is undone on the measured torque, a late position report on the motion,
 before anything is filtered.
 """
@@ -45,7 +45,7 @@ def _model_torque(tau: Array, t: Array, scale: Array | None, delay: Array | None
     return out
 
 
-def _measured_torque(tau_model: Array, t: Array, scale: Array | None, delay: Array | None) -> Array:
+def measured_torque(tau_model: Array, t: Array, scale: Array | None, delay: Array | None) -> Array:
     """The inverse of :func:`_model_torque`: what joint j's sensor shows of the model's torque."""
     out = np.array(tau_model, dtype=float, copy=True)
     if scale is not None:
@@ -56,7 +56,7 @@ def _measured_torque(tau_model: Array, t: Array, scale: Array | None, delay: Arr
     return out
 
 
-def _advanced(x: Array, t: Array, delay: Array | None) -> Array:
+def advanced(x: Array, t: Array, delay: Array | None) -> Array:
     """Each joint's column read ``delay[j]`` later: the motion a late position report hides."""
     if delay is None or not np.any(delay):
         return x
@@ -77,7 +77,7 @@ def equations(robot: Robot, effects: list[LinearEffect], seg: Segment, scale: Ar
     n_cols = column_count(robot, effects)
     filt = seg.parallel
     tau_all = seg.tau if scale is None and delay is None else _model_torque(seg.tau, seg.t, scale, delay)
-    q, qd, qdd = (_advanced(x, seg.t, motion_delay) for x in (seg.q, seg.qd, seg.qdd))
+    q, qd, qdd = (advanced(x, seg.t, motion_delay) for x in (seg.q, seg.qd, seg.qdd))
     if filt.cutoff_hz is None:  # no low-pass: the kept samples only, straight into place
         idx = filt.kept(seg.n_samples)
         q, qd, qdd, tau = q[idx], qd[idx], qdd[idx], tau_all[idx]
@@ -283,7 +283,7 @@ def _column_key(effect: LinearEffect) -> tuple[Any, ...]:
     return (*_effect_key(effect), effect.setting)
 
 
-def _system(robot: Robot, effects: list[LinearEffect], segments: list[Segment], scale: Array | None = None, delay: Array | None = None,
+def regression_system(robot: Robot, effects: list[LinearEffect], segments: list[Segment], scale: Array | None = None, delay: Array | None = None,
             motion_delay: Array | None = None) -> Array:
     """The equations of all segments, joint by joint: (N, p+1, n); row ``k`` of ``[j]`` is
     column ``k`` of ``[W_j | tau_j]``, the layout LAPACK factors without a transpose."""
@@ -296,12 +296,12 @@ def _system(robot: Robot, effects: list[LinearEffect], segments: list[Segment], 
     return system
 
 
-def _equation_motion(segments: list[Segment], name: str) -> Array:
+def equation_motion(segments: list[Segment], name: str) -> Array:
     """A kinematic array at the equations' samples (after the parallel filter)."""
     return np.concatenate([s.parallel.apply(getattr(s, name)) for s in segments])
 
 
-def _equation_column(segments: list[Segment], effect: LinearEffect, motion_delay: Array | None = None,
+def equation_column(segments: list[Segment], effect: LinearEffect, motion_delay: Array | None = None,
                      loads: list[Array] | None = None) -> Array:
     """An effect's one column through each segment's parallel filter, concatenated
     (``loads``: each segment's load torque for a load-dependent friction, computed once)."""
@@ -313,7 +313,7 @@ def _equation_column(segments: list[Segment], effect: LinearEffect, motion_delay
             out.append(reused.columns[key])  # type: ignore[union-attr]
             continue
         filt = seg.parallel
-        q, qd, qdd = (_advanced(x, seg.t, motion_delay) for x in (seg.q, seg.qd, seg.qdd))
+        q, qd, qdd = (advanced(x, seg.t, motion_delay) for x in (seg.q, seg.qd, seg.qdd))
         # a column is one joint's function of the samples: taken at every sample, then the
         # kept ones (not a copy of the whole motion per try of a setting's search)
         if isinstance(effect, LoadFriction):
@@ -334,6 +334,6 @@ def _effect_key(effect: LinearEffect) -> tuple[Any, ...]:
     return (type(effect), effect.joint, effect.parameter_names, what)
 
 
-def _segment_loads(segments: list[Segment], effect: LoadFriction, motion_delay: Array | None = None) -> list[Array]:
+def segment_loads(segments: list[Segment], effect: LoadFriction, motion_delay: Array | None = None) -> list[Array]:
     """Each segment's load torque (n, N) for a load-dependent friction, at its samples."""
-    return [effect.load(*(_advanced(x, seg.t, motion_delay) for x in (seg.q, seg.qd, seg.qdd))) for seg in segments]
+    return [effect.load(*(advanced(x, seg.t, motion_delay) for x in (seg.q, seg.qd, seg.qdd))) for seg in segments]

@@ -118,12 +118,6 @@ class Design:
         }
 
 
-def trajectory_from_json(doc: dict[str, object]) -> FourierTrajectory:
-    f = doc["fourier"] if "fourier" in doc else doc
-    assert isinstance(f, dict)
-    return FourierTrajectory(np.asarray(f["q0"], float), np.asarray(f["a"], float), np.asarray(f["b"], float), float(f["base_frequency_hz"]))
-
-
 def _rest_to_rest(free_a: Array, free_b: Array) -> tuple[Array, Array]:
     """Append the last harmonic so that ``qd(0) = qdd(0) = 0``: (k, L-1) -> (k, L)."""
     L = free_a.shape[1] + 1

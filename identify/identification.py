@@ -18,7 +18,7 @@ from scipy import optimize
 
 from .dynamics import regressor
 from .effects import LOAD_DEPENDENT, PROFILED, SETTINGS, LinearEffect, LoadFriction, effect_columns, linear_effect, load_friction
-from .equations import _advanced, _equation_column, _equation_motion, _measured_torque, _segment_loads, _system, column_count
+from .equations import advanced, column_count, equation_column, equation_motion, measured_torque, regression_system, segment_loads
 from .errors import IdentificationError, PoorExcitationWarning
 from .estimation import (
     ColumnTrials,
@@ -291,9 +291,9 @@ class IdentificationResult:
 
     def predict_times(self, t: Array, q: Array, qd: Array, qdd: Array) -> Array:
         """Torques (n, N) at the times ``t`` of a motion, with the delays the model has."""
-        q, qd, qdd = (_advanced(x, t, self.motion_delay_s) for x in (q, qd, qdd))
+        q, qd, qdd = (advanced(x, t, self.motion_delay_s) for x in (q, qd, qdd))
         tau = self.predict_motion(q, qd, qdd)
-        return tau if self.delay_s is None else _measured_torque(tau, t, None, self.delay_s)
+        return tau if self.delay_s is None else measured_torque(tau, t, None, self.delay_s)
 
     def parameter_values(self) -> tuple[Array, Array]:
         """Value and std per standard parameter; NaN where it has no unique value."""
@@ -424,7 +424,7 @@ def _search_settings(system: Array, names: list[str], effects: list[LinearEffect
         for m, _ in follow:
             following = effects[m]
             if isinstance(following, LoadFriction) and loads is None:
-                loads = _segment_loads(segments, following, motion_delay)  # every load effect shares one load
+                loads = segment_loads(segments, following, motion_delay)  # every load effect shares one load
         changed = (where[col], *(where[c] for _, c in tried_along))
         if (j, changed) not in factored:  # the joint's other columns, factored once for every sweep
             factored[j, changed] = ColumnTrials(system[j][:, ::stride][keep].T, list(changed))
@@ -439,8 +439,8 @@ def _search_settings(system: Array, names: list[str], effects: list[LinearEffect
                 # Coulomb's smoothing (a Stribeck term with its own searched velocity) changed
                 cached = (k, value, tuple(effects[m].setting for m, _ in along))
                 if cached not in columns_of:
-                    cols = [_equation_column(segments, e.with_setting(**{key: value}), motion_delay)]
-                    cols += [_equation_column(segments, effects[m].with_setting(smoothing=value), motion_delay, loads) for m, _ in along]
+                    cols = [equation_column(segments, e.with_setting(**{key: value}), motion_delay)]
+                    cols += [equation_column(segments, effects[m].with_setting(smoothing=value), motion_delay, loads) for m, _ in along]
                     columns_of[cached] = np.column_stack([c[::stride] for c in cols])
                 rows = trials.rows(columns_of[cached])
                 tried[value] = (rss(r[:j] + [rows] + r[j + 1 :]), rows)
@@ -449,10 +449,10 @@ def _search_settings(system: Array, names: list[str], effects: list[LinearEffect
         # the grid first for every joint, then each refined with the others at their choices
         chosen = _grid_best(grid, score) if sweep < SWEEPS - 1 else _refine(grid, score, around=dict(e.setting)[key])
         best = e.with_setting(**{key: chosen})
-        system[j][col] = _equation_column(segments, best, motion_delay)
+        system[j][col] = equation_column(segments, best, motion_delay)
         for m, c in follow:
             effects[m] = effects[m].with_setting(smoothing=chosen)
-            system[j][c] = _equation_column(segments, effects[m], motion_delay, loads)
+            system[j][c] = equation_column(segments, effects[m], motion_delay, loads)
         r[j] = tried[chosen][1]
         effects[k] = best
         for other in [f for f in factored if f[0] == j and f[1] != changed]:
@@ -641,7 +641,7 @@ def _identify(robot: Robot, experiments: list[Prepared], validation: list[Prepar
     scale = None if options.torque_scale is None else np.asarray(options.torque_scale, float)
     delay = None if options.delay_s is None else np.asarray(options.delay_s, float)
     motion_delay = None if options.motion_delay_s is None else np.asarray(options.motion_delay_s, float)
-    system = _system(robot, effects, segments, scale, delay, motion_delay)
+    system = regression_system(robot, effects, segments, scale, delay, motion_delay)
     if options.exclude_reversals:
         _leave_out_reversals(system, segments)
     base = structural_base(robot, effects, options.seed)
@@ -683,8 +683,8 @@ def _leave_out_reversals(system: Array, segments: list[Segment]) -> None:
     """``IdentifyOptions.exclude_reversals``: each joint's equations while it is slower than
     0.02 rad/s or within 25 ms of a velocity reversal set to zero (a zero equation weighs
     nothing): sign(qd) is wrong there."""
-    qd = _equation_motion(segments, "qd")
-    qdd = _equation_motion(segments, "qdd")
+    qd = equation_motion(segments, "qd")
+    qdd = equation_motion(segments, "qdd")
     reversing = np.abs(qd) < np.maximum(0.02, np.abs(qdd) * 0.025)
     for j in range(system.shape[0]):
         system[j][:, reversing[:, j]] = 0.0  # a zero equation weighs nothing

@@ -44,7 +44,12 @@ UNIT_BAND = 3.0
 """A ratio within this factor of 10^-3 (10^-6, 10^-9) is that unit."""
 
 MIN_MOTION = 1e-9
-"""Position range (rad or m) below which a joint is taken as not moving."""
+"""Position range (rad or m) at or below which a joint's positions are constant (a column
+not wired, a drive off): not a joint held still, which :data:`MOVING_RAD` tells."""
+MOVING_RAD = 0.05
+"""A joint whose positions span more than this (rad or m) over a recording moved
+(:func:`moving_joints`): one held still by its servo wanders by less (its dq/dt is then the
+encoder's quantisation and the servo's holding torque, not motion), an excited one by far more."""
 
 
 def check_recording(t: Array, q: Array, qd: Array | None, tau: Array, source: str, need_motion: bool = True) -> list[str]:
@@ -87,7 +92,7 @@ def check_motion(q: Array, source: str) -> None:
     q = np.asarray(q, float)
     if q.ndim != 2 or (np.isfinite(q).sum(axis=0) < 2).any():
         return  # columns without two readable values: the reader or the cleaning says so
-    span = _span(q)
+    span = joint_spans(q)
     if span.size and np.all(span <= MIN_MOTION):
         raise RecordingError(source, "columns q: no joint moves (every position is constant): the data cannot say anything "
                                      "about the dynamics (not excited)")
@@ -105,22 +110,17 @@ def check_torque(tau: Array, source: str, q: Array | None = None) -> list[str]:
     if not np.any(finite):
         raise RecordingError(source, f"columns tau1..tau{n}: every torque is zero (a sensor or a current column "
                                      "not wired?): nothing to identify from")
-    span = _span(finite)
+    span = joint_spans(finite)
     if np.all(span == 0):
         raise RecordingError(source, f"columns tau1..tau{n}: the torque is constant on every joint "
                                      f"({', '.join(f'{v:g}' for v in finite[0])}): nothing to identify from")
-    moves = _span(q) > MIN_MOTION if q is not None and np.shape(q) == tau.shape else np.zeros(n, bool)
+    moves = joint_spans(q) > MIN_MOTION if q is not None and np.shape(q) == tau.shape else np.zeros(n, bool)
     for j in range(n):
         if span[j] == 0 and moves[j]:
             raise RecordingError(source, f"column tau{j + 1}: the torque is constant ({finite[0, j]:g}) while joint {j + 1} "
                                          "moves: a dead sensor or a current column not wired?")
     return [f"{source}: column tau{j + 1}: the torque is constant ({finite[0, j]:g}) over the whole recording"
             for j in range(n) if span[j] == 0]
-
-
-MOVING_SPAN = 0.01
-"""A joint whose positions span less than this (rad or m) holds still: its dq/dt is the
-encoder's quantisation, not motion, and says nothing of the units."""
 
 
 def velocity_ratio(t: Array, q: Array, qd: Array) -> float | None:
@@ -146,7 +146,7 @@ def velocity_ratio(t: Array, q: Array, qd: Array) -> float | None:
     ratios = []
     for j in range(q.shape[1]):
         power = float(travel[:, j] @ travel[:, j])
-        if power > 0 and _span(q[:, j : j + 1])[0] >= MOVING_SPAN:
+        if power > 0 and moving_joints(q[:, j : j + 1])[0]:
             ratios.append(float(dq[:, j] @ travel[:, j]) / power)
     return float(np.median(ratios)) if ratios else None
 
@@ -264,19 +264,18 @@ def check_against_model(tau: Array, modeled: Array, source: str, moving: Array |
     return out
 
 
+def joint_spans(q: Array) -> Array:
+    """Each joint's (column's) range of position over its finite samples (a few NaN fields
+    must not make a moving joint look still); 0 for a joint without one."""
+    q = np.asarray(q, float)
+    if q.ndim == 1:
+        q = q[:, None]
+    finite = np.isfinite(q)
+    hi, lo = np.where(finite, q, -np.inf).max(axis=0), np.where(finite, q, np.inf).min(axis=0)
+    return np.where(finite.any(axis=0), hi - lo, 0.0)
+
+
 def moving_joints(q: Array) -> Array:
-    """Per joint, whether it moves over the recording (a span of at least :data:`MOVING_SPAN`)."""
-    return _span(q) >= MOVING_SPAN
-
-
-def _span(x: Array) -> Array:
-    """Per column max - min over the finite entries (0 for a column without two of them)."""
-    x = np.asarray(x, float)
-    if x.ndim == 1:
-        x = x[:, None]
-    out = np.zeros(x.shape[1])
-    for j in range(x.shape[1]):
-        v = x[np.isfinite(x[:, j]), j]
-        if v.size >= 2:
-            out[j] = float(v.max() - v.min())
-    return out
+    """Per joint, whether it moved over the recording ``q`` (n, N): a span over
+    :data:`MOVING_RAD` (:func:`joint_spans`). The one test of which joints moved."""
+    return joint_spans(q) > MOVING_RAD

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from .differentiation import five_point_derivative, sharpened_five_point_derivative
+from .differentiation import five_point_derivative, uniform_derivative
 from .errors import RecordingError
 from .filtering import SAMPLES_PER_CUTOFF, Band, ParallelFilter, choose_filter, noise_level
 from .recordings import Recording
@@ -341,24 +341,6 @@ def _choose_band(source: str, t: Array, q: Array, qd: Array | None, pieces: list
                 f"the regressor and the torque alike; decimated {decimation}:1")
 
 
-def _derivative(x: Array, period: float, order: int = 1, source: Array | None = None) -> Array:
-    """Khosla's 5-point filter (5.1) on ``x``, sharpened (its in-band droop would read every
-    inertia too high: :mod:`identify.differentiation`); at the four samples at each end,
-    where it has no neighbours, derivative ``order`` of a least-squares cubic over the nine
-    samples of ``source`` there (``x`` itself for a first derivative, the positions for a
-    second)."""
-    from scipy.signal import savgol_filter
-
-    d = sharpened_five_point_derivative(x, period)
-    base = x if source is None else source
-    if base.shape[0] >= 9:
-        ends = savgol_filter(base, 9, 3, deriv=order, delta=period, axis=0, mode="interp")
-        d[:4], d[-4:] = ends[:4], ends[-4:]
-    elif base.shape[0] >= 2:
-        d = np.gradient(x, period, axis=0)
-    return d
-
-
 def _uniform(source: str, t: Array, q: Array, tau: Array, qd: Array | None, qdd: Array | None, band: Band | None,
              options: PrepareOptions, notes: list[str]) -> Segment:
     from scipy.interpolate import CubicSpline
@@ -388,7 +370,7 @@ def _uniform(source: str, t: Array, q: Array, tau: Array, qd: Array | None, qdd:
     if qd is not None and filt.cutoff_hz is not None:
         # a recorded velocity is used unless differentiating the positions is less noisy
         # (fine encoders beat a noisy velocity estimate): compare what the low-pass removes
-        from_q = _derivative(q, period)
+        from_q = uniform_derivative(q, period)
         noise_qd = float(np.median(noise_level(qd, filt) / np.maximum(np.std(qd, axis=0), 1e-12)))
         noise_q = float(np.median(noise_level(from_q, filt) / np.maximum(np.std(qd, axis=0), 1e-12)))
         if noise_q < 0.5 * noise_qd:
@@ -397,8 +379,8 @@ def _uniform(source: str, t: Array, q: Array, tau: Array, qd: Array | None, qdd:
                 notes.append(f"velocity from positions: the recorded velocity is {noise_qd / max(noise_q, 1e-300):.3g}x noisier above the cut-off")
     q = filt.smooth(q)
     from_positions = qd is None
-    qd = _derivative(q, period) if qd is None else filt.smooth(qd)
-    qdd = _derivative(qd, period, 2 if from_positions else 1, q if from_positions else None) if qdd is None else filt.smooth(qdd)
+    qd = uniform_derivative(q, period) if qd is None else filt.smooth(qd)
+    qdd = uniform_derivative(qd, period, 2 if from_positions else 1, q if from_positions else None) if qdd is None else filt.smooth(qdd)
     stamps = None
     if resampled:
         rel = raw_t - t0

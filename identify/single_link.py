@@ -33,27 +33,17 @@ from .estimation import correlation_length, lag_window_covariance
 from .excitation import experiment_columns, experiment_regressor
 from .identifiability import base_parameters, combination_ranges, identified_by_data, physical_ranges, preferred_order
 from .identification import IdentificationResult, declared_effects
+from .plausibility import moving_joints
 from .preprocess import Prepared
 from .robot import Robot
 from .spatial import Array
 
-MOVING_RAD = 0.05
-"""A joint whose range of motion in an experiment exceeds this moved (rad or m)."""
 MIN_SPEED = 0.02
 REVERSAL_MARGIN_S = 0.025
 """Samples of the moving joint slower than this (rad/s), or within this time of a velocity
 reversal (``|qd| < |qdd| t``), are left out: friction there is anything up to breakaway,
 and a filtered torque smooths the Coulomb step that ``sign(qd)`` does not (as in
 :mod:`identify.diagnosis`)."""
-
-
-def joint_spans(q: Array) -> Array:
-    """Each joint's range of position over its finite samples (a few NaN fields must not make
-    a moving joint look still); 0 for a joint without one."""
-    q = np.asarray(q, float)
-    finite = np.isfinite(q)
-    hi, lo = np.where(finite, q, -np.inf).max(axis=0), np.where(finite, q, np.inf).min(axis=0)
-    return np.where(finite.any(axis=0), hi - lo, 0.0)
 
 
 @dataclass(frozen=True)
@@ -210,7 +200,7 @@ def single_link_sequence(robot: Robot, experiments: dict[int, list[Prepared]], m
         sliding = np.abs(qd[:, k]) >= np.maximum(MIN_SPEED, np.abs(qdd[:, k]) * REVERSAL_MARGIN_S)
         q, qd, qdd, y = q[sliding], qd[sliding], qdd[sliding], y[sliding]
         cols = list(range(p))  # the projection may mix in any column that a previous step named
-        moving = np.ptp(q, axis=0) > MOVING_RAD
+        moving = moving_joints(q)
         moving[k] = True
         w = experiment_regressor(robot, (k,), q, qd, qdd)
         qi = _ideal(q, moving)

@@ -27,7 +27,9 @@ import numpy as np
 import pytest
 
 from armid.cli import main
-from armid.identify.diagnosis.search import Finding, _extrapolated, _sign_reversed, set_aside_sentence
+from armid.identify.diagnosis.refit import sign_reversed
+from armid.identify.diagnosis.report import extrapolated_findings
+from armid.identify.diagnosis.search import Finding, set_aside_sentence
 
 CATALOGUE = ["viscous_friction", "coulomb_friction", "stribeck_friction", "torque_offset", "rotor_inertia", "torque_gain",
              "time_delay", "cogging", "spring", "gravity_tilt", "friction_all", "load_coulomb"]
@@ -182,10 +184,10 @@ def test_extrapolated_compares_the_ranges() -> None:
              Finding("viscous_friction", 0, {}, 0.1, 0.02, 0.01)]
     q_ident = np.column_stack([np.linspace(-1.0, 1.0, 50), np.linspace(0.0, 2.0, 50)])
     q_valid = np.column_stack([np.linspace(-0.5, 1.5, 50), np.linspace(0.05, 2.05, 50)])  # 25 % beyond; 2.5 % beyond
-    (x,) = _extrapolated(found, q_ident, q_valid)
+    (x,) = extrapolated_findings(found, q_ident, q_valid)
     assert (x["effect"], x["joint"]) == ("spring", 1)
     assert x["beyond_fraction"] == pytest.approx(0.25) and x["identified_range"] == [-1.0, 1.0] and x["validation_range"] == [-0.5, 1.5]
-    assert _extrapolated(found, q_ident, q_ident) == []
+    assert extrapolated_findings(found, q_ident, q_ident) == []
 
 
 def test_before_is_what_identify_predicts(tmp_path: Path) -> None:
@@ -218,7 +220,7 @@ def test_a_finding_whose_final_fit_turns_its_sign_is_set_aside() -> None:
             Finding("load_dependent_coulomb", 1, {"fc": -0.1, "fl": 0.05}, 0.1, 0.03, 0.02)]
     pushing = Finding("spring", 4, {"stiffness": -3.0}, 0.1, 0.03, 0.02)  # pushes away from its rest: no passive spring (issue 33)
     held = Finding("viscous_friction", 0, {"fv": 0.0}, 0.1, 0.03, 0.02)  # held at its bound by the bounded fit: explains nothing
-    assert _sign_reversed([*kept, stribeck, pushing, held]) == [stribeck, pushing, held]
+    assert sign_reversed([*kept, stribeck, pushing, held]) == [stribeck, pushing, held]
     text = set_aside_sentence({"effect": "stribeck_friction", "joint": 6, "parameters": stribeck.parameters, "reason": "sign"})
     assert "fs came out -0.6926" in text and "not physical" in text
 

@@ -1,7 +1,7 @@
 """Findings that are physically admissible and material (issue 33).
 
 - The candidates' parameters are bounded in the fit itself: friction dissipative, inertia
-  and a spring's stiffness positive (``_score``'s bounded least squares, and ``identify``'s
+  and a spring's stiffness positive (``score_candidate``'s bounded least squares, and ``identify``'s
   ``nonnegative`` for the final fit); a candidate held at its bound is no finding.
 - A drive gain is tested only where the torque comes from a current and a torque constant
   (``Recording.torque_from_current``, set by every reader).
@@ -22,9 +22,10 @@ import pytest
 from armid.cli import main
 from armid.identify.diagnosis import search as diagnosis
 from armid.identify.diagnosis.candidates import Candidate
-from armid.identify.diagnosis.data import _Data
-from armid.identify.diagnosis.scoring import _fit_round, _score, _Scored
-from armid.identify.diagnosis.search import MATERIALITY, Finding, _Search, negligible_sentence, set_aside_sentence
+from armid.identify.diagnosis.data import StackedData
+from armid.identify.diagnosis.scoring import ScoredCandidate, fit_round, score_candidate
+from armid.identify.diagnosis.search import MATERIALITY, DiagnosisSearch, Finding, negligible_sentence, set_aside_sentence
+from armid.identify.diagnosis.state import FindingsSoFar
 from armid.identify.estimation import bounded_quadratic
 from armid.io.recordings import read_recording
 from armid.io.robot_file import load_robot
@@ -32,7 +33,7 @@ from armid.io.robot_file import load_robot
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def _one_joint_round(fv: float, seed: int = 0) -> tuple[_Data, _Data, object, np.ndarray, np.ndarray]:
+def _one_joint_round(fv: float, seed: int = 0) -> tuple[StackedData, StackedData, object, np.ndarray, np.ndarray]:
     """A one-joint arm whose torque is an inertia and a gravity term plus ``fv qd``, and the
     round of the model without friction fitted on it (the search's even/odd tenths)."""
     rng = np.random.default_rng(seed)
@@ -41,10 +42,10 @@ def _one_joint_round(fv: float, seed: int = 0) -> tuple[_Data, _Data, object, np
     qd = 0.7 * np.cos(0.7 * t) + 0.69 * np.cos(2.3 * t + 1.0)
     qdd = -0.49 * np.sin(0.7 * t) - 1.587 * np.sin(2.3 * t + 1.0)
     tau = 0.8 * qdd + 3.0 * np.cos(q) + fv * qd + 0.01 * rng.normal(size=t.size)
-    data = [_Data(q[k::2, None], qd[k::2, None], qdd[k::2, None], tau[k::2, None], 0.01) for k in (0, 1)]
+    data = [StackedData(q[k::2, None], qd[k::2, None], qdd[k::2, None], tau[k::2, None], 0.01) for k in (0, 1)]
     cols = [np.column_stack([d.qdd[:, 0], np.cos(d.q[:, 0])]) for d in data]
     ones = [np.ones(d.q.shape[0]) for d in data]
-    rnd = _fit_round(cols[0], cols[1], np.zeros((cols[0].shape[0], 0)), np.zeros((cols[1].shape[0], 0)), data[0].y, data[1].y,
+    rnd = fit_round(cols[0], cols[1], np.zeros((cols[0].shape[0], 0)), np.zeros((cols[1].shape[0], 0)), data[0].y, data[1].y,
                      ones[0], ones[1], 1)
     return data[0], data[1], rnd, ones[0], ones[1]
 
@@ -56,10 +57,10 @@ def test_a_viscous_friction_least_squares_fits_negative_is_no_candidate() -> Non
     """Unconstrained least squares gives fv -0.2 here (friction that pushes the joint along):
     its best admissible fit holds fv at 0, so it is not scored at all; +0.2 is."""
     ident, held, rnd, wi, wv = _one_joint_round(fv=-0.2)
-    assert _score(VISCOUS, rnd, ident, held, wi, wv, ident.q.shape[0], 0.01) is None
+    assert score_candidate(VISCOUS, rnd, ident, held, wi, wv, ident.q.shape[0], 0.01) is None
     ident, held, rnd, wi, wv = _one_joint_round(fv=0.2)
-    scored = _score(VISCOUS, rnd, ident, held, wi, wv, ident.q.shape[0], 0.01)
-    assert isinstance(scored, _Scored) and scored.gamma[0] == pytest.approx(0.2, rel=0.05)
+    scored = score_candidate(VISCOUS, rnd, ident, held, wi, wv, ident.q.shape[0], 0.01)
+    assert isinstance(scored, ScoredCandidate) and scored.gamma[0] == pytest.approx(0.2, rel=0.05)
 
 
 def test_bounded_least_squares_takes_up_what_the_bound_holds() -> None:
@@ -156,7 +157,7 @@ def test_the_arm_wide_friction_holds_each_joints_fc_and_fv_at_0() -> None:
     qd = np.column_stack([np.sin(np.arange(n) * 0.01), np.cos(np.arange(n) * 0.013)])
     truth = {"fc1": 0.3, "fv1": 0.2, "offset1": 0.1, "fc2": 0.2, "fv2": -0.15, "offset2": 0.0}
 
-    def columns(d: _Data) -> np.ndarray:
+    def columns(d: StackedData) -> np.ndarray:
         out = np.zeros((d.q.shape[0] * nj, 6))
         for j in range(nj):
             out[j::nj, 3 * j : 3 * j + 3] = np.column_stack([np.sign(d.qd[:, j]), d.qd[:, j], np.ones(d.q.shape[0])])
@@ -166,15 +167,15 @@ def test_the_arm_wide_friction_holds_each_joints_fc_and_fv_at_0() -> None:
     tau = np.column_stack([truth[f"fc{j}"] * np.sign(qd[:, j - 1]) + truth[f"fv{j}"] * qd[:, j - 1] + truth[f"offset{j}"]
                            for j in (1, 2)]) + 0.01 * rng.normal(size=(n, nj))
     q = np.cumsum(qd, axis=0) * 0.01
-    data = [_Data(q[k::2], qd[k::2], np.zeros_like(q[k::2]), tau[k::2], 0.02) for k in (0, 1)]
+    data = [StackedData(q[k::2], qd[k::2], np.zeros_like(q[k::2]), tau[k::2], 0.02) for k in (0, 1)]
     base = [np.zeros((d.y.size, 1)) for d in data]  # one rigid-body column, on joint 1's rows
     for d, b in zip(data, base):
         b[0::nj, 0] = np.cos(d.q[:, 0])
     wt = [np.ones(d.y.size) for d in data]
-    rnd = _fit_round(base[0], base[1], np.zeros((data[0].y.size, 0)), np.zeros((data[1].y.size, 0)), data[0].y, data[1].y,
+    rnd = fit_round(base[0], base[1], np.zeros((data[0].y.size, 0)), np.zeros((data[1].y.size, 0)), data[0].y, data[1].y,
                      wt[0], wt[1], nj)
-    scored = _score(arm, rnd, data[0], data[1], wt[0], wt[1], data[0].y.size, 0.01)
-    assert isinstance(scored, _Scored)
+    scored = score_candidate(arm, rnd, data[0], data[1], wt[0], wt[1], data[0].y.size, 0.01)
+    assert isinstance(scored, ScoredCandidate)
     got = dict(zip(arm.labels, scored.gamma))
     assert got["fv2"] == 0.0 and got["fc1"] > 0 and got["fv1"] > 0 and got["fc2"] > 0
 
@@ -216,7 +217,7 @@ def test_a_gain_planted_on_torque_data_is_not_tested(tmp_path: Path) -> None:
 
 
 class _Fit:
-    """What ``_Search._material`` reads of an ``identify`` fit: its validation error and its
+    """What ``DiagnosisSearch._material`` reads of an ``identify`` fit: its validation error and its
     prediction at the validation stamps."""
 
     def __init__(self, error: float, pred: np.ndarray, tau: np.ndarray | None = None) -> None:
@@ -232,6 +233,13 @@ class _Fit:
         return np.zeros(0), np.zeros(0)
 
 
+def _material_search(fits: dict[tuple[str, ...], _Fit]) -> SimpleNamespace:
+    """What ``DiagnosisSearch._material`` reads of the search: no validation (no noise floor:
+    all the power is the model's), the declared fit, and the fits with findings, by their effects."""
+    return SimpleNamespace(data=SimpleNamespace(validation_segments=[], validation=[]), model=SimpleNamespace(result0=fits[()]),
+                           findings=FindingsSoFar(set()), _fit_findings=lambda found: fits[tuple(f.effect for f in found)])
+
+
 def test_a_finding_below_the_materiality_is_negligible_with_its_size() -> None:
     """Three findings in the order found: a viscous friction that takes 2.00 % to 1.80 %
     (found), a spring of 0.003 N*m rms that takes 1.80 % to 1.79 % (1.1 % of the error's
@@ -243,10 +251,9 @@ def test_a_finding_below_the_materiality_is_negligible_with_its_size() -> None:
     fits = {(): _Fit(0.0200, base), ("viscous_friction",): _Fit(0.0180, base + [0.5, 0.0]),
             ("viscous_friction", "spring"): _Fit(0.0179, base + [0.5, 0.003]),
             ("viscous_friction", "cogging"): _Fit(0.0170, base + [0.5, 0.04])}
-    search = SimpleNamespace(validation_segments=[], validation=[], result0=fits[()],  # no noise floor: all the power is the model's
-                             _fit_findings=lambda found: fits[tuple(f.effect for f in found)])
+    search = _material_search(fits)  # no noise floor: all the power is the model's
     found = [viscous, spring, cogging]
-    kept, fit, negligible = _Search._material(search, found, fits[("viscous_friction", "cogging")])  # type: ignore[arg-type]
+    kept, fit, negligible = DiagnosisSearch._material(search, found, fits[("viscous_friction", "cogging")])  # type: ignore[arg-type]
     assert kept == [viscous, cogging] and fit is fits[("viscous_friction", "cogging")]
     assert (viscous.validation_before, viscous.validation_after) == (0.0200, 0.0180)
     assert (cogging.validation_before, cogging.validation_after) == (0.0180, 0.0170)
@@ -271,11 +278,10 @@ def test_a_finding_that_raises_the_validation_error_is_set_aside_not_negligible(
     fits = {(): _Fit(0.0200, base), ("viscous_friction",): _Fit(0.0180, base + [0.5, 0.0]),
             ("viscous_friction", "cogging"): _Fit(0.0190, base + [0.5, 0.02]),
             ("viscous_friction", "spring"): _Fit(0.0170, base + [0.5, 0.04])}
-    search = SimpleNamespace(validation_segments=[], validation=[], result0=fits[()], conflicting=[],
-                             _fit_findings=lambda found: fits[tuple(f.effect for f in found)])
-    kept, fit, negligible = _Search._material(search, [viscous, cogging, spring], fits[("viscous_friction", "spring")])  # type: ignore[arg-type]
+    search = _material_search(fits)
+    kept, fit, negligible = DiagnosisSearch._material(search, [viscous, cogging, spring], fits[("viscous_friction", "spring")])  # type: ignore[arg-type]
     assert kept == [viscous, spring] and negligible == [] and fit is fits[("viscous_friction", "spring")]
-    (x,) = search.conflicting
+    (x,) = search.findings.conflicting
     assert (x["effect"], x["joint"], x["reason"]) == ("cogging", 2, "validation")
     assert (x["validation_error_before"], x["validation_error_with"]) == (0.0180, 0.0190)
     text = set_aside_sentence(x)
@@ -294,14 +300,13 @@ def test_a_stribeck_peak_below_the_materiality_leaves_its_coulomb_friction(monke
     1.799 % (a wrist's peak under a shoulder's noise: blind Stribeck seed 13)."""
     n = 1000
     tau = np.column_stack([np.full(n, 50.0), np.ones(n)])
-    monkeypatch.setattr(diagnosis, "_joint_noise_floors", lambda validation: np.array([0.0, 0.05 * np.sqrt(n)]))
+    monkeypatch.setattr(diagnosis, "joint_noise_floors", lambda validation: np.array([0.0, 0.05 * np.sqrt(n)]))
     for arm_with, joint_with, expect in ((0.0170, 0.0999, "coulomb_friction"), (0.01799, 0.060, "stribeck_friction")):
         stribeck = Finding("stribeck_friction", 1, {"fc": 2.0, "fs": 0.5, "velocity": 0.1}, 0.1, 0.02, 0.01)
         fits = {(): _Fit(0.0200, tau - [0.0, 0.2], tau), ("stribeck_friction",): _Fit(arm_with, tau - [0.0, joint_with], tau),
                 ("coulomb_friction",): _Fit(0.0180, tau - [0.0, 0.1], tau)}
-        search = SimpleNamespace(validation_segments=[], validation=[], result0=fits[()], conflicting=[],
-                                 _fit_findings=lambda found, fits=fits: fits[tuple(f.effect for f in found)])
-        kept, fit, negligible = _Search._material(search, [stribeck], fits[("stribeck_friction",)])  # type: ignore[arg-type]
+        search = _material_search(fits)
+        kept, fit, negligible = DiagnosisSearch._material(search, [stribeck], fits[("stribeck_friction",)])  # type: ignore[arg-type]
         assert [f.effect for f in kept] == [expect]
         if expect == "coulomb_friction":
             assert kept[0].parameters == {"fc": 2.0} and fit is fits[("coulomb_friction",)]
@@ -332,18 +337,17 @@ def test_a_candidate_the_exact_fit_holds_at_its_bound_is_set_aside_in_the_search
     with it, three fixed-point passes, then without it). A positive ``fl`` clears the gate."""
     candidate = Candidate("load_dependent_coulomb", 2, (), ("fl",), block=lambda d: d.qd[:, 2:3])
     for fl, held in ((0.0, True), (0.03, False)):
-        search = SimpleNamespace(conflicting=[], present=set(), set_aside=set())
-        search._set_aside = lambda c, search=search: _Search._set_aside(search, c)  # type: ignore[arg-type]
+        search = SimpleNamespace(findings=FindingsSoFar(set()))
         trial = Finding("load_dependent_coulomb", 2, {"fl": 0.05}, 0.0, 0.0, 0.0)
-        assert _Search._held_at_bound(search, candidate, trial, _Parameters(fl3=fl)) is held  # type: ignore[arg-type]
+        assert DiagnosisSearch._held_at_bound(search, candidate, trial, _Parameters(fl3=fl)) is held  # type: ignore[arg-type]
         assert trial.parameters == {"fl": 0.05}  # the search's own finding untouched
         if held:
-            (x,) = search.conflicting
+            (x,) = search.findings.conflicting
             assert (x["effect"], x["joint"], x["reason"], x["parameters"]) == ("load_dependent_coulomb", 3, "sign", {"fl": 0.0})
-            assert search.set_aside == search.present == {("load_dependent_coulomb", 2)}
+            assert search.findings.set_aside == search.findings.present == {("load_dependent_coulomb", 2)}
             assert "holds fl at 0" in set_aside_sentence(x)
         else:
-            assert search.conflicting == [] and search.set_aside == set()
+            assert search.findings.conflicting == [] and search.findings.set_aside == set()
 
 
 @pytest.mark.parametrize("index", [1, 3])  # jittered clean blind cases: 200 Hz medium noise, 1 kHz low noise
@@ -355,12 +359,12 @@ def test_the_noise_floor_of_a_jittered_recording_is_the_raw_torques(index: int, 
     floor is measured on the raw torque at its own stamps (on the grid it read 0.76-0.81 of
     the true floor on these two cases). What lies below the cut-off is still not counted."""
     from armid import pipeline
-    from armid.identify.diagnosis.data import _noise_floor
+    from armid.identify.diagnosis.data import validation_noise_floor
 
     spec = blindgen.blind_specs("clean", 20)[index]
     assert spec["jitter"]
     case = blindgen.make_case(out_dir=tmp_path / "case", **spec)
     robot = load_robot(case.robot_yaml)
     validation = pipeline.load(robot, pipeline.USER_LOG, [], [case.valid_csv]).validation
-    floor = _noise_floor(validation)["relative_error"]
+    floor = validation_noise_floor(validation)["relative_error"]
     assert 0.93 * case.noise_floor < floor <= 1.01 * case.noise_floor, (floor, case.noise_floor)

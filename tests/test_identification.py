@@ -146,7 +146,7 @@ def test_a_modeled_value_reaches_its_joint_from_a_number_or_a_list(tmp_path):  #
     both), on ``joint: null`` one value per joint. The diagnosis's per-joint copy of the effects
     read a list by the joint's number: ``[0.3]`` on joint 2 stopped ``armid diagnose`` with an
     IndexError."""
-    from armid.identify.diagnosis.refit import _settled
+    from armid.identify.diagnosis.refit import settled_robot
     from armid.identify.identification import declared_effects
     from armid.identify.single_link import modeled_effect_values
 
@@ -161,7 +161,7 @@ def test_a_modeled_value_reaches_its_joint_from_a_number_or_a_list(tmp_path):  #
     class Unsettled:  # an identification that chose no effect settings
         effects: list[object] = []
 
-    settled = _settled(robot, Unsettled())  # type: ignore[arg-type]
+    settled = settled_robot(robot, Unsettled())  # type: ignore[arg-type]
     assert {(e.effect, e.joint): e.options["modeled"] for e in settled.effects} == {(k, j + 1): v for (k, j), v in expected.items()}
 
 def test_a_torque_constant_is_known_to_5_percent_unless_the_file_says_and_a_sensor_exactly(tmp_path):  # type: ignore[no-untyped-def]
@@ -384,12 +384,12 @@ def test_a_long_segment_goes_through_its_parallel_filter_in_blocks_with_the_same
     tau = rng.normal(0.0, 1.0, q.shape)
     seg = Segment("<long>", t, q, qd, qdd, tau, filter=ParallelFilter(period, cutoff_hz=3.0, decimation=30))
     effects = ident.declared_effects(robot)
-    whole = equations._system(robot, effects, [seg])
+    whole = equations.regression_system(robot, effects, [seg])
     n_cols = whole.shape[1]
     saved = equations.EQUATION_BYTES
     try:
         equations.EQUATION_BYTES = 8 * robot.n_joints * n_cols * 6_000  # blocks of 6,000 samples: seven of them
-        blocked = equations._system(robot, effects, [seg])
+        blocked = equations.regression_system(robot, effects, [seg])
     finally:
         equations.EQUATION_BYTES = saved
     assert seg.parallel.settling < 6_000 < seg.n_samples // 6
@@ -549,6 +549,6 @@ def test_fits_that_reuse_earlier_fits_equations_build_the_same_system() -> None:
         segs = [Segment("<a>", t[:1700], q[:1700], qd[:1700], qdd[:1700], tau[:1700], filter=filt),
                 Segment("<b>", t[1700:], q[1700:], qd[1700:], qdd[1700:], tau[1700:], filter=filt)]
         with equations.reused_equations():
-            kept = [equations._system(robot, e, segs, scale, delay) for e, scale, delay in fits]
+            kept = [equations.regression_system(robot, e, segs, scale, delay) for e, scale, delay in fits]
         for (e, scale, delay), system in zip(fits, kept):
-            assert np.array_equal(system, equations._system(robot, e, segs, scale, delay))
+            assert np.array_equal(system, equations.regression_system(robot, e, segs, scale, delay))

@@ -25,20 +25,18 @@ from armid.daq.payload_service import EstimateStream, PayloadService, wait_for
 from armid.daq.stream import Stream, session_config
 from armid.demo import true_parameters
 from armid.identify import excitation as ex
-from armid.identify.differentiation import five_point_derivative
+from armid.identify.differentiation import derivatives_on_times, five_point_derivative, local_polynomial
 from armid.identify.identification import declared_effects, stacked_regressor, structural_base
+from armid.identify.payload.projection import phi_of_pseudo
 from armid.identify.payload.rls import (
+    FORGETTING_STEP_S,
     ArmModel,
     PayloadRLS,
     ReferenceRun,
-    _phi_of_pseudo,
-    derivatives_on_times,
     identification_document,
-    local_polynomial,
     project_feasible,
     project_feasible_many,
     pseudo_inertia,
-    rls_update,
 )
 from armid.io.recordings import read_mcap_arrays
 from armid.io.rig_file import load_rig
@@ -92,16 +90,41 @@ def _check_tracking(times: np.ndarray, docs: list[dict], t_on: float, t_off: flo
     assert abs(at(t_on - 0.5)["mass"]) <= 0.05 * PAYLOAD.mass  # nothing there before
 
 
-def test_rls_update_equals_batch_least_squares() -> None:
+def test_the_estimators_update_equals_weighted_batch_least_squares() -> None:
+    """PayloadRLS's own update (information form, per-joint noise weights, each equation counted
+    for its time share, forgetting while moving, the prior centred on the anchor) against the
+    least-squares solution of all its equations stacked at once (numpy's lstsq)."""
+    robot = load_rig(RIG).robot
+    effects = declared_effects(robot)
+    base = structural_base(robot, effects)
+    arm = ArmModel(robot, tuple(effects), base.independent, np.zeros(base.independent.size), np.ones(6))
+    rls = PayloadRLS(arm, forgetting=0.99)
+    rls.partial_fit(np.zeros(0), np.zeros((0, 6)), np.zeros((0, 6)))  # started, nothing folded
     rng = np.random.default_rng(0)
-    h = rng.normal(size=(40, 3, 4))
-    theta_true = rng.normal(size=4)
-    y = h @ theta_true + 0.01 * rng.normal(size=(40, 3))
-    theta, p = np.zeros(4), np.eye(4) * 1e4  # a weak prior: R / P0 = 1e-8
-    for k in range(40):
-        theta, p, _, _ = rls_update(theta, p, h[k], y[k], np.full(3, 1e-4))
-    batch, *_ = np.linalg.lstsq(h.reshape(-1, 4), y.reshape(-1), rcond=None)
-    assert np.allclose(theta, batch, atol=1e-6)
+    r = rng.uniform(0.5, 2.0, 6) ** 2
+    theta_true = rng.normal(size=10) * rls.prior_std
+    blocks = []
+    for k in range(6):
+        m = 12
+        h = rng.normal(size=(m, 6, 10))
+        y = h @ theta_true + rng.normal(size=(m, 6)) * np.sqrt(r)
+        use = rng.uniform(size=(m, 6)) > 0.2
+        dts = rng.uniform(0.5e-3, 2e-3, m)
+        moving_s = 0.0 if k == 2 else float(dts.sum())
+        blocks.append((h, y, use, dts, moving_s))
+        theta, p = rls._fold_information(h, y, use, dts, moving_s, r)
+    # each block's equations fade by the forgetting of every moving block after it
+    tau = float(np.mean(rls.correlation_time_))
+    rows, rhs = [np.diag(1.0 / rls.prior_std)], [np.zeros(10)]
+    for k, (h, y, use, dts, _) in enumerate(blocks):
+        later = sum(b[4] for b in blocks[k + 1:])
+        weight = rls.forgetting ** (later / FORGETTING_STEP_S) * dts[:, None] * use / (r * tau)
+        rows.append((np.sqrt(weight)[..., None] * h).reshape(-1, 10))
+        rhs.append((np.sqrt(weight) * y).reshape(-1))
+    a, b = np.vstack(rows), np.concatenate(rhs)
+    batch, *_ = np.linalg.lstsq(a, b, rcond=None)
+    assert np.allclose(theta, batch, rtol=1e-9, atol=1e-12 * np.abs(batch).max())
+    assert np.allclose(p, np.linalg.inv(a.T @ a), rtol=1e-8, atol=1e-14)
 
 
 def test_arm_model_and_payload_columns_equal_the_regressor() -> None:
@@ -135,12 +158,12 @@ def test_projection_is_physical_and_the_nearest_in_the_covariance_metric() -> No
         w = np.linalg.inv(cov)
         for _ in range(100):
             low = np.tril(rng.normal(size=(4, 4)))
-            y = x + rng.uniform(0.01, 1) * (_phi_of_pseudo(low @ low.T) - x)
+            y = x + rng.uniform(0.01, 1) * (phi_of_pseudo(low @ low.T) - x)
             cos = (y - x) @ w @ (theta - x) / np.sqrt(((y - x) @ w @ (y - x)) * ((theta - x) @ w @ (theta - x)))
             assert cos <= 1e-3, cos
     # a point mass at c has the pseudo-inertia m [c; 1][c; 1]^T: on the boundary, kept
     c = np.array([0.02, -0.03, 0.08])
-    point = _phi_of_pseudo(2.0 * np.outer(np.append(c, 1), np.append(c, 1)))
+    point = phi_of_pseudo(2.0 * np.outer(np.append(c, 1), np.append(c, 1)))
     assert np.allclose(project_feasible(point, np.eye(10)), point)
 
 
@@ -540,17 +563,17 @@ def test_a_rate_change_is_counted_once_wherever_it_falls_and_jitter_never(switch
     the switch anywhere from 2 to 12 ms): one rate change, in any batching. A window across the
     switch has a median between the two rates (4 ms), which is neither. 10 ms stamps moved by
     up to +-4 ms each: no rate change and no gap."""
-    from armid.identify.payload.rls import _Filter
+    from armid.identify.payload.filter import StreamFilter
 
     t = np.concatenate([np.arange(0, 3.0, 0.002), 3.0 + 0.002 * (switch // 2) + 0.001 * (switch % 2) + np.arange(0, 3.0, 0.01)])
     for batch in (1, 7, t.size):
-        f = _Filter()
+        f = StreamFilter()
         for a in range(0, t.size, batch):
             f._steps(t[a:a + batch])
         assert f.rate_changes == 1, (switch, batch, f.rate_changes)
     rng = np.random.default_rng(switch)
     jittered = np.sort(np.arange(0, 6.0, 0.01) + rng.uniform(-0.004, 0.004, 600))
-    f = _Filter()
+    f = StreamFilter()
     gaps = f._steps(jittered)
     assert f.rate_changes == 0 and not gaps.any()
 

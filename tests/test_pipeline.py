@@ -155,13 +155,13 @@ def test_the_command_lines_defaults_are_the_user_log_recipe() -> None:
     do unless told otherwise, and ``armid serve --whole-arm`` names exactly the recipes there are."""
     from dataclasses import replace
 
-    from armid.commands.identify import _recipe
+    from armid.commands.identify import recipe_from_arguments
     from armid.pipeline import DRIVE_RUN, RECIPES, USER_LOG
     from armid.serve import WHOLE_ARM_PIPELINES
 
     def recipe(command: str, *flags: str) -> object:
         args = build_parser().parse_args([command, "x.csv", "--robot", "r.yaml", "--validate", "v.csv", *flags])
-        return _recipe(args, weighting=args.weighting, prior=args.prior) if command == "identify" else _recipe(args)
+        return recipe_from_arguments(args, weighting=args.weighting, prior=args.prior) if command == "identify" else recipe_from_arguments(args)
 
     for command in ("identify", "diagnose"):
         assert recipe(command) == USER_LOG, command

@@ -13,7 +13,7 @@ from armid.schema.errors import RobotFileError
 ROBOT_HELP = "robot file (YAML), a URDF, or the name of a shipped robot (puma560, kuka_lwr4, ...)"
 
 
-def _number(text: str) -> float:
+def finite_number(text: str) -> float:
     try:
         value = float(text)
     except ValueError:
@@ -23,23 +23,23 @@ def _number(text: str) -> float:
     return value
 
 
-def _positive(text: str) -> float:
+def positive_number(text: str) -> float:
     """A finite number above zero (durations, frequencies, limits)."""
-    value = _number(text)
+    value = finite_number(text)
     if value <= 0:
         raise argparse.ArgumentTypeError(f"must be positive, got {text}")
     return value
 
 
-def _gap_factor(text: str) -> float:
+def gap_factor(text: str) -> float:
     """A step this many median steps long splits a log: below 2 every jitter would split it."""
-    value = _number(text)
+    value = finite_number(text)
     if value < 2:
         raise argparse.ArgumentTypeError(f"must be at least 2 (median steps), got {text}")
     return value
 
 
-def _count(text: str) -> int:
+def whole_count(text: str) -> int:
     """A whole number of at least 1 (periods)."""
     try:
         value = int(text)
@@ -50,7 +50,7 @@ def _count(text: str) -> int:
     return value
 
 
-def _seed(text: str) -> int:
+def seed_number(text: str) -> int:
     """NumPy seeds are whole numbers from 0."""
     try:
         value = int(text)
@@ -64,12 +64,12 @@ def _seed(text: str) -> int:
 LOWPASS_WORDS = ("off", "auto")
 
 
-def _lowpass(text: str) -> float | str:
+def lowpass_setting(text: str) -> float | str:
     """A cutoff in Hz (checked against each recording's Nyquist frequency once it is read),
     or one of the words ``off`` and ``auto``, passed through as given."""
     if text.strip().lower() in LOWPASS_WORDS:
         return text.strip().lower()
-    value = _number(text)
+    value = finite_number(text)
     if value <= 0:
         raise argparse.ArgumentTypeError(f"must be a positive cutoff in Hz, 'off' or 'auto', got {text}")
     return value

@@ -12,9 +12,10 @@ import numpy as np
 
 from armid.schema.errors import RecordingError
 
+from ..check_report import verdict_lines
 from .arguments import ROBOT_HELP, load_robot_argument
-from .identify import _recipe, preparation_arguments
-from .output import _inputs_read, _show, write_json_and_predictions
+from .identify import preparation_arguments, recipe_from_arguments
+from .output import inputs_read, show_warnings, write_json_and_predictions
 
 
 def fixed_model(robot: Any, doc: dict[str, Any], path: str) -> tuple[Any, Any]:
@@ -62,14 +63,14 @@ def _check(args: argparse.Namespace) -> int:
     from armid.identify.diagnosis.check import beyond_motion, check
 
     from .. import pipeline
-    from .estimate import _identification_document
+    from .estimate import identification_document
 
     robot = load_robot_argument(args.robot)
-    doc = _identification_document(args.model, robot)
+    doc = identification_document(args.model, robot)
     model, reference = fixed_model(robot, doc, args.model)
-    inputs = pipeline.load(robot, _recipe(args), args.data)
-    _show(inputs.warnings)
-    _inputs_read()
+    inputs = pipeline.load(robot, recipe_from_arguments(args), args.data)
+    show_warnings(inputs.warnings)
+    inputs_read()
     for path, prep in zip(inputs.sources, inputs.experiments):
         for note in prep.notes:
             print(f"{path}: {note}", file=sys.stderr)
@@ -93,37 +94,6 @@ def _check(args: argparse.Namespace) -> int:
     for line in verdict_lines(robot.name, result):
         print(line)
     return 0
-
-
-def verdict_lines(name: str, result: Any) -> list[str]:
-    """What ``check`` prints: the verdict with its figures, what changed, and the errors."""
-    ref, floor = result.reference, result.noise_floor["relative_error"]
-    own = f"{100 * ref.relative_error:.3g} % on its own {'validation' if ref.kind == 'validation' else 'identification'} data"
-    floor_text = "no noise floor" if floor is None else f"a noise floor of {100 * floor:.3g} %"
-    e = result.before["relative_error"]
-    lines = []
-    if result.holds:
-        lines.append(f"{name}: the model holds on these data: error {100 * e:.3g} % against {own} and {floor_text}")
-        if floor is not None and ref.relative_error**2 > 1.5 * floor**2:
-            lines.append(f"note: its own error ({100 * ref.relative_error:.3g} %) stands above the noise floor: a misfit the model "
-                         "already had on its own data, not a change (armid diagnose looks for what it lacks)")
-        return lines
-    where = "" if not result.joints_beyond else "; joints " + ", ".join(str(j + 1) for j in result.joints_beyond) + " beyond their own"
-    lines.append(f"{name}: the model does NOT hold on these data: error {100 * e:.3g} % against {own} and {floor_text}{where}")
-    if ref.kind == "fit":
-        lines.append("note: the model's own figure is its fit on the data it was identified on, which is optimistic for a new trajectory: "
-                     "identify with --validate on a run of its own for a fairer reference")
-    if result.beyond_motion:
-        lines.append("these data move beyond the model's identification data (" + "; ".join(result.beyond_motion) + "): part of the "
-                     "rise may be the model's extrapolation there, not a change of the arm")
-    lines += [c.sentence(bool(result.beyond_motion)) for c in result.found]
-    lines += result.notes
-    if not result.found:
-        lines.append("nothing in the catalogue nor a load on the last link explains the rise: re-identify on these data, "
-                     "or run armid diagnose on them")
-    lines.append(f"{name}: error {100 * e:.3g} % -> {100 * result.after['relative_error']:.3g} % with what changed "
-                 "(each sample predicted by the fit on the other tenths)")
-    return lines
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .arguments import _seed
+from .arguments import seed_number
 
 
 def _demo(args: argparse.Namespace) -> int:
@@ -19,7 +19,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p = sub.add_parser("demo", help="the whole job on the simulated arm: excitation, recording, identification, diagnosis, payload, report")
     p.add_argument("--out", default="report", help="report folder (default: report)")
     p.add_argument("--rig", help="rig file (default: the embedded config/rigs/sim.yaml)")
-    p.add_argument("--seed", type=_seed, default=0, help="seed of the trajectory optimiser's starts")
-    p.add_argument("--arm-seed", type=_seed, default=None,
+    p.add_argument("--seed", type=seed_number, default=0, help="seed of the trajectory optimiser's starts")
+    p.add_argument("--arm-seed", type=seed_number, default=None,
                    help="seed of the simulated arm's current noise (default: a fresh one, printed and kept in demo.json)")
     p.set_defaults(run=_demo)

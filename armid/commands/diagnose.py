@@ -12,8 +12,8 @@ from typing import Any
 from armid.schema.errors import PoorExcitationWarning
 
 from .arguments import ROBOT_HELP, load_robot_argument
-from .identify import _feasible, _feasible_arguments, _recipe, preparation_arguments
-from .output import _inputs_read, _show, write_json_and_predictions
+from .identify import add_feasible_arguments, feasible_report, preparation_arguments, recipe_from_arguments
+from .output import inputs_read, show_warnings, write_json_and_predictions
 
 
 def _diagnose(args: argparse.Namespace) -> int:
@@ -22,9 +22,9 @@ def _diagnose(args: argparse.Namespace) -> int:
     from .. import pipeline
 
     robot = load_robot_argument(args.robot)
-    inputs = pipeline.load(robot, _recipe(args), args.data, args.validate)
-    _show(inputs.warnings)
-    _inputs_read()
+    inputs = pipeline.load(robot, recipe_from_arguments(args), args.data, args.validate)
+    show_warnings(inputs.warnings)
+    inputs_read()
     experiments, validation = inputs.experiments, inputs.validation
     for path, prep in zip(inputs.sources, experiments + validation):
         for note in prep.notes:
@@ -91,7 +91,7 @@ def _diagnosed_feasible(args: argparse.Namespace, robot: Any, diag: Any, experim
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PoorExcitationWarning)
         result = identify(model, experiments, validation, options)
-    line = _feasible(args, model, result, validation, doc)
+    line = feasible_report(args, model, result, validation, doc)
     doc["feasible"]["model"] = {"declared": doc.get("declared", []),
                                 "added_findings": [f"{f.effect}@{'arm' if f.joint is None else f.joint + 1}" for f in diag.found]}
     return line
@@ -106,6 +106,6 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--json", metavar="OUT", help="write the findings and the errors before and after as JSON")
     p.add_argument("--report", metavar="DIR", help="write diagnosis.md with residual plots per joint")
     p.add_argument("--predictions", metavar="CSV", help="write the final model's predicted validation torques (t, tau_hat1..n)")
-    _feasible_arguments(p)
+    add_feasible_arguments(p)
     preparation_arguments(p)
     p.set_defaults(run=_diagnose)

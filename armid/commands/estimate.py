@@ -15,7 +15,7 @@ from armid.schema.errors import RecordingError, UsageError
 from armid.schema.joint_states import JointStates
 
 from .arguments import load_robot_argument
-from .output import _show
+from .output import show_warnings
 from .session import add_zenoh_arguments, open_zenoh
 
 
@@ -25,7 +25,7 @@ def _replay_records(path: Path, robot: Any, period_s: float | None) -> tuple[Joi
     from ..pipeline import replay_records
 
     records, notes, found = replay_records(path, robot)
-    _show(found)
+    show_warnings(found)
     t = records.time
     if t.size >= 2 and period_s is not None:
         step = float(np.median(np.diff(t)))
@@ -35,7 +35,7 @@ def _replay_records(path: Path, robot: Any, period_s: float | None) -> tuple[Joi
     return records, notes
 
 
-def _identification_document(path: str, robot: Any) -> dict[str, Any]:
+def identification_document(path: str, robot: Any) -> dict[str, Any]:
     """The ``armid identify --json`` document, checked for what the estimator reads."""
     try:
         doc = json.loads(Path(path).read_text())
@@ -118,7 +118,7 @@ def _estimate(args: argparse.Namespace) -> int:
     if args.duration is not None and not (np.isfinite(args.duration) and args.duration > 0):
         raise UsageError(f"--duration must be a positive number of seconds, got {args.duration:g}")
     robot = load_robot_argument(args.robot)
-    doc = _identification_document(args.params, robot)
+    doc = identification_document(args.params, robot)
     arm = arm_model_from_identification(robot, doc)
     reference = None
     if args.reference:

@@ -14,8 +14,8 @@ import numpy as np
 from armid.schema.errors import InputFileError, OptionError, UsageError
 
 from ..schema.json_text import write_json
-from .arguments import _count, _positive, _seed
-from .output import _inputs_read
+from .arguments import positive_number, seed_number, whole_count
+from .output import inputs_read
 from .rig import open_rig_driver, rig_from_arguments, simulating
 from .session import add_zenoh_arguments, open_zenoh
 
@@ -46,7 +46,7 @@ def _excite(args: argparse.Namespace) -> int:
                 raise UsageError(f"--link: joint {j} does not exist; {robot.name} has joints 1..{n}")
             links.append(j - 1)
     trajectory = load_trajectory(args.trajectory, n, rig.period_s) if args.trajectory else None  # checked before any drive is enabled
-    _inputs_read()
+    inputs_read()
     out = Path(args.out or f"runs/{time.strftime('%Y%m%d-%H%M%S')}")
     # the pose the arm will be at: the rig's (simulated) start, or the drives' own report
     start = np.asarray(rig.simulation.get("initial_position", np.zeros(n)), float) if simulate else None
@@ -215,10 +215,10 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--link", action="append", metavar="J", help="single-link experiment of joint J (repeat; 'all' = Khosla's sequence N..1)")
     p.add_argument("--whole", action="store_true", help="also a whole-arm run (the default without --link)")
     p.add_argument("--trajectory", metavar="JSON", help="run this designed trajectory (designs.json entry or {fourier: ...}) instead of designing")
-    p.add_argument("--periods", type=_count, default=2, help="periods of each trajectory (default 2)")
-    p.add_argument("--frequency", type=_positive, metavar="HZ", help="base frequency (default 0.5 Hz single-link, 0.2 Hz whole arm)")
-    p.add_argument("--tracking-limit", type=_positive, default=0.2, metavar="RAD", help="quick stop beyond this tracking error (default 0.2 rad)")
-    p.add_argument("--seed", type=_seed, default=0, help="seed of the trajectory optimiser's starts")
+    p.add_argument("--periods", type=whole_count, default=2, help="periods of each trajectory (default 2)")
+    p.add_argument("--frequency", type=positive_number, metavar="HZ", help="base frequency (default 0.5 Hz single-link, 0.2 Hz whole arm)")
+    p.add_argument("--tracking-limit", type=positive_number, default=0.2, metavar="RAD", help="quick stop beyond this tracking error (default 0.2 rad)")
+    p.add_argument("--seed", type=seed_number, default=0, help="seed of the trajectory optimiser's starts")
     p.add_argument("--out", help="output folder (default runs/<date-time>)")
     p.add_argument("--dry-run", action="store_true", help="design and check only; enable nothing")
     p.add_argument("--interface", help="override the rig's python-can interface")

@@ -13,11 +13,11 @@ import numpy as np
 
 from armid.schema.errors import IdentificationError, RecordingError, UsageError
 
-from .arguments import ROBOT_HELP, _gap_factor, _lowpass, load_robot_argument
-from .output import _inputs_read, _show, strict_json, write_json_and_predictions
+from .arguments import ROBOT_HELP, gap_factor, load_robot_argument, lowpass_setting
+from .output import inputs_read, show_warnings, strict_json, write_json_and_predictions
 
 
-def _recipe(args: argparse.Namespace, **extra: Any) -> Any:
+def recipe_from_arguments(args: argparse.Namespace, **extra: Any) -> Any:
     """The recipe ``--recipe`` names (:data:`~armid.pipeline.RECIPES`: ``identify``, a log the
     user brings, unless told) with the flags the user gave; a flag left out keeps the recipe's
     value, so that ``--recipe drives`` is exactly what the demo and the service do."""
@@ -34,12 +34,12 @@ def preparation_arguments(p: argparse.ArgumentParser) -> None:
                    help="identify (default): a log you bring (the low-pass chosen from its spectrum, the torque as sampled); "
                         "drives: a recording of armid excite as the demo and the service take it (no low-pass, currents held "
                         "over the period, the samples beside a velocity reversal left out); the flags below change either")
-    p.add_argument("--lowpass", type=_lowpass, default=None, metavar="HZ|auto|off",
+    p.add_argument("--lowpass", type=lowpass_setting, default=None, metavar="HZ|auto|off",
                    help="zero-phase low-pass of the kinematics, the regressor and the torque alike (default: the recipe's; "
                         "identify: auto, chosen from each recording's spectrum; drives: off)")
     p.add_argument("--torque-hold", action="store_true", default=None,
                    help="torques were held over the period before each sample (drive currents between SYNCs; drives: always)")
-    p.add_argument("--max-gap-factor", type=_gap_factor, default=None, help="split where a step exceeds this many median steps (default 20)")
+    p.add_argument("--max-gap-factor", type=gap_factor, default=None, help="split where a step exceeds this many median steps (default 20)")
 
 
 def _identify(args: argparse.Namespace) -> int:
@@ -47,12 +47,12 @@ def _identify(args: argparse.Namespace) -> int:
     from .. import pipeline
 
     robot = load_robot_argument(args.robot)
-    recipe = _recipe(args, weighting=args.weighting, prior=args.prior)
+    recipe = recipe_from_arguments(args, weighting=args.weighting, prior=args.prior)
     if args.single_link:
         return _identify_single_link(args, robot, recipe)
     inputs = pipeline.load(robot, recipe, args.data, args.validate or [])
-    _show(inputs.warnings)
-    _inputs_read()
+    show_warnings(inputs.warnings)
+    inputs_read()
     experiments, validation = inputs.experiments, inputs.validation
     result, excitation = pipeline.identify(robot, experiments, validation, recipe)
     for message in excitation:
@@ -62,7 +62,7 @@ def _identify(args: argparse.Namespace) -> int:
     from armid.identify.diagnosis.check import motion_ranges
 
     doc["motion"] = motion_ranges(experiments)  # what the model was identified on: armid check says where new data go beyond it
-    feasible_line = _feasible(args, robot, result, validation, doc)
+    feasible_line = feasible_report(args, robot, result, validation, doc)
     for path, prep in zip(inputs.sources, experiments + validation):
         for note in prep.notes:
             print(f"{path}: {note}", file=sys.stderr)
@@ -112,7 +112,7 @@ def _identify_single_link(args: argparse.Namespace, robot: Any, recipe: Any) -> 
         recordings.append({"path": path, "role": "identification", "stopped": rec.stopped})
     checked = [(path, *_single_joint_run(path, robot)) for path in args.validate or []]
     recordings += [{"path": path, "role": "validation", "stopped": rec.stopped} for path, rec, _ in checked]
-    _inputs_read()
+    inputs_read()
     seq = single_link_sequence(robot, runs)
     table = seq.table()
     for row in table:
@@ -158,14 +158,14 @@ def not_identified(std: float, physical_range: float | None) -> str:
 def _single_joint_run(path: str, robot: Any) -> tuple[Any, int]:
     """The recording, cut to its excitation window where ``armid excite``'s ``runs.json`` gives
     it, and the one joint (0-based) that moved in it."""
-    from armid.identify.single_link import MOVING_RAD, joint_spans
+    from armid.identify.plausibility import MOVING_RAD, moving_joints
 
     from ..pipeline import read
 
     rec, found = read(path, robot, need_motion=False)
-    _show(found)
+    show_warnings(found)
     rec = _excitation_window(Path(path), rec)
-    moved = np.flatnonzero(joint_spans(rec.q) > MOVING_RAD)
+    moved = np.flatnonzero(moving_joints(rec.q))
     if moved.size != 1:
         what = "no joint moved" if moved.size == 0 else f"joints {', '.join(str(j + 1) for j in moved)} moved"
         raise RecordingError(path, f"{what} (by more than {MOVING_RAD} rad): a single-link experiment moves one joint alone "
@@ -198,7 +198,7 @@ def _excitation_window(path: Path, rec: Any) -> Any:
     return rec
 
 
-def _feasible(args: argparse.Namespace, robot: Any, result: Any, validation: list[Any], doc: dict[str, Any]) -> str | None:
+def feasible_report(args: argparse.Namespace, robot: Any, result: Any, validation: list[Any], doc: dict[str, Any]) -> str | None:
     """``--feasible`` / ``--urdf``: the physically consistent estimate into ``doc["feasible"]``
     and, with ``--urdf OUT``, the identified inertials written back as a URDF."""
     if not (args.feasible or args.urdf or args.bounding_box):
@@ -222,7 +222,7 @@ def _feasible(args: argparse.Namespace, robot: Any, result: Any, validation: lis
     return f"{robot.name}: {fr.summary_line()}" + (f"; URDF written to {args.urdf}" if args.urdf else "")
 
 
-def _feasible_arguments(p: argparse.ArgumentParser) -> None:
+def add_feasible_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--feasible", action="store_true",
                    help="also the physically consistent estimate (pseudo-inertia PSD, friction >= 0) and a consistency report in the JSON")
     p.add_argument("--urdf", metavar="OUT", help="write the physically consistent model as a URDF (implies --feasible)")
@@ -243,7 +243,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--weighting", choices=("wls", "ols"), default=None, help="per-joint weighted (default) or ordinary LS")
     p.add_argument("--prior", choices=("modeled", "none"), default=None,
                    help="the robot file's modeled values as a prior for what the data do not excite (default), or least squares alone")
-    _feasible_arguments(p)
+    add_feasible_arguments(p)
     preparation_arguments(p)
     p.add_argument("--single-link", action="store_true",
                    help="Khosla's off-line sequence: each recording moves one joint alone; identified last link first, its "

@@ -11,13 +11,13 @@ from typing import Any
 from ..schema.json_text import strict_json
 
 
-def _show(found: list[str]) -> None:
-    """Warnings from the pipeline's checks, held until every input is read (:class:`_HeldWarnings`)."""
+def show_warnings(found: list[str]) -> None:
+    """Warnings from the pipeline's checks, held until every input is read (:class:`HeldWarnings`)."""
     for warning in found:
-        _WARNINGS.show(warning, None, "", 0)
+        HELD_WARNINGS.show(warning, None, "", 0)
 
 
-class _HeldWarnings:
+class HeldWarnings:
     """Warnings are held while a command reads its inputs: bad input then ends in its one
     error line alone. Once the inputs are read (:meth:`release`) and at a successful end,
     they are printed, one line each."""
@@ -27,7 +27,7 @@ class _HeldWarnings:
         self.held: list[str] | None = []
 
     def show(self, message: Any, category: Any, filename: str, lineno: int, file: Any = None, line: Any = None) -> None:
-        text = f"armid {self.command}: warning: {_one_line(str(message))}"
+        text = f"armid {self.command}: warning: {one_line(str(message))}"
         if self.held is None:
             print(text, file=sys.stderr)
         elif text not in self.held:
@@ -39,15 +39,15 @@ class _HeldWarnings:
         self.held = None
 
 
-_WARNINGS = _HeldWarnings()
+HELD_WARNINGS = HeldWarnings()
 
 
-def _inputs_read() -> None:
+def inputs_read() -> None:
     """The command has read and checked its inputs: print what they warned about."""
-    _WARNINGS.release()
+    HELD_WARNINGS.release()
 
 
-def _one_line(text: str, most: int = 600) -> str:
+def one_line(text: str, most: int = 600) -> str:
     line = " ".join(str(text).split())
     return line if len(line) <= most else line[: most - 3] + "..."
 

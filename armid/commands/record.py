@@ -7,8 +7,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from .arguments import _positive
-from .output import _inputs_read
+from .arguments import positive_number
+from .output import inputs_read
 from .rig import open_rig_driver, rig_from_arguments, stopped_by_signals
 from .session import add_zenoh_arguments, open_zenoh
 
@@ -21,7 +21,7 @@ def _record(args: argparse.Namespace) -> int:
     from armid.schema import versions
 
     rig = rig_from_arguments(args)
-    _inputs_read()
+    inputs_read()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     driver, sim = open_rig_driver(rig, args)
@@ -134,7 +134,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p = sub.add_parser("record", help="record the drives through daq/: MCAP, raw CAN log, live Zenoh stream")
     p.add_argument("--rig", required=True, help="rig file")
     p.add_argument("--out", required=True, help="output folder (run.mcap, can.log)")
-    p.add_argument("--duration", type=_positive, help="seconds to record (the arm's time when it is simulated here; default: until Ctrl-C)")
+    p.add_argument("--duration", type=positive_number, help="seconds to record (the arm's time when it is simulated here; default: until Ctrl-C)")
     p.add_argument("--interface", help="override the rig's python-can interface")
     p.add_argument("--channel", help="override the rig's channel")
     p.add_argument("--simulate", action=argparse.BooleanOptionalAction, default=None,

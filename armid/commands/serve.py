@@ -8,8 +8,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from .arguments import ROBOT_HELP, _count, _positive, load_robot_argument
-from .output import _inputs_read, strict_json
+from .arguments import ROBOT_HELP, load_robot_argument, positive_number, whole_count
+from .output import inputs_read, strict_json
 from .session import add_zenoh_arguments, open_zenoh
 
 
@@ -23,7 +23,7 @@ def _serve(args: argparse.Namespace) -> int:
     from ..serve import EstimatorService, ServiceOptions
 
     robot = load_robot_argument(args.robot)
-    _inputs_read()
+    inputs_read()
     from armid.drivers.realtime import ordinary_priority, realtime_allowed
 
     ordinary_priority()  # started from a real-time thread, it would have inherited that policy
@@ -84,8 +84,8 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--whole-arm", choices=("identify", "drives"), default="identify",
                    help="identify a whole-arm run as 'armid identify RUN.mcap' does (default), or as 'armid demo' does (excitation window, no low-pass)")
     p.add_argument("--no-payload", action="store_true", help="do not run the payload estimator once the arm is identified")
-    p.add_argument("--max-backlog", type=_count, default=2500, help="records queued before the service skips to the newest (default 2500: 5 s at 2 ms)")
-    p.add_argument("--duration", type=_positive, help="stop after this many seconds (default: until Ctrl-C)")
+    p.add_argument("--max-backlog", type=whole_count, default=2500, help="records queued before the service skips to the newest (default 2500: 5 s at 2 ms)")
+    p.add_argument("--duration", type=positive_number, help="stop after this many seconds (default: until Ctrl-C)")
     p.add_argument("--json", metavar="JSONL", help="also write every published estimate/parameters document as a JSON line")
     add_zenoh_arguments(p)
     p.set_defaults(run=_serve)

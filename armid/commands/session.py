@@ -10,7 +10,7 @@ from typing import Any
 
 from armid.schema.errors import InputFileError, OptionError
 
-from .output import _one_line
+from .output import one_line
 
 
 def _zenoh_message(err: BaseException) -> str:
@@ -20,7 +20,7 @@ def _zenoh_message(err: BaseException) -> str:
     text = str(err)
     inner = re.search(r'msg: "(.*?)(?: at /[^"]*)?"', text)
     text = inner.group(1) if inner else re.sub(r" at /\S+\.rs:\d+\.?", "", text)
-    return _one_line(text, 200)
+    return one_line(text, 200)
 
 
 def open_zenoh(args: argparse.Namespace) -> Any:

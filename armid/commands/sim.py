@@ -9,14 +9,14 @@ from typing import Any
 
 import numpy as np
 
-from .arguments import _positive, _seed
-from .output import _inputs_read
+from .arguments import positive_number, seed_number
+from .output import inputs_read
 from .rig import rig_from_arguments, run_until, stopped_by_signals
 
 
 def _sim(args: argparse.Namespace) -> int:
     rig = rig_from_arguments(args)
-    _inputs_read()
+    inputs_read()
     with stopped_by_signals() as stop:
         return _sim_chain(rig, args, stop) if rig.is_serial else _sim_arm(rig, args, stop)
 
@@ -72,8 +72,8 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--rig", required=True, help="rig file (config/rigs/sim.yaml)")
     p.add_argument("--interface", help="override the rig's python-can interface")
     p.add_argument("--channel", help="override the rig's channel")
-    p.add_argument("--seed", type=_seed, help="override the simulation seed")
-    p.add_argument("--duration", type=_positive, help="stop after this many seconds (default: until SIGINT/SIGTERM)")
+    p.add_argument("--seed", type=seed_number, help="override the simulation seed")
+    p.add_argument("--duration", type=positive_number, help="stop after this many seconds (default: until SIGINT/SIGTERM)")
     p.add_argument("--log", metavar="NPZ", help="on exit, write the simulated state per SYNC")
     p.add_argument("--ready", metavar="FILE", help="write this file once the drives are on the bus (a serial chain: its port)")
     p.set_defaults(run=_sim)

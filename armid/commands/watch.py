@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .arguments import _positive
+from .arguments import positive_number
 from .rig import stopped_by_signals
 from .session import add_zenoh_arguments, open_zenoh
 
@@ -28,6 +28,6 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     """``armid watch``: its options."""
     p = sub.add_parser("watch", help="a live view of the stream in the terminal (joints, rate, gaps, events, payload)")
     p.add_argument("--robot", required=True, help="robot name, as in armid/<robot>/... (e.g. puma560)")
-    p.add_argument("--duration", type=_positive, help="stop after this many seconds (default: until Ctrl-C)")
+    p.add_argument("--duration", type=positive_number, help="stop after this many seconds (default: until Ctrl-C)")
     add_zenoh_arguments(p)
     p.set_defaults(run=_watch)

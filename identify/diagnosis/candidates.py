@@ -2,11 +2,11 @@
 
 Each effect of the catalogue (the module docstring of :mod:`identify.diagnosis` lists them)
 on each joint, or on the whole arm, is a :class:`Candidate`: a function of the data
-(:class:`~identify.diagnosis_data._Data`) giving its columns, linear in its parameters. An
+(:class:`~identify.diagnosis_data.StackedData`) giving its columns, linear in its parameters. An
 effect with one nonlinear parameter is one candidate per value of it on a grid (a Stribeck
 velocity, a cogging period). What each effect can be mistaken for (:data:`LOOKALIKES`) and
 the experiment that tells the two apart (:data:`SEPARATE`) go with the catalogue, as do the
-parameters a fitted candidate reports (:func:`_parameters`).
+parameters a fitted candidate reports (:func:`candidate_parameters`).
 """
 
 from __future__ import annotations
@@ -14,14 +14,14 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Protocol
 
 import numpy as np
 
 from ..dynamics import regressor
 from ..robot import Robot
 from ..spatial import Array
-from .data import _Data, _rate
+from .data import StackedData, torque_rate
 
 LOOKALIKES = {
     "coulomb_friction": "stribeck_friction",
@@ -39,7 +39,7 @@ LOOKALIKES = {
 NESTING = {"torque_offset": "spring"}
 """A one-joint effect and the one that holds it (its columns and one more): an offset is a
 spring's torque at its rest position (``spring``: ``q`` and an offset). The diagnosis names
-the larger where its extra term is a finding beside the smaller (``_Search._nesting``)."""
+the larger where its extra term is a finding beside the smaller (``DiagnosisSearch._nesting``)."""
 
 
 SEPARATE = {
@@ -123,6 +123,10 @@ def _cogging_columns(j: int, periods: tuple[float, ...], q: Array, qd: Array, qd
     return out
 
 
+Columns = Callable[[StackedData], Array]
+"""A candidate kind's columns of the data: a function above (a partial of it) per kind."""
+
+
 @dataclass(frozen=True)
 class Candidate:
     """Columns of one effect. ``block`` gives (n, k) columns living in joint ``joint``'s rows
@@ -132,10 +136,10 @@ class Candidate:
     joint: int | None  # 0-based, None for the arm
     setting: tuple[tuple[str, float], ...]
     labels: tuple[str, ...]
-    block: Callable[[_Data], Array] | None = None
-    full: Callable[[_Data], Array] | None = None
+    block: Columns | None = None
+    full: Columns | None = None
 
-    def columns(self, d: _Data) -> Array:
+    def columns(self, d: StackedData) -> Array:
         """(rows, k), unweighted."""
         if self.block is not None:
             assert self.joint is not None
@@ -160,7 +164,7 @@ def _stribeck_columns(j: int, vs: float, q: Array, qd: Array, qdd: Array) -> Arr
     return np.column_stack([s, s * np.exp(-((qd[:, j] / vs) ** 2))])
 
 
-def coulomb(d: _Data, j: int) -> Array:
+def coulomb(d: StackedData, j: int) -> Array:
     """(n, 1) joint j's Coulomb column as ``d``'s equations see it (:func:`_coulomb_column`)."""
     return d.filtered(functools.partial(_coulomb_column, j))
 
@@ -172,88 +176,155 @@ def _load_friction_columns(robot: Robot, phi: tuple[float, ...], q: Array, qd: A
     return np.abs(regressor(robot, q, qd, qdd) @ np.asarray(phi)) * np.sign(qd)
 
 
-def _candidates(robot: Robot, data: _Data, present: set[tuple[str, int | None]], ctx: dict[str, Any],
-                max_cogging_per_turn: int) -> list[Candidate]:
+class CurrentModel(Protocol):
+    """What a candidate's columns read of the model they are scored against, when they are
+    computed: its prediction (and the same without friction's steps, for a delay's
+    derivative), its standard parameters ``phi`` (a tilt's columns) and a load-dependent
+    friction's load (``load``, standard rigid-body parameters)."""
+
+    @property
+    def phi(self) -> Array: ...
+
+    @property
+    def load(self) -> tuple[float, ...]: ...
+
+    def predict(self, d: StackedData) -> Array: ...
+
+    def predict_smooth(self, d: StackedData) -> Array: ...
+
+
+def _viscous(j: int, d: StackedData) -> Array:
+    return d.qd[:, j : j + 1]
+
+
+def _coulomb_block(j: int, d: StackedData) -> Array:
+    return coulomb(d, j)
+
+
+def _offset(d: StackedData) -> Array:
+    return np.ones((d.q.shape[0], 1))
+
+
+def _rotor_inertia(j: int, d: StackedData) -> Array:
+    return d.qdd[:, j : j + 1]
+
+
+def _spring(j: int, with_offset: bool, d: StackedData) -> Array:
+    """``q`` and an offset (the spring's rest), or ``q`` alone where the offset is in the model."""
+    return np.column_stack([d.q[:, j], np.ones(d.q.shape[0])]) if with_offset else d.q[:, j : j + 1]
+
+
+def _stribeck(j: int, vs: float, with_coulomb: bool, on_motion: bool, d: StackedData) -> Array:
+    """A Stribeck peak at ``vs`` (with its Coulomb level where that is not in the model):
+    filtered as the torque was, unless the level is the robot file's (the declared model's
+    columns are on the filtered motion)."""
+    if on_motion:
+        return _stribeck_columns(j, vs, d.q, d.qd, d.qdd)[:, 1:]
+    return d.filtered(functools.partial(_stribeck_columns, j, vs))[:, 0 if with_coulomb else 1 :]
+
+
+def _load_friction(robot: Robot, model: CurrentModel, j: int, with_coulomb: bool, d: StackedData) -> Array:
+    """``|tau_load_j| sign(qd_j)`` with the load the model's as it is when computed (with its Coulomb level where that is not in the model)."""
+    cols = d.filtered(functools.partial(_load_friction_columns, robot, model.load))
+    return np.column_stack(([coulomb(d, j)[:, 0]] if with_coulomb else []) + [cols[:, j]])
+
+
+def _cogging(periods_of_joint: functools.partial[Array], i: int, d: StackedData) -> Array:
+    """The ``i``-th period's sine and cosine of the joint's cogging columns (one array a joint)."""
+    return d.filtered(periods_of_joint)[:, 2 * i : 2 * i + 2]
+
+
+def _torque_gain(model: CurrentModel, j: int, d: StackedData) -> Array:
+    return model.predict(d)[:, j : j + 1]
+
+
+def _joint_delay(model: CurrentModel, j: int, d: StackedData) -> Array:
+    """Joint j's drive reports its position late: every joint's torque leads it (the
+    prediction's derivative along joint j's motion, without friction's steps)."""
+    return ((model.predict_smooth(d.shifted(j, 1)) - model.predict_smooth(d.shifted(j, -1))) / (2 * d.period)).reshape(-1, 1)
+
+
+def _arm_friction(nj: int, joints: tuple[int, ...], d: StackedData) -> Array:
+    """Coulomb, viscous friction and an offset on each of ``joints``, each in its own rows."""
+    cols = np.zeros((d.q.shape[0] * nj, 3 * len(joints)))
+    for k, j in enumerate(joints):
+        cols[j::nj, 3 * k : 3 * k + 3] = np.column_stack([coulomb(d, j)[:, 0], d.qd[:, j], np.ones(d.q.shape[0])])
+    return cols
+
+
+def _arm_delay(model: CurrentModel, d: StackedData) -> Array:
+    """The whole torque channel lags the positions: minus the rate of the smooth prediction."""
+    return -torque_rate(d, model.predict_smooth(d)).reshape(-1, 1)
+
+
+def _tilt(robot: Robot, model: CurrentModel, d: StackedData) -> Array:
+    """The prediction's change when gravity turns about base x and y (linearised)."""
+    g = np.asarray(robot.gravity, float)
+    cols = []
+    for axis in np.eye(3)[:2]:
+        tilted = replace(robot, gravity=np.cross(axis, g))
+        z = np.zeros_like(d.q)
+        cols.append((regressor(tilted, d.q, z, z) @ model.phi).reshape(-1))
+    return np.column_stack(cols)
+
+
+def candidate_catalogue(robot: Robot, data: StackedData, present: set[tuple[str, int | None]], model: CurrentModel,
+                        max_cogging_per_turn: int) -> list[Candidate]:
     """Every candidate of the catalogue not ``present`` (declared, found or set aside) on
     ``data``: per joint the linear effects, a Stribeck term per velocity its motion outruns,
     cogging per whole number of periods per turn its motion spans (up to
     ``max_cogging_per_turn``), a drive gain and a late position; for the arm friction on every
-    bare joint, a delay of the torque channel and a tilt of gravity. ``ctx`` holds what the
-    model so far gives: its prediction (``predict``, and ``predict_smooth`` without friction's
-    steps), its standard parameters (``phi``) and a load-dependent friction's load (``load``),
-    read when the columns are computed."""
+    bare joint, a delay of the torque channel and a tilt of gravity. Each kind's columns are
+    one function above, of the data (and what it needs); those that read ``model``
+    (:class:`CurrentModel`) read it when they are computed."""
     out: list[Candidate] = []
     nj = robot.n_joints
     declared_coulomb = {k for e in robot.effects if e.effect == "coulomb_friction" for k in (range(nj) if e.joint is None else [e.joint - 1])}
     for j in range(nj):
-        revolute = robot.joints[j].revolute
 
-        def lin(name: str, fn: Callable[[_Data], Array], labels: tuple[str, ...], j: int = j, setting: tuple = ()) -> None:  # type: ignore[type-arg]
+        def lin(name: str, fn: Columns, labels: tuple[str, ...], setting: tuple[tuple[str, float], ...] = (), j: int = j) -> None:
             if (name, j) not in present:
                 out.append(Candidate(name, j, setting, labels, block=fn))
 
-        lin("viscous_friction", lambda d, j=j: d.qd[:, j : j + 1], ("fv",))  # type: ignore[misc]
-        lin("coulomb_friction", lambda d, j=j: coulomb(d, j), ("fc",))  # type: ignore[misc]
-        lin("torque_offset", lambda d: np.ones((d.q.shape[0], 1)), ("offset",))
-        lin("rotor_inertia", lambda d, j=j: d.qdd[:, j : j + 1], ("ia",))  # type: ignore[misc]
+        lin("viscous_friction", functools.partial(_viscous, j), ("fv",))
+        lin("coulomb_friction", functools.partial(_coulomb_block, j), ("fc",))
+        lin("torque_offset", _offset, ("offset",))
+        lin("rotor_inertia", functools.partial(_rotor_inertia, j), ("ia",))
         with_offset = ("torque_offset", j) not in present
-        lin("spring", (lambda d, j=j: np.column_stack([d.q[:, j], np.ones(d.q.shape[0])])) if with_offset else (lambda d, j=j: d.q[:, j : j + 1]),  # type: ignore[misc]
-            ("stiffness", "offset") if with_offset else ("stiffness",))
+        lin("spring", functools.partial(_spring, j, with_offset), ("stiffness", "offset") if with_offset else ("stiffness",))
         with_coulomb = ("coulomb_friction", j) not in present
         outrun = float(np.percentile(np.abs(data.qd[:, j]), STRIBECK_DECAYED[0])) / STRIBECK_DECAYED[1]
-        # a peak pairs with its Coulomb level's column: filtered as the torque was, unless the
-        # level is the robot file's (the declared model's columns are on the filtered motion)
         on_motion = j in declared_coulomb
         for vs in [v for v in STRIBECK_VELOCITIES if v <= outrun]:
-            def strib(d: _Data, j: int = j, vs: float = vs, wc: bool = with_coulomb, on_motion: bool = on_motion) -> Array:
-                if on_motion:
-                    return _stribeck_columns(j, vs, d.q, d.qd, d.qdd)[:, 1:]
-                return d.filtered(functools.partial(_stribeck_columns, j, vs))[:, 0 if wc else 1 :]
-            lin("stribeck_friction", strib, (("fc",) if with_coulomb else ()) + ("fs",), setting=(("velocity", vs),))
-        def load_friction(d: _Data, j: int = j, wc: bool = with_coulomb) -> Array:
-            cols = d.filtered(functools.partial(_load_friction_columns, robot, ctx["load"]))
-            return np.column_stack(([coulomb(d, j)[:, 0]] if wc else []) + [cols[:, j]])
-        lin("load_dependent_coulomb", load_friction, (("fc",) if with_coulomb else ()) + ("fl",))
-        if revolute:
+            lin("stribeck_friction", functools.partial(_stribeck, j, vs, with_coulomb, on_motion), (("fc",) if with_coulomb else ()) + ("fs",),
+                setting=(("velocity", vs),))
+        lin("load_dependent_coulomb", functools.partial(_load_friction, robot, model, j, with_coulomb), (("fc",) if with_coulomb else ()) + ("fl",))
+        if robot.joints[j].revolute:
             span = float(np.ptp(data.q[:, j]))
             # at least one whole period over the motion
             periods = tuple(p for p in (2.0 * np.pi / k for k in range(2, max_cogging_per_turn + 1)) if span >= p)
             cog = functools.partial(_cogging_columns, j, periods)
             for i, period in enumerate(periods):
-                lin("cogging", lambda d, fn=cog, i=i: d.filtered(fn)[:, 2 * i : 2 * i + 2], ("a", "b"),  # type: ignore[misc]
-                    setting=(("period_rad", period),))
+                lin("cogging", functools.partial(_cogging, cog, i), ("a", "b"), setting=(("period_rad", period),))
         if ("torque_gain", j) not in present:
-            out.append(Candidate("torque_gain", j, (), ("c",), block=lambda d, j=j: ctx["predict"](d)[:, j : j + 1]))  # type: ignore[misc]
-        if ("time_delay", j) not in present:  # joint j's drive reports its position late: every joint's torque leads it
-            out.append(Candidate("time_delay", j, (), ("delay_s",), full=lambda d, j=j: ((ctx["predict_smooth"](d.shifted(j, 1)) - ctx["predict_smooth"](d.shifted(j, -1))) / (2 * d.period)).reshape(-1, 1)))  # type: ignore[misc]
+            out.append(Candidate("torque_gain", j, (), ("c",), block=functools.partial(_torque_gain, model, j)))
+        if ("time_delay", j) not in present:
+            out.append(Candidate("time_delay", j, (), ("delay_s",), full=functools.partial(_joint_delay, model, j)))
     # friction on every joint (what a real arm's residual mostly is) as one arm-wide candidate:
     # judged against the whole arm, not N separate one-joint gains
-    bare = [j for j in range(nj) if not {("coulomb_friction", j), ("viscous_friction", j), ("torque_offset", j)} & present]
+    bare = tuple(j for j in range(nj) if not {("coulomb_friction", j), ("viscous_friction", j), ("torque_offset", j)} & present)
     if len(bare) >= 2 and ("coulomb_friction", None) not in present:
-        def friction(d: _Data, joints: list[int] = bare) -> Array:
-            cols = np.zeros((d.q.shape[0] * nj, 3 * len(joints)))
-            for k, j in enumerate(joints):
-                cols[j::nj, 3 * k : 3 * k + 3] = np.column_stack([coulomb(d, j)[:, 0], d.qd[:, j], np.ones(d.q.shape[0])])
-            return cols
         labels = tuple(f"{name}{j + 1}" for j in bare for name in ("fc", "fv", "offset"))
-        out.append(Candidate("coulomb_friction", None, (), labels, full=friction))
+        out.append(Candidate("coulomb_friction", None, (), labels, full=functools.partial(_arm_friction, nj, bare)))
     if ("time_delay", None) not in present and not any(e == "time_delay" for e, _ in present):
         # the whole torque channel lags the positions (a current loop, a bus, a filter): one delay
-        out.append(Candidate("time_delay", None, (), ("delay_s",), full=lambda d: -_rate(d, ctx["predict_smooth"](d)).reshape(-1, 1)))
+        out.append(Candidate("time_delay", None, (), ("delay_s",), full=functools.partial(_arm_delay, model)))
     if ("gravity_tilt", None) not in present:
-        def tilt(d: _Data) -> Array:
-            g = np.asarray(robot.gravity, float)
-            cols = []
-            for axis in np.eye(3)[:2]:
-                tilted = replace(robot, gravity=np.cross(axis, g))
-                z = np.zeros_like(d.q)
-                cols.append((regressor(tilted, d.q, z, z) @ ctx["phi"]).reshape(-1))
-            return np.column_stack(cols)
-        out.append(Candidate("gravity_tilt", None, (), ("tilt_x_rad", "tilt_y_rad"), full=tilt))
+        out.append(Candidate("gravity_tilt", None, (), ("tilt_x_rad", "tilt_y_rad"), full=functools.partial(_tilt, robot, model)))
     return out
 
 
-def _parameters(c: Candidate, gamma: Array) -> dict[str, float]:
+def candidate_parameters(c: Candidate, gamma: Array) -> dict[str, float]:
     g = [float(x) for x in gamma]
     setting = dict(c.setting)
     if c.effect == "torque_gain":

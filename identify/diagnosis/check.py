@@ -4,11 +4,11 @@ The model is held fixed: ``tau_hat = M(q, qd, qdd)[:, base] beta`` (eq. 18, with
 columns and drive gains) exactly as ``armid identify --json`` wrote it; nothing it identified
 is refitted. Its error on the new data is compared with what it showed on its own data (its
 fit or validation error, per joint too) and with the new data's noise floor
-(:func:`~identify.diagnosis_data._noise_floor`). It *holds* while the new error's power stays
+(:func:`~identify.diagnosis_data.validation_noise_floor`). It *holds* while the new error's power stays
 within ``1 + rise`` of the larger of the two (the arm, and each joint with ``joint_rise``).
 
 Where it does not hold, what changed is searched in the new data's residual: the diagnosis's
-catalogue (:func:`~identify.diagnosis_candidates._candidates`: friction, offsets, gains,
+catalogue (:func:`~identify.diagnosis_candidates.candidate_catalogue`: friction, offsets, gains,
 springs, cogging, delays, a tilt) and a **load on the last link**: the ten parameters a rigid
 body fixed to link N adds to that link's ``phi_N`` (eq. 10), whose columns are the last ten of
 ``M`` (eqs. 16-18; the payload of :mod:`identify.payload`, here fitted in batch). Each data
@@ -40,8 +40,8 @@ from ..payload.projection import project_feasible
 from ..preprocess import Prepared
 from ..robot import Robot, inertia_entries, inertia_matrix
 from ..spatial import Array
-from .candidates import Candidate, _candidates, _parameters, lower_bounds
-from .data import _Data, _joint_noise_floors, _noise_floor, _noise_levels, _stack
+from .candidates import Candidate, candidate_catalogue, candidate_parameters, lower_bounds
+from .data import StackedData, joint_noise_floors, noise_levels, stack_experiments, validation_noise_floor
 
 __all__ = ["CheckOptions", "CheckResult", "Change", "FixedModel", "Reference", "beyond_motion", "check", "motion_ranges", "where_it_does_not_hold"]
 
@@ -166,8 +166,8 @@ def check(model: FixedModel, data: list[Prepared], reference: Reference, options
         tau_s = np.concatenate([st.tau for st in stamps])
         pred_s = np.concatenate([st.as_measured(model.torque(st.q, st.qd, st.qdd)) for st in stamps])
         before = summary(tau_s, pred_s)
-        floor = _noise_floor(data)
-        joint_floor = _joint_noise_floors(data) / np.maximum(np.linalg.norm(tau_s, axis=0), 1e-300)
+        floor = validation_noise_floor(data)
+        joint_floor = joint_noise_floors(data) / np.maximum(np.linalg.norm(tau_s, axis=0), 1e-300)
         holds, beyond = _holds(before, floor["relative_error"] or 0.0, joint_floor, reference, opts)
         result = CheckResult(holds, before, before, floor, reference, joints_beyond=beyond, predictions=pred_s)
         if holds:
@@ -251,6 +251,21 @@ def _tenths(data: list[Prepared], times: list[Array]) -> Array:
     return np.concatenate(out)
 
 
+@dataclass(frozen=True)
+class _FixedView:
+    """The fixed model as the candidates read it (:class:`~identify.diagnosis.candidates.CurrentModel`)."""
+
+    model: FixedModel
+    phi: Array
+    load: tuple[float, ...]
+
+    def predict(self, d: StackedData) -> Array:
+        return self.model.torque(d.q, d.qd, d.qdd)
+
+    def predict_smooth(self, d: StackedData) -> Array:
+        return _rigid_torque(self.model, d)
+
+
 class _Search:
     """Greedy forward selection of changes on the fixed model's residual, cross-fitted over two folds."""
 
@@ -258,12 +273,12 @@ class _Search:
         self.model, self.opts, self.floor = model, opts, floor
         robot = model.robot
         self.robot, self.nj = robot, robot.n_joints
-        self.d = _stack(data)
+        self.d = stack_experiments(data)
         segs = [s for p in data for s in p.segments]
         self.tenth = _tenths(data, [s.t[s.parallel.kept(s.n_samples)] for s in segs])
         self.stamps = [s.at_stamps for s in segs]
         self.tenth_s = _tenths(data, [st.t for st in self.stamps])
-        self.ds = _Data(np.concatenate([st.q for st in self.stamps]), np.concatenate([st.qd for st in self.stamps]),
+        self.ds = StackedData(np.concatenate([st.q for st in self.stamps]), np.concatenate([st.qd for st in self.stamps]),
                         np.concatenate([st.qdd for st in self.stamps]), np.concatenate([st.tau for st in self.stamps]),
                         self.d.period, np.concatenate([st.t for st in self.stamps]))
         self.held_s = np.concatenate([np.full(st.t.size, st.held) for st in self.stamps])
@@ -273,7 +288,7 @@ class _Search:
         self.pred_s = np.concatenate([st.as_measured(model.torque(st.q, st.qd, st.qdd)) for st in self.stamps])
         self.r_s = self.ds.tau - self.pred_s
         moving = np.abs(self.d.qd) >= np.maximum(opts.min_speed, np.abs(self.d.qdd) * opts.reversal_margin_s)
-        sigma = model.joint_sigma if model.joint_sigma is not None else _noise_levels(data, self.nj)
+        sigma = model.joint_sigma if model.joint_sigma is not None else noise_levels(data, self.nj)
         sigma = np.maximum(np.asarray(sigma, float), 1e-9)
         self.wt = (moving / sigma).reshape(-1)
         self.rw = self.r * self.wt
@@ -284,19 +299,18 @@ class _Search:
         self.reach = ArmSize.of(robot).reach_m
         self.rss_scale = float(self.rw @ self.rw)
         phi = tuple(float(x) for x in model.rigid_phi())
-        self.ctx: dict[str, Any] = {"predict": lambda d: model.torque(d.q, d.qd, d.qdd),
-                                    "predict_smooth": lambda d: _rigid_torque(model, d), "phi": np.asarray(phi), "load": phi}
+        self.view = _FixedView(model, np.asarray(phi), phi)
         present: set[tuple[str, int | None]] = {(e.effect, e.joint) for e in model.effects}
         if any(p.torque_from_current is False for p in data):  # a joint torque sensor has no torque constant to change
             present |= {("torque_gain", j) for j in range(self.nj)}
             self.notes.append("torque gain not tested: the recordings give joint torque, not current")
-        self.candidates = [c for c in _candidates(robot, self.d, present, self.ctx, opts.max_cogging_per_turn)
+        self.candidates = [c for c in candidate_catalogue(robot, self.d, present, self.view, opts.max_cogging_per_turn)
                            if c.effect != "time_delay"] + [self._payload()]
 
     def _payload(self) -> Candidate:
         robot, scale = self.robot, self.model.torque_scale
 
-        def columns(d: _Data) -> Array:
+        def columns(d: StackedData) -> Array:
             cols = d.filtered(functools.partial(_last_link_columns, robot)).reshape(-1, self.nj, 10)
             if scale is not None:
                 cols = cols * np.asarray(scale)[None, :, None]
@@ -496,7 +510,7 @@ class _Search:
             if c.effect == "payload":
                 params, std = _load(xc, metric[col - n : col, col - n : col], cc, lo)
             else:
-                params = _parameters(c, xc)
+                params = candidate_parameters(c, xc)
                 sd = np.sqrt(np.maximum(np.diag(cc), 0.0))
                 std = {label: float(s) for label, s in zip(c.labels, sd)} if c.effect not in ("cogging", "spring", "torque_gain") else {}
             out.append(Change(c.effect, c.joint, params, std, errors[k][1]["relative_error"], errors[k + 1][1]["relative_error"],
@@ -508,7 +522,7 @@ def _model_torque(model: FixedModel, q: Array, qd: Array, qdd: Array) -> Array:
     return model.torque(q, qd, qdd)
 
 
-def _rigid_torque(model: FixedModel, d: _Data) -> Array:
+def _rigid_torque(model: FixedModel, d: StackedData) -> Array:
     """The model's rigid-body torque (no friction's steps) at ``d``'s samples."""
     tau = regressor(model.robot, d.q, d.qd, d.qdd) @ model.rigid_phi()
     return tau if model.torque_scale is None else tau * model.torque_scale

@@ -2,10 +2,10 @@
 
 Every equation of the identification and the validation data, stacked sample by sample
 through each segment's parallel filter (low-pass, edges, decimation) so that torque and
-motion stay aligned (:func:`_stack`, :class:`_Data`); the identification data split into
-its even tenths to fit on and its odd tenths to choose by (:func:`_blocks`); and the
-torque's own noise, what a low-pass at the chosen cut-off removes (:func:`_noise_levels`
-per joint for gate (e), :func:`_noise_floor` for the report).
+motion stay aligned (:func:`stack_experiments`, :class:`StackedData`); the identification data split into
+its even tenths to fit on and its odd tenths to choose by (:func:`split_blocks`); and the
+torque's own noise, what a low-pass at the chosen cut-off removes (:func:`noise_levels`
+per joint for gate (e), :func:`validation_noise_floor` for the report).
 """
 
 from __future__ import annotations
@@ -17,13 +17,14 @@ from typing import Any
 
 import numpy as np
 
+from ..differentiation import central_difference
 from ..effects import ColumnFunction
 from ..preprocess import Prepared
 from ..spatial import Array
 
 
 @dataclass
-class _Data:
+class StackedData:
     """One data set stacked sample by sample: rows ``k N + j`` are joint j of sample k."""
 
     q: Array
@@ -60,7 +61,7 @@ class _Data:
         out[j :: self.n_joints] = columns
         return out
 
-    def lagged(self, j: int | None, delay: float) -> _Data:
+    def lagged(self, j: int | None, delay: float) -> StackedData:
         """The data with a found delay undone: joint j's motion read ``delay`` later (its
         position was reported late), or for ``j`` None every joint's torque read ``delay``
         later (the torque channel lags the positions)."""
@@ -79,7 +80,7 @@ class _Data:
         # the full-rate columns would not see the lag: computed on the lagged samples instead
         return replace(self, q=later(self.q, [j]), qd=later(self.qd, [j]), qdd=later(self.qdd, [j]), full_rate=None, _cache={})
 
-    def shifted(self, j: int, steps: int) -> _Data:
+    def shifted(self, j: int, steps: int) -> StackedData:
         """Joint j's motion ``steps`` samples later (edges repeated)."""
         def shift(x: Array) -> Array:
             x = x.copy()
@@ -89,10 +90,10 @@ class _Data:
             elif steps < 0:
                 x[:-steps, j] = x[-steps, j]
             return x
-        return _Data(shift(self.q), shift(self.qd), shift(self.qdd), self.tau, self.period, self.t)
+        return StackedData(shift(self.q), shift(self.qd), shift(self.qdd), self.tau, self.period, self.t)
 
 
-def _stack(prepared: list[Prepared]) -> _Data:
+def stack_experiments(prepared: list[Prepared]) -> StackedData:
     """The equations' samples: kinematics and torque through each segment's parallel filter
     (low-pass, edges, decimation), so that torque and motion stay aligned."""
     segs = [s for p in prepared for s in p.segments]
@@ -105,17 +106,15 @@ def _stack(prepared: list[Prepared]) -> _Data:
         return np.concatenate([s.parallel.apply(fn(s.q, s.qd, s.qdd)) if s.parallel.cutoff_hz is not None
                                else fn(s.q, s.qd, s.qdd)[s.parallel.kept(s.n_samples)] for s in segs])
 
-    return _Data(q, qd, qdd, tau, period, t, full_rate)
+    return StackedData(q, qd, qdd, tau, period, t, full_rate)
 
 
-def _rate(d: _Data, tau: Array) -> Array:
+def torque_rate(d: StackedData, tau: Array) -> Array:
     """d(tau)/dt along the samples (n, N), by their stamps where they have them."""
-    if tau.shape[0] < 2:
-        return np.zeros_like(tau)
-    return np.gradient(tau, d.t, axis=0) if d.t is not None and np.all(np.diff(d.t) > 0) else np.gradient(tau, d.period, axis=0)
+    return central_difference(tau, d.period, d.t)
 
 
-def _blocks(d: _Data, parts: int = 10) -> tuple[_Data, _Data]:
+def split_blocks(d: StackedData, parts: int = 10) -> tuple[StackedData, StackedData]:
     """The identification data split into every other tenth: the even tenths to fit on, the
     odd ones held out to choose by (neighbouring samples are not independent, so whole
     blocks, each spanning the trajectory's phases alike)."""
@@ -125,14 +124,14 @@ def _blocks(d: _Data, parts: int = 10) -> tuple[_Data, _Data]:
 
     # a full-rate column is filtered once, for both halves: through ``d``'s cache, each half
     # taking its rows of it (filtering is most of the cost of a cogging candidate)
-    def take(mask: Array) -> _Data:
+    def take(mask: Array) -> StackedData:
         rows = None if d.full_rate is None else (lambda fn: d.filtered(fn)[mask])
-        return _Data(d.q[mask], d.qd[mask], d.qdd[mask], d.tau[mask], d.period, None if d.t is None else d.t[mask], rows)
+        return StackedData(d.q[mask], d.qd[mask], d.qdd[mask], d.tau[mask], d.period, None if d.t is None else d.t[mask], rows)
 
     return take(~held), take(held)
 
 
-def _noise_floor(validation: list[Prepared]) -> dict[str, Any]:
+def validation_noise_floor(validation: list[Prepared]) -> dict[str, Any]:
     """The validation torque's noise, estimated as what a low-pass at the chosen cut-off
     removes (or, without one, at a tenth of the Nyquist frequency) from the raw torque at its
     stamps (:func:`_segment_noise`), as a relative error."""
@@ -145,16 +144,16 @@ def _noise_floor(validation: list[Prepared]) -> dict[str, Any]:
             "noise spreads over the whole band; what lies below the cut-off is not counted), over its norm"}
 
 
-def _joint_noise_floors(validation: list[Prepared]) -> Array:
+def joint_noise_floors(validation: list[Prepared]) -> Array:
     """(N,) each joint's noise over the validation stamps as a norm (its share of
-    :func:`_noise_floor`'s numerator): what no model of that joint removes."""
+    :func:`validation_noise_floor`'s numerator): what no model of that joint removes."""
     noise = _segment_noise(validation)
     return np.sqrt(np.sum([sd**2 * seg.n_samples for seg, sd in noise], axis=0))
 
 
-def _noise_levels(experiments: list[Prepared], n_joints: int) -> Array:
+def noise_levels(experiments: list[Prepared], n_joints: int) -> Array:
     """(N,) each joint's raw torque noise in the identification data: the rms of what a
-    low-pass at the chosen cut-off removes (as :func:`_noise_floor`), over all segments."""
+    low-pass at the chosen cut-off removes (as :func:`validation_noise_floor`), over all segments."""
     power, count = np.zeros(n_joints), 0
     for seg, sd in _segment_noise(experiments):
         power += sd**2 * seg.n_samples
@@ -199,5 +198,5 @@ def _noise_at_stamps(seg: Any, filt: Any) -> Array:
     return np.asarray(np.sqrt(np.mean((st.tau[inside] - at) ** 2, axis=0)), dtype=float)
 
 
-def _rel(y: Array, y_hat: Array) -> float:
+def relative_error(y: Array, y_hat: Array) -> float:
     return float(np.linalg.norm(y - y_hat)) / max(float(np.linalg.norm(y)), 1e-300)

@@ -2,12 +2,12 @@
 
 :func:`findings_model` turns findings into what ``identify`` takes (declared effects, a
 tilted gravity, a torque scale, delays): declaring the same in the robot file gives the same
-fit. Around it: the exact fits the search's gates (d) and (f) read (:func:`_trial_fit`), the
-declared settings fixed at what the data chose (:func:`_settled`), each found delay refined
-on the exact model (:func:`_refine_delays`), the findings' parameters as the final fit gives
-them (:func:`_update_parameters`), the findings whose sign that fit turns
-(:func:`_sign_reversed`) and what is left of one (:func:`_coulomb_level`: a Stribeck or
-load term held at 0 leaves its Coulomb level; :func:`_merge_offset_into_spring`).
+fit. Around it: the exact fits the search's gates (d) and (f) read (:func:`trial_fit`), the
+declared settings fixed at what the data chose (:func:`settled_robot`), each found delay refined
+on the exact model (:func:`refine_delays`), the findings' parameters as the final fit gives
+them (:func:`update_parameters`), the findings whose sign that fit turns
+(:func:`sign_reversed`) and what is left of one (:func:`coulomb_level`: a Stribeck or
+load term held at 0 leaves its Coulomb level; :func:`merge_offset_into_spring`).
 """
 
 from __future__ import annotations
@@ -60,7 +60,7 @@ def findings_model(robot: Robot, found: list[Finding]) -> tuple[Robot, IdentifyO
             declared += [DeclaredEffect(e, j) for j in joints for e in ("coulomb_friction", "viscous_friction", "torque_offset")]
         elif f.effect == "gravity_tilt":
             axis = np.array([f.parameters["tilt_x_rad"], f.parameters["tilt_y_rad"], 0.0])
-            gravity = _rotate(axis) @ gravity
+            gravity = rotation_matrix(axis) @ gravity
         elif f.effect == "torque_gain" and f.joint is not None:
             scale[f.joint] /= f.parameters["gain"]
         elif f.effect == "time_delay" and f.joint is None:
@@ -104,13 +104,13 @@ def _bounded_columns(f: Finding, have: set[tuple[str, int]]) -> list[str]:
     return out
 
 
-def _sign_reversed(found: list[Finding]) -> list[Finding]:
+def sign_reversed(found: list[Finding]) -> list[Finding]:
     """The one-joint friction or inertia findings whose fitted parameter is not positive."""
     return [f for f in found if f.joint is not None and f.effect in DISSIPATIVE
             and f.parameters.get(DISSIPATIVE_PARAMETER[f.effect], 1.0) <= 0.0]
 
 
-def _trial_fit(robot: Robot, experiments: list[Prepared], found: list[Finding], load: Array) -> IdentificationResult:
+def trial_fit(robot: Robot, experiments: list[Prepared], found: list[Finding], load: Array) -> IdentificationResult:
     """The model with ``found`` added, fitted as `identify` fits it.
     Gate (d) reads how far its prior on the modeled values (identify.prior) had to widen to
     agree with least squares (``inf``: beyond any width; None: the robot file models no
@@ -122,7 +122,7 @@ def _trial_fit(robot: Robot, experiments: list[Prepared], found: list[Finding], 
     return identify(model, experiments, None, replace(options, covariance="white", load_parameters=tuple(load), stamp_errors=False))
 
 
-def _widening(result: IdentificationResult) -> float | None:
+def prior_widening(result: IdentificationResult) -> float | None:
     """The factor ``result``'s prior was widened by (``inf``: dropped; None: no prior)."""
     if result.prior is None:
         return None
@@ -130,7 +130,7 @@ def _widening(result: IdentificationResult) -> float | None:
     return float("inf") if w is None else float(w)
 
 
-def _settled(robot: Robot, result: IdentificationResult) -> Robot:
+def settled_robot(robot: Robot, result: IdentificationResult) -> Robot:
     """``robot`` with its declared effects' settings (a Coulomb model's smoothing) fixed at
     what ``result`` chose on the data, one declared effect per joint: refitting it with a
     finding added then costs a solve, not the settings' grid search again."""
@@ -143,7 +143,7 @@ def _settled(robot: Robot, result: IdentificationResult) -> Robot:
     return replace(robot, effects=tuple(out))
 
 
-def _refine_delays(robot: Robot, found: list[Finding], experiments: list[Prepared], load: Array) -> None:
+def refine_delays(robot: Robot, found: list[Finding], experiments: list[Prepared], load: Array) -> None:
     """Each found delay, refined on the identification data with the exact model (the motion
     or the torque shifted in time) as `identify` fits it: the fit's error on a grid of
     0.6-1.6 times the search's estimate (not unimodal: a shift by about a period of the
@@ -168,7 +168,7 @@ def _refine_delays(robot: Robot, found: list[Finding], experiments: list[Prepare
         f.parameters["delay_s"] = float(best.x) if best.fun <= errors[k] else float(grid[k])
 
 
-def _rotate(rotation_vector: Array) -> Array:
+def rotation_matrix(rotation_vector: Array) -> Array:
     """Rodrigues: the rotation by ``|v|`` about ``v``."""
     angle = float(np.linalg.norm(rotation_vector))
     if angle == 0.0:
@@ -178,7 +178,7 @@ def _rotate(rotation_vector: Array) -> Array:
     return np.eye(3) + np.sin(angle) * kx + (1.0 - np.cos(angle)) * kx @ kx
 
 
-def _update_parameters(found: list[Finding], result: IdentificationResult) -> None:
+def update_parameters(found: list[Finding], result: IdentificationResult) -> None:
     """A declared finding's parameters as the final fit (all the identification data) gives them."""
     value, _ = result.parameter_values()
     by_name = dict(zip(result.names, value))
@@ -207,7 +207,7 @@ def _update_parameters(found: list[Finding], result: IdentificationResult) -> No
                 f.parameters.update({k: float(v) for k, v in e.setting})
 
 
-def _coulomb_level(f: Finding) -> Finding | None:
+def coulomb_level(f: Finding) -> Finding | None:
     """A Stribeck or load-dependent friction finding whose peak or load term the final fit holds
     at 0, as the Coulomb friction it brings (its ``fc``); None for any other (or no Coulomb level)."""
     if f.effect not in ("stribeck_friction", "load_dependent_coulomb") or f.parameters.get("fc", 0.0) <= 0.0:
@@ -215,7 +215,7 @@ def _coulomb_level(f: Finding) -> Finding | None:
     return Finding("coulomb_friction", f.joint, {"fc": f.parameters["fc"]}, f.explained, f.error_before, f.error_after)
 
 
-def _merge_offset_into_spring(found: list[Finding], chosen: list[Candidate]) -> tuple[list[Finding], list[Candidate]]:
+def merge_offset_into_spring(found: list[Finding], chosen: list[Candidate]) -> tuple[list[Finding], list[Candidate]]:
     """An offset found first and a spring on the same joint later are one spring off zero."""
     drop = set()
     for k, f in enumerate(found):

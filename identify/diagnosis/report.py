@@ -148,7 +148,7 @@ fitted on, it is an extrapolation (a spring may be the local slope of a ripple l
 the motion; held-out tenths of the same motion cannot tell)."""
 
 
-def _extrapolated(found: list[Finding], q_ident: Array, q_valid: Array, tolerance: float = 0.05) -> list[dict[str, Any]]:
+def extrapolated_findings(found: list[Finding], q_ident: Array, q_valid: Array, tolerance: float = 0.05) -> list[dict[str, Any]]:
     """The position-dependent findings whose joint the validation takes more than
     ``tolerance`` of the identified range beyond it, with both ranges."""
     out = []

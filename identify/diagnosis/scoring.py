@@ -4,7 +4,7 @@ data's even tenths, and every candidate scored against it by its odd tenths.
 The rows are whitened by each joint's noise level. The model's columns are factored once a
 round (QR); a candidate's columns are projected off them (Frisch-Waugh), so that the refit
 with it, its F-test on the fit and its held-out residual cost a solve of the candidate's own
-size (:func:`_score`). A drive gain is fitted exactly instead, profiled over its scale
+size (:func:`score_candidate`). A drive gain is fitted exactly instead, profiled over its scale
 (:class:`_GainProfile`).
 """
 
@@ -21,10 +21,10 @@ from ..kernels.threads import each_shared
 from ..robot import Robot
 from ..spatial import Array
 from .candidates import Candidate, defining, lower_bounds
-from .data import _Data
+from .data import StackedData
 
 
-def _phi_hat(robot: Robot, base: Any, beta_base: Array, n_cols: int) -> Array:
+def full_parameters(robot: Robot, base: Any, beta_base: Array, n_cols: int) -> Array:
     """Standard parameters that reproduce the base estimate and otherwise stay modeled (min-norm)."""
     p = robot.n_parameters
     phi0 = robot.modeled_parameters()
@@ -93,10 +93,10 @@ class _GainProfile:
 
 
 @dataclass
-class _Round:
+class RoundModel:
     """The model so far (base columns and the findings' columns) fitted on the whitened rows
     of the even tenths, ``A = QR`` with residual ``r``, and what scoring a candidate against it
-    reuses: the held-out residual ``res_v`` and ``G = A_v R^-1`` (Frisch-Waugh, :func:`_score`)."""
+    reuses: the held-out residual ``res_v`` and ``G = A_v R^-1`` (Frisch-Waugh, :func:`score_candidate`)."""
 
     n_joints: int
     a_i: Array  # the whitened identification rows of the model's columns
@@ -141,8 +141,8 @@ def _joint_rows(q_mat: Array, g_mat: Array, n_joints: int) -> list[_JointRows]:
     return [_JointRows(np.ascontiguousarray(q_mat[j::n_joints].T), np.ascontiguousarray(g_mat[j::n_joints].T)) for j in range(n_joints)]
 
 
-def _fit_round(wi: Array, wv: Array, extra_i: Array, extra_v: Array, yi: Array, yv: Array, wt_i: Array, wt_v: Array,
-               n_joints: int) -> _Round:
+def fit_round(wi: Array, wv: Array, extra_i: Array, extra_v: Array, yi: Array, yv: Array, wt_i: Array, wt_v: Array,
+               n_joints: int) -> RoundModel:
     """The model's columns (base ``wi``/``wv`` and findings ``extra_i``/``extra_v``, on the fit
     and the held-out rows) fitted by QR on the whitened fit rows (weights ``wt_i``), and its
     held-out residual (weights ``wt_v``)."""
@@ -166,12 +166,12 @@ def _fit_round(wi: Array, wv: Array, extra_i: Array, extra_v: Array, yi: Array, 
     gain_fit = _GainProfile(a_i, yw, a_v, yv, wt_v, nj, p_base)
     joint_of_row = np.arange(yv.size) % nj
     power_before = np.bincount(joint_of_row, res_v**2, nj)  # the held-out residual power per joint
-    return _Round(nj, a_i, q_mat, r_mat, beta, r, rss, a_v, res_v, rss_v, p_base, g_mat, h_vec, h_mat, gain_fit, joint_of_row,
+    return RoundModel(nj, a_i, q_mat, r_mat, beta, r, rss, a_v, res_v, rss_v, p_base, g_mat, h_vec, h_mat, gain_fit, joint_of_row,
                   power_before, _joint_rows(q_mat, g_mat, nj))
 
 
 @dataclass(eq=False)
-class _Scored:
+class ScoredCandidate:
     """A candidate scored against a round: the held-out RSS of the refit with it, the F-test's
     p-value on the fit (and the fit's RSS), its parameters ``gamma``, and what rebuilding the refit needs: its
     columns' projection on the model (None when fitted exactly), the held-out prediction of an
@@ -188,15 +188,15 @@ class _Scored:
 
 
 @dataclass(eq=False)
-class _Absorbed:
+class AbsorbedCandidate:
     """A candidate whose columns lie in the span of the model: its projection on the model."""
 
     projection: Array
 
 
-def _score(c: Candidate, rnd: _Round, ident: _Data, held: _Data, wt_i: Array, wt_v: Array, n_used: int,
-           sample_period: float, moments: Moments | None = None) -> _Scored | _Absorbed | None:
-    """The refit with ``c`` scored by Frisch-Waugh (:func:`_fit_round`), or None when it cannot
+def score_candidate(c: Candidate, rnd: RoundModel, ident: StackedData, held: StackedData, wt_i: Array, wt_v: Array, n_used: int,
+           sample_period: float, moments: Moments | None = None) -> ScoredCandidate | AbsorbedCandidate | None:
+    """The refit with ``c`` scored by Frisch-Waugh (:func:`fit_round`), or None when it cannot
     be a finding: columns that are not finite or all zero, a singular refit, an effect whose
     best admissible fit (friction, inertia and spring bounded at 0) holds its defining
     parameter at the bound, a delay within half a sample period. ``moments``: its products,
@@ -208,7 +208,7 @@ def _score(c: Candidate, rnd: _Round, ident: _Data, held: _Data, wt_i: Array, wt
         return None
     schur = ctc - proj.T @ proj
     if np.trace(schur) <= 1e-12 * np.trace(ctc):
-        return _Absorbed(proj)
+        return AbsorbedCandidate(proj)
     try:
         # the best admissible fit (bounded least squares on the candidate's columns, the model's
         # profiled out by Frisch-Waugh: the joint fit, not a filter afterwards)
@@ -235,10 +235,10 @@ def _score(c: Candidate, rnd: _Round, ident: _Data, held: _Data, wt_i: Array, wt
     if cv_full is not None:  # the held-out residual power it leaves on each joint
         res_c = rnd.res_v + rnd.g_mat @ u - cv_full @ gamma
         power_after = np.bincount(rnd.joint_of_row, res_c**2, rnd.n_joints)
-    return _Scored(rss_v1, p_value, c, gamma, proj, None, power_after, rss1)
+    return ScoredCandidate(rss_v1, p_value, c, gamma, proj, None, power_after, rss1)
 
 
-def joint_power_after(s: _Scored, rnd: _Round, held: _Data, wt_v: Array) -> float:
+def joint_power_after(s: ScoredCandidate, rnd: RoundModel, held: StackedData, wt_v: Array) -> float:
     """The whitened held-out residual power a one-joint candidate leaves on its own joint (its
     rows weigh alike, so whitening does not change which of two shapes leaves less)."""
     j, nj = s.candidate.joint, rnd.n_joints
@@ -248,7 +248,7 @@ def joint_power_after(s: _Scored, rnd: _Round, held: _Data, wt_v: Array) -> floa
     return float(res @ res)
 
 
-def _score_gain(c: Candidate, rnd: _Round, n_used: int) -> _Scored | None:
+def _score_gain(c: Candidate, rnd: RoundModel, n_used: int) -> ScoredCandidate | None:
     """A drive gain fitted exactly, not linearised about the current fit: the joint's
     rigid-body columns scaled by the gain, profiled over it (:class:`_GainProfile`); None for a
     gain below 0.1 or above 10 (a wrong robot file or wiring, not an effect)."""
@@ -259,14 +259,14 @@ def _score_gain(c: Candidate, rnd: _Round, n_used: int) -> _Scored | None:
     scale, rss1, rss_v1, pred_exact = exact
     dof = n_used - rnd.a_i.shape[1] - 1
     f_stat = (rnd.rss - rss1) / max(rss1 / dof, 1e-300)
-    return _Scored(rss_v1, f_sf(f_stat, 1, dof), c, np.array([scale - 1.0]), None, pred_exact, None, rss1)
+    return ScoredCandidate(rss_v1, f_sf(f_stat, 1, dof), c, np.array([scale - 1.0]), None, pred_exact, None, rss1)
 
 
 Moments = tuple[Array, Array, Array, Array, Array, Array, Array | None]
 """What :func:`_moments` gives: ``P, C^T C, C^T r, G^T Cv, Cv^T res_v, Cv^T Cv`` and the held-out columns of an arm-wide candidate."""
 
 
-def round_moments(candidates: list[Candidate], rnd: _Round, ident: _Data, held: _Data, wt_i: Array, wt_v: Array) -> dict[int, Moments]:
+def round_moments(candidates: list[Candidate], rnd: RoundModel, ident: StackedData, held: StackedData, wt_i: Array, wt_v: Array) -> dict[int, Moments]:
     """:func:`_moments` of every candidate but a drive gain (by ``id``). A joint's one-joint
     candidates go joint by joint in one matrix product over all their columns: the round's
     rows are read once a joint instead of once a candidate (hundreds a round, most of them
@@ -304,7 +304,7 @@ def round_moments(candidates: list[Candidate], rnd: _Round, ident: _Data, held: 
     return out
 
 
-def _moments(c: Candidate, rnd: _Round, ident: _Data, held: _Data, wt_i: Array,
+def _moments(c: Candidate, rnd: RoundModel, ident: StackedData, held: StackedData, wt_i: Array,
              wt_v: Array) -> Moments:
     """The products of a candidate's whitened columns Frisch-Waugh needs: ``P = Q^T C``,
     ``C^T C``, ``C^T r``, ``G^T Cv``, ``Cv^T res_v``, ``Cv^T Cv``, and the held-out columns

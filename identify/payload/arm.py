@@ -14,11 +14,11 @@ from typing import Any
 
 import numpy as np
 
+from ..differentiation import HALF_WINDOW_S, MIN_WINDOW_POINTS, local_polynomial
 from ..dynamics import forward_recursion, kinematic_matrix, pseudo_rotation, selection_vector
 from ..effects import LinearEffect, LoadFriction, effect_columns
 from ..robot import Robot
 from ..spatial import Array
-from .filter import HALF_WINDOW_S, MIN_WINDOW_POINTS, local_polynomial
 
 
 @dataclass(frozen=True)

@@ -2,8 +2,8 @@
 
 The payload estimator's derivatives (:mod:`identify.payload`): the degree-4 least-squares
 polynomial through every record within ``HALF_WINDOW_S`` of each one, a window of fixed
-*time* on the records' own stamps (:func:`local_polynomial`), non-causal on a recording
-(:func:`derivatives_on_times`) and causal on a stream (:class:`_Filter`: each record's
+*time* on the records' own stamps (:func:`identify.differentiation.local_polynomial`), causal
+on a stream here (:class:`StreamFilter`: each record's
 equations once its window has come, the same however the records are batched; gaps restart
 the derivatives, rate changes are counted).
 """
@@ -14,84 +14,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..differentiation import HALF_WINDOW_S, local_polynomial
 from ..spatial import Array
-
-HALF_WINDOW_S, POLY_DEGREE, MIN_WINDOW_POINTS = 0.05, 4, 7
-"""Derivatives: the degree-4 least-squares polynomial through the records within 50 ms of
-each one (at least 7 of them: records at 100 Hz and faster)."""
-
 
 GAP_RATIO, RATE_MEDIAN, RATE_CHANGE_RATIO = 3.0, 9, 1.5
 """A step 3 times the median of the 9 before it is a gap (the derivatives restart); the
 median of 9 steps moving by 1.5 times is a rate change (counted)."""
-
-
-def local_polynomial(t: Array, x: Array, centres: Array | None = None, half_window_s: float = HALF_WINDOW_S,
-                     degree: int = POLY_DEGREE, span: tuple[float, float] | None = None,
-                     origin: float | None = None) -> tuple[Array, Array, Array, Array]:
-    """Value, first and second derivative of ``x`` (n, ...) at the times of ``centres``
-    (indices into ``t``; default all) from the least-squares polynomial of ``degree`` through
-    every record within ``half_window_s`` of the centre, on the records' own time stamps
-    (Savitzky-Golay over a fixed span of time, and right on uneven steps).
-
-    A window of fixed *time*, not of a fixed number of records: the filter's response, hence
-    its bias, is the same at 1 kHz and at 100 Hz. Degree 4 on +-50 ms gets a 1 Hz
-    acceleration within 2e-4 of its amplitude at 100 Hz to 1 kHz, jittered or not (the
-    twice-applied 5-point filter at 10 ms: 4.5e-3, which biased the payload's mass by 1 %). Returns ``(x0, x1, x2, ok)``; where ``ok`` is false (the window
-    runs past either end of ``span``, by default ``t[0], t[-1]``, or holds fewer than
-    ``MIN_WINDOW_POINTS`` records or fewer than two on a side) the values are NaN. Times are
-    taken relative to ``origin`` (default ``t[0]``): the same origin, the same windows to the
-    last bit however the records are batched.
-    """
-    t = np.asarray(t, float)
-    x = np.asarray(x, float)
-    n = t.size
-    centres = np.arange(n) if centres is None else np.asarray(centres, int)
-    shape = (centres.size, *x.shape[1:])
-    out = [np.full(shape, np.nan) for _ in range(3)]
-    ok = np.zeros(centres.size, bool)
-    if n == 0 or centres.size == 0:
-        return out[0], out[1], out[2], ok
-    t0 = float(t[0]) if origin is None else origin
-    first, last = (t[0], t[-1]) if span is None else span
-    first, last = first - t0, last - t0
-    t = t - t0  # stamps as seconds since 1970 keep their own rounding, not a billion seconds of it
-    xf = x.reshape(n, -1)
-    tc = t[centres]
-    lo = np.searchsorted(t, tc - half_window_s, "left")
-    hi = np.searchsorted(t, tc + half_window_s, "right")
-    ok = (tc - half_window_s >= first) & (tc + half_window_s <= last) & (hi - lo >= MIN_WINDOW_POINTS)
-    ok &= (centres - lo >= 2) & (hi - 1 - centres >= 2)
-    good = np.flatnonzero(ok)
-    if good.size == 0:
-        return out[0], out[1], out[2], ok
-    width = int((hi - lo)[good].max())
-    powers = np.arange(degree + 1)
-    chunk = max(1, 200_000 // (width * (degree + 1 + xf.shape[1])))
-    res = np.empty((good.size, 3, xf.shape[1]))
-    for a in range(0, good.size, chunk):
-        g = good[a : a + chunk]
-        j = lo[g, None] + np.arange(width)[None, :]
-        inside = j < hi[g, None]
-        j = np.minimum(j, n - 1)
-        s = np.where(inside, (t[j] - tc[g, None]) / half_window_s, 0.0)
-        v = (s[..., None] ** powers) * inside[..., None]  # (c, w, d+1), zero outside the window
-        lhs = np.einsum("cwa,cwb->cab", v, v)
-        rhs = np.einsum("cwa,cwk->cak", v, xf[j])
-        coef = np.linalg.solve(lhs, rhs)[:, :3]
-        res[a : a + chunk] = coef
-    res[:, 1] /= half_window_s
-    res[:, 2] *= 2.0 / half_window_s**2
-    for k in range(3):
-        out[k][good] = res[:, k].reshape((good.size, *x.shape[1:]))
-    return out[0], out[1], out[2], ok
-
-
-def derivatives_on_times(t: Array, x: Array) -> tuple[Array, Array]:
-    """Non-causal velocity and acceleration of a recording (n, N) on its own time stamps
-    (:func:`local_polynomial`); NaN within the half window of either end."""
-    _, x1, x2, _ = local_polynomial(t, x)
-    return x1, x2
 
 
 def _rolling_median(steps: Array, k: int) -> Array:
@@ -105,7 +33,7 @@ def _within(a: float, b: float, ratio: float) -> bool:
 
 
 @dataclass
-class _Filter:
+class StreamFilter:
     """Causal :func:`local_polynomial` of a stream: records (t, positions, torques) in, in
     batches of any size; out, each record's smoothed position and torque with its velocity
     and acceleration, once every record within ``half_window_s`` after it has come (the

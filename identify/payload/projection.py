@@ -27,7 +27,7 @@ def pseudo_inertia(phi: Array) -> Array:
     return j
 
 
-def _phi_of_pseudo(j: Array) -> Array:
+def phi_of_pseudo(j: Array) -> Array:
     sigma = j[:3, :3]
     i3 = np.trace(sigma) * np.eye(3) - sigma
     return np.concatenate([[j[3, 3]], j[:3, 3], inertia_entries(i3)])
@@ -65,7 +65,7 @@ def project_feasible(theta: Array, cov: Array, gap: float = 1e-5, atol: float = 
     cov = 0.5 * (cov + cov.T)
     weight = np.linalg.inv(cov + 1e-15 * np.trace(cov) * np.eye(10))
     weight = np.ascontiguousarray(0.5 * (weight + weight.T))
-    x = _phi_of_pseudo((v * np.maximum(w, 1e-3 * scale)) @ v.T)  # strictly feasible start
+    x = phi_of_pseudo((v * np.maximum(w, 1e-3 * scale)) @ v.T)  # strictly feasible start
     return project_one(np.ascontiguousarray(theta), weight, x, _BASIS, float(gap), float(atol), int(max_steps))
 
 

@@ -8,11 +8,11 @@ the last link only adds to that link's ten parameters, so (eq. 18)
 with ``M_{:,N}`` the regressor columns of link N (every joint's row) and ``phi_p`` the
 payload's ``m, m s, I`` about the last link's frame. Each sample gives N equations; the
 equations of each ``BLOCK_S`` (10 ms) of the arm's time are folded in together, in
-information form (:func:`rls_update` is the one-sample form of the same update).
+information form (:meth:`PayloadRLS._fold_information`).
 
 - **The record's own clock.** Position, velocity and acceleration are the degree-4
   least-squares polynomial through the records within ``HALF_WINDOW_S`` (50 ms) of each
-  record, on their time stamps (:func:`local_polynomial`): a window of fixed *time*, so the
+  record, on their time stamps (:func:`identify.differentiation.local_polynomial`): a window of fixed *time*, so the
   filter's bias does not grow with the sample period (the 5-point filter applied twice
   spanned 80 ms at 10 ms and biased the mass by 1 %). The torque is filtered alike. Each
   equation is made once every record of its window has come (50 ms late), the same however
@@ -67,18 +67,19 @@ import numpy as np
 
 from armid.schema.json_text import json_safe
 
+from ..differentiation import HALF_WINDOW_S
 from ..robot import inertial_from_parameters
 from ..spatial import Array
 from .arm import ArmModel, ReferenceRun, arm_model_from_identification, identification_document
 from .band import MIN_BATCHES, Batches, batch_means_covariance, torque_constant_covariance
-from .filter import HALF_WINDOW_S, _Filter, derivatives_on_times, local_polynomial
-from .projection import _phi_of_pseudo as _phi_of_pseudo  # re-exported for tests/test_payload.py
+from .filter import StreamFilter
 from .projection import project_feasible, project_feasible_many, pseudo_inertia
 
-__all__ = ["ArmModel", "PayloadRLS", "ReferenceRun", "arm_model_from_identification", "derivatives_on_times", "identification_document",
-           "local_polynomial", "project_feasible", "project_feasible_many", "pseudo_inertia", "rls_update"]
-"""The estimator's public names; the derivatives on the records' stamps, the arm model and the
-projection onto possible payloads live in ``identify/payload_*.py``."""
+__all__ = ["ArmModel", "PayloadRLS", "ReferenceRun", "arm_model_from_identification", "identification_document",
+           "project_feasible", "project_feasible_many", "pseudo_inertia"]
+"""The estimator's public names; the arm model, the stream's filter and the projection onto
+possible payloads live in the other modules of ``identify/payload/``, the derivatives on the
+records' stamps in :mod:`identify.differentiation`."""
 
 MIN_SPEED = 0.02
 REVERSAL_MARGIN_S = 0.025
@@ -121,26 +122,6 @@ CORRELATION_MEMORY_S, CORRELATION_UPDATE_S, CORRELATION_MIN_S, CORRELATION_MAX_L
 0.25 s of the arm's time, over lags up to 0.5 s."""
 
 
-def rls_update(theta: Array, p: Array, h: Array, y: Array, r: Array, forgetting: float = 1.0) -> tuple[Array, Array, Array, float]:
-    """One RLS step with a vector measurement ``y = h theta + v``, ``cov(v) = diag(r)``.
-
-    Returns the new ``theta`` and ``P``, the innovation ``nu = y - h theta`` and its
-    normalized square ``nu^T S^-1 nu`` with ``S = h P h^T + R`` (before the update). The
-    Joseph form keeps ``P`` symmetric positive definite.
-    """
-    innovation = y - h @ theta
-    ph = p @ h.T
-    s = h @ ph
-    s[np.diag_indices_from(s)] += r
-    s_inv = np.linalg.inv(s)
-    gain = ph @ s_inv
-    theta = theta + gain @ innovation
-    a = np.eye(p.shape[0]) - gain @ h
-    p = a @ p @ a.T + (gain * r) @ gain.T
-    p = 0.5 * (p + p.T) / forgetting
-    return theta, p, innovation, float(innovation @ s_inv @ innovation)
-
-
 class PayloadRLS:
     """Recursive least squares on the payload's parameters (scikit-learn style).
 
@@ -177,7 +158,7 @@ class PayloadRLS:
         self._batches = Batches(nj)
         self.excited_s_ = 0.0  # moving time folded in since the last (re)start
         self.torque_constant_std_ = np.array([j.torque_constant_std for j in self.arm.robot.joints])
-        self.filter_ = _Filter()
+        self.filter_ = StreamFilter()
         self.noise_var_ = np.maximum(np.asarray(self.arm.joint_sigma, float), 1e-6) ** 2
         self.correlation_time_ = np.full(nj, INITIAL_CORRELATION_S)
         self._pending: dict[str, Array] | None = None
