@@ -24,6 +24,7 @@ from armid.identify.control import ComputedTorque
 from armid.io.recordings import read_recording
 from armid.io.rig_file import load_rig, rig_from_dict
 from armid.schema.errors import RigFileError
+from armid.schema.joint_states import JointStates
 from armid.sim_bus.arm import SimulatedArm
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -421,8 +422,7 @@ def _acquire(driver: object, rig: object, path: Path) -> tuple[list, np.ndarray]
     q_ref: list[np.ndarray] = []
     control = ComputedTorque(robot, bandwidth_hz=3.0, q_nominal=np.asarray(rig.simulation["initial_position"]))  # type: ignore[attr-defined]
 
-    def hold(record) -> None:  # type: ignore[no-untyped-def]
-        s = record.sample
+    def hold(s) -> None:  # type: ignore[no-untyped-def]
         if not q_ref:
             q_ref.append(s.position.copy())
         z = np.zeros(robot.n_joints)
@@ -431,12 +431,14 @@ def _acquire(driver: object, rig: object, path: Path) -> tuple[list, np.ndarray]
     acq = Acquisition(driver, [Sink("recorder", recorder.write, bounded=False), Sink("list", records.append, bounded=False)],  # type: ignore[arg-type]
                       on_sample=hold)
     acq.start()
-    driver.enable(timeout=2.0)  # type: ignore[attr-defined]
-    while acq.sequence < 500:
-        time.sleep(0.01)
-        assert acq.error is None, acq.error
-    acq.stop()
-    recorder.close()
+    try:
+        driver.enable(timeout=2.0)  # type: ignore[attr-defined]
+        while acq.sequence < 500:
+            time.sleep(0.01)
+            assert acq.error is None, acq.error
+    finally:
+        acq.stop()
+        recorder.close()
     return records, q_ref[0]
 
 
@@ -466,14 +468,15 @@ def test_the_same_acquisition_code_runs_on_both_driver_families(family: str, tmp
         driver.close()  # type: ignore[attr-defined]
         if close:
             close()
-    assert [r.sequence for r in records] == list(range(len(records))) and len(records) >= 500
-    valid = np.array([r.sample.valid for r in records])
+    states = JointStates.concat(records)
+    assert states.sequence.tolist() == list(range(len(states))) and len(states) >= 500
+    valid = states.valid
     assert valid.mean() > 0.98
-    q = np.array([r.sample.position for r in records])
+    q = states.position
     assert np.abs(q[-50:] - q0).max() < 0.05  # held where it started, through the same control law
     rec = read_recording(tmp_path / "run.mcap", rig.robot)
     assert len(rec.t) == int(valid.all(axis=1).sum()) or len(rec.t) == len(records)
-    assert np.allclose(rec.q[-1], records[-1].sample.position)
+    assert np.allclose(rec.q[-1], states.position[-1])
 
 
 def test_armid_record_and_sim_on_the_serial_rig(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

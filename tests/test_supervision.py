@@ -22,6 +22,7 @@ from armid.cli import main
 from armid.daq.supervision import Supervision
 from armid.drivers.interface import DriveFault, Event, HeartbeatLost
 from armid.io.recordings import read_mcap_arrays
+from armid.schema.joint_states import JointStates
 
 ROOT = Path(__file__).resolve().parent.parent
 RIG = ROOT / "config" / "rigs" / "sim.yaml"
@@ -204,5 +205,6 @@ def test_a_drive_gone_silent_is_named_lost_while_acquisition_goes_on() -> None:
             bus.shutdown()
     assert supervision.lost == {3}, said
     assert [s for s in said if "joint 4 (node 4)" in s] == [said[0]] and "no heartbeat" in said[0], said
-    valid = np.array([r.sample.valid for r in records if r is not None and r.sequence > silent_from + 100])
+    states = JointStates.concat(records)
+    valid = states.valid[states.sequence > silent_from + 100]
     assert valid.size and not valid[:, 3].any() and valid[:, [0, 1, 2, 4, 5]].all()
