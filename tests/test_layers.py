@@ -149,3 +149,42 @@ def test_every_package_is_installed() -> None:
                 continue
             found.add(".".join([package, *parts]))
     assert found == listed, (sorted(found - listed), sorted(listed - found))
+
+
+def private_imports(module: str, path: Path) -> list[str]:
+    """Every ``_name`` (or name from a ``_module``) ``module`` imports from another armid module,
+    function-level imports too, as ``path:line name``: a seam between modules is public."""
+    tree = ast.parse(path.read_text(), str(path))
+    out = []
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.ImportFrom) or not (node.level or (node.module or "").startswith("armid")):
+            continue
+        private_module = any(p.startswith("_") and not p.startswith("__") for p in (node.module or "").split("."))
+        for a in node.names:
+            if private_module or (a.name.startswith("_") and not a.name.startswith("__")):
+                out.append(f"{path.relative_to(ROOT) if path.is_relative_to(ROOT) else path}:{node.lineno} {a.name}")
+    return out
+
+
+def test_no_private_name_is_imported_across_modules() -> None:
+    wrong = [p for module, path in modules() for p in private_imports(module, path)]
+    assert not wrong, "private names imported from another module (make the seam public):\n" + "\n".join(wrong)
+
+
+def test_the_private_import_checker_sees_one(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.py"
+    bad.write_text("from .data import _stack, StackedData\ndef f():\n    from armid.identify.kernels._lanes import rows\n")
+    assert private_imports("armid.identify.bad", bad) == [f"{bad}:1 _stack", f"{bad}:3 rows"]
+
+
+def test_the_client_does_not_know_its_drives_are_simulated() -> None:
+    """Pacing is the rig's setting: no driver or simulator file sniffs the simulator's product code."""
+    wrong = [str(p.relative_to(ROOT)) for folder in ("drivers", "sim_bus") for p in sorted((ROOT / folder).rglob("*.py"))
+             if "SIMULATED_PRODUCT_CODE" in p.read_text() or "paced_by_drives" in p.read_text()]
+    assert not wrong, wrong
+
+
+def test_the_service_identifies_from_memory() -> None:
+    """``armid serve`` reads each experiment's records where they are, in memory; its run.mcap is the archive's."""
+    text = (ROOT / "armid" / "serve.py").read_text()
+    assert "read_recording(" not in text and "load_run(" not in text
