@@ -23,7 +23,7 @@ def write_check_report(result: CheckResult, robot: Any, out_dir: Path) -> Path:
     lines = [f"# Check of {robot.name}'s model on new data", ""]
     lines += [f"- {line}" for line in verdict_lines(robot.name, result)]
     lines += ["", f"Errors are relative (||tau - tau_hat|| / ||tau||) at the recordings' own samples; the model's own error is its "
-              f"{ref.kind} error as `armid identify` reported it.", "",
+              f"error {OWN_ERROR[ref.kind]} as `armid identify` reported it.", "",
               "| joint | error on these data | with what changed | the model's own | unit of rms | rms before | rms after |",
               "|---|---|---|---|---|---|---|"]
     for j in range(robot.n_joints):
@@ -36,10 +36,15 @@ def write_check_report(result: CheckResult, robot: Any, out_dir: Path) -> Path:
     return path
 
 
+OWN_ERROR = {"validation": "on its own validation data", "held_out": "on its own data held out of its fit",
+             "fit": "on its own identification data (its fit)"}
+"""The model's own error, by which figure of ``armid identify --json`` it is."""
+
+
 def verdict_lines(name: str, result: CheckResult) -> list[str]:
     """What ``check`` prints (and check.md lists): the verdict with its figures, what changed, and the errors."""
     ref, floor = result.reference, result.noise_floor["relative_error"]
-    own = f"{100 * ref.relative_error:.3g} % on its own {'validation' if ref.kind == 'validation' else 'identification'} data"
+    own = f"{100 * ref.relative_error:.3g} % {OWN_ERROR[ref.kind]}"
     floor_text = "no noise floor" if floor is None else f"a noise floor of {100 * floor:.3g} %"
     e = result.before["relative_error"]
     lines = []

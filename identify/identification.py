@@ -34,6 +34,7 @@ from .estimation import (
 )
 from .identifiability import UNIQUE, BaseParameters, Excitation, base_parameters, excitation, identified_ranges, preferred_order
 from .metrics import summary
+from .model_errors import Refit, measure_errors
 from .preprocess import Prepared, Segment
 from .prior import RELATIVE_STD, Prior, base_prior, link_scales, scaled, widened
 from .robot import Robot
@@ -243,6 +244,7 @@ class IdentificationResult:
     fit: dict[str, Any]
     validation: dict[str, Any] | None = None
     validation_samples: int = 0
+    held_out: dict[str, Any] | None = None  # identify.model_errors: each fold predicted by the fit of the other nine
     notes: list[str] = field(default_factory=list)
     filtering: list[dict[str, Any]] = field(default_factory=list)
     # per-joint R factors of [W_j | tau_j] over the base columns: the data's metric for
@@ -371,6 +373,7 @@ class IdentificationResult:
             "fit": self.fit,
             "validation": self.validation,
             "validation_samples": self.validation_samples,
+            "held_out": self.held_out,
             "preprocessing": self.notes,
             "filtering": self.filtering,
             "prior": self.prior,
@@ -663,7 +666,7 @@ def _identify(robot: Robot, experiments: list[Prepared], validation: list[Prepar
     gains = declared_gains(robot)
     if gains:
         scale, factors = _with_declared_gains(system, factors, gains, scale, options.weighting, notes)
-    est, tau_hat, penalty, prior_doc = _fit_with_prior(robot, names, effects, base, system, factors, options, notes)
+    est, tau_hat, penalty, prior_doc, refit = _fit_with_prior(robot, names, effects, base, system, factors, options, notes)
     tau = system[:, -1].T
     fit = summary(tau, tau_hat)
     if options.covariance == "batch_means":
@@ -674,7 +677,7 @@ def _identify(robot: Robot, experiments: list[Prepared], validation: list[Prepar
                                   covariance_batches=None if options.covariance != "batch_means" else int(batches))
     result.fit["equations"] = int(tau.shape[0])
     if options.stamp_errors:
-        _measure_errors(result, segments, validation, int(tau.shape[0]))
+        measure_errors(result, system, segments, validation, refit)
     result.filtering = [p.filtering() for p in experiments]
     return result
 
@@ -725,12 +728,13 @@ def _system_torque(system: Array, names: list[str], independent: Array, beta: Ar
 
 def _fit_with_prior(robot: Robot, names: list[str], effects: list[LinearEffect], base: BaseParameters, system: Array,
                     factors: JointFactors, options: IdentifyOptions,
-                    notes: list[str]) -> tuple[LeastSquares, Array, Array | None, dict[str, Any] | None]:
+                    notes: list[str]) -> tuple[LeastSquares, Array, Array | None, dict[str, Any] | None, Refit]:
     """Weighted least squares on the R factors, then, with ``prior="modeled"``, the robot
     file's modeled values as a prior for what the data do not excite (identify.prior: the data
     weighed as one equation per correlation length, the prior widened until it agrees with
     them, or at ``options.prior_widening``). Returns the estimate, its torque at the equations,
-    the prior's penalty (None without one) and the prior's document."""
+    the prior's penalty (None without one), the prior's document, and the same estimator (its
+    weighting and prior, without bounds) for other factors of the same columns."""
     est = solve_factors(factors, options.weighting)
     tau = system[:, -1].T
     tau_hat = _system_torque(system, names, base.independent, est.beta)
@@ -756,7 +760,13 @@ def _fit_with_prior(robot: Robot, names: list[str], effects: list[LinearEffect],
         notes.append("prior: none (the robot file models no link's inertial values); least squares alone")
     if options.nonnegative:
         est, tau_hat = _bounded(system, names, base, factors, est, penalty, None if prior is None else prior.mean, options.nonnegative, notes)
-    return est, tau_hat, penalty, prior_doc
+    held = prior if prior is not None and prior.covered else None
+
+    def refit(other: JointFactors) -> LeastSquares:
+        plain = solve_factors(other, options.weighting)
+        return plain if held is None else with_prior(other, plain, held.mean, held.precision, length)[0]
+
+    return est, tau_hat, penalty, prior_doc, refit
 
 
 def _bounded(system: Array, names: list[str], base: BaseParameters, factors: JointFactors, est: LeastSquares, penalty: Array | None,
@@ -779,21 +789,3 @@ def _bounded(system: Array, names: list[str], base: BaseParameters, factors: Joi
     notes.append("bounded least squares: " + (", ".join(held) + " held at 0" if held else "no bound active")
                  + " (friction dissipative, inertia and stiffness positive); standard deviations of the unbounded fit")
     return replace(est, beta=beta), _system_torque(system, names, base.independent, beta)
-
-
-def _measure_errors(result: IdentificationResult, segments: list[Segment], validation: list[Prepared] | None, equations: int) -> None:
-    """The errors anyone can check, into ``result``: the model at each input sample against the
-    raw torque, on the identification data (``fit``) and on the validation data."""
-    _, tau_raw, tau_hat_raw = result.predict_stamps(segments)
-    result.fit = summary(tau_raw, tau_hat_raw)
-    result.fit["equations"] = int(equations)
-    if validation:
-        segs = [s for p in validation for s in p.segments]
-        _, tau, tau_hat = result.predict_stamps(segs)
-        result.validation = summary(tau, tau_hat)
-        result.validation_samples = int(tau.shape[0])
-        rows = sum(p.rows for p in validation)
-        result.validation["samples"] = int(tau.shape[0])
-        result.validation["input_samples"] = int(rows)
-        result.validation["left_out"] = int(rows - tau.shape[0])
-        result.notes += [f"validation: {s}" for p in validation for s in p.notes]

@@ -21,7 +21,7 @@ from .output import inputs_read, show_warnings, write_json_and_predictions
 def fixed_model(robot: Any, doc: dict[str, Any], path: str) -> tuple[Any, Any]:
     """The identification document's model (:class:`~armid.identify.diagnosis.check.FixedModel`) and what
     it showed on its own data (:class:`~armid.identify.diagnosis.check.Reference`: its validation error
-    where it was validated, else its fit error)."""
+    where it was validated, else its held-out error, else its fit error)."""
     from armid.identify.diagnosis.check import FixedModel, Reference
     from armid.identify.payload.arm import arm_model_from_identification
 
@@ -32,7 +32,7 @@ def fixed_model(robot: Any, doc: dict[str, Any], path: str) -> tuple[Any, Any]:
         raise RecordingError(path, f"torque_scale: must be {robot.n_joints} numbers or null, got {scale!r}")
     model = FixedModel(robot, effects, arm.columns, arm.beta, None if scale is None else np.asarray(scale, float),
                        None if doc.get("joint_noise_sigma") is None else arm.joint_sigma)
-    for kind in ("validation", "fit"):
+    for kind in ("validation", "held_out", "fit"):
         errors = doc.get(kind)
         if isinstance(errors, dict) and isinstance(errors.get("relative_error"), int | float) and \
                 isinstance(errors.get("relative"), list) and len(errors["relative"]) == robot.n_joints:

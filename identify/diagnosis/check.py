@@ -78,7 +78,8 @@ class FixedModel:
 @dataclass(frozen=True)
 class Reference:
     """What the model showed on its own data: the relative error (arm and per joint) and which
-    figure it is (``"validation"``: held-out data; ``"fit"``: its identification data)."""
+    figure it is (``"validation"``: other runs; ``"held_out"``: its identification data where each fold
+    was left out of the fit, identify.model_errors; ``"fit"``: its identification data)."""
 
     relative_error: float
     relative: Array
@@ -189,7 +190,8 @@ def where_it_does_not_hold(final: IdentificationResult, validation: list[Prepare
         return None
     model = FixedModel(final.robot, tuple(final.effects), final.base.independent, final.estimate.beta, final.torque_scale,
                        final.estimate.joint_sigma)
-    reference = Reference(float(final.fit["relative_error"]), np.asarray(final.fit["relative"], float), "fit")
+    kind, own = ("held_out", final.held_out) if final.held_out is not None else ("fit", final.fit)
+    reference = Reference(float(own["relative_error"]), np.asarray(own["relative"], float), kind)
     result = check(model, validation, reference)
     return None if result.holds else result
 
