@@ -143,6 +143,24 @@ def test_check_without_the_feasible_parameters_is_one_line(kuka: tuple[Path, sub
     assert "plain.json" in done.stderr and "--feasible" in done.stderr and not (out / "plain.xml").exists()
 
 
+def test_diagnose_writes_the_model_with_its_findings(kuka: tuple[Path, subprocess.CompletedProcess[str]]) -> None:
+    """``armid diagnose --mjcf`` (the README tour, KUKA 1 -> 2): the final model's rigid body as
+    its URDF's; the cogging it finds on joint 6 has no MuJoCo term and is named."""
+    out, _ = kuka
+    done = _armid("diagnose", str(KUKA / "measurements_1.npz"), "--robot", str(ROBOTS / "kuka_lwr4.yaml"), "--validate",
+                  str(KUKA / "measurements_2.npz"), "--urdf", "diagnosed.urdf", "--mjcf", "diagnosed.xml", cwd=out)
+    assert done.returncode == 0, done.stderr
+    assert "residual is periodic in position: cogging" in done.stdout
+    assert done.stdout.splitlines()[-1].endswith("MJCF written to diagnosed.xml (no MuJoCo term, left out: torque offset on joints "
+                                                 "1, 2, 3, 4, 5, 6, 7; cogging on joint 6)")
+    robot = load_robot(ROBOTS / "kuka_lwr4.yaml")
+    model = pin.buildModelFromUrdf(str(out / "diagnosed.urdf"))
+    model.gravity = pin.Motion(np.asarray(robot.gravity, float), np.zeros(3))
+    worst = _max_difference(_rigid(out / "diagnosed.xml"), model, seed=65)
+    print(f"KUKA LWR4+ diagnosed: max |diff| {worst:.3g} N*m")
+    assert worst < 1e-6
+
+
 def test_puma_dh_mjcf_with_rotor_inertia(tmp_path: Path) -> None:
     """Standard DH (the PUMA 560, link frames off the joint axes) through the command line: the
     rigid body equals Pinocchio's RNEA on the DH URDF; rotor inertia is armature and viscous
