@@ -132,6 +132,36 @@ def test_check_writes_the_model_checked(kuka: tuple[Path, subprocess.CompletedPr
     assert (out / "checked.urdf").read_text() == (out / "kuka.urdf").read_text()
 
 
+def test_check_writes_the_load_it_finds(tmp_path: Path) -> None:
+    """An undeclared 1 kg tool (tests/checkgen.py, which shares no code with armid): ``armid
+    check --mjcf`` writes the model with the load it names on the last link. Reference: Pinocchio's
+    RNEA on the identification's URDF with the named load appended to that link's frame by
+    Pinocchio (mass, centre and inertia as the check's JSON gives them)."""
+    from checkgen import make_check_case
+
+    case = make_check_case(0, "dh6", tmp_path / "case", masses=(1.0,))
+    done = _armid("identify", str(case.ident), "--robot", str(case.robot), "--feasible", "--json", "model.json", "--urdf", "model.urdf",
+                  cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    done = _armid("check", str(case.checks[1.0]), "--robot", str(case.robot), "--model", "model.json", "--json", "check.json",
+                  "--mjcf", "tool.xml", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    load = next(f for f in json.loads((tmp_path / "check.json").read_text())["found"] if f["effect"] == "payload")["parameters"]
+    assert abs(load["m"] - 1.0) < 0.05
+    assert f"with the load of {load['m']:.3f} kg found on link 6" in done.stdout.splitlines()[-1]
+    robot = load_robot(case.robot)
+    model = pin.buildModelFromUrdf(str(tmp_path / "model.urdf"))
+    model.gravity = pin.Motion(np.asarray(robot.gravity, float), np.zeros(3))
+    link = model.frames[model.getFrameId("link6")]
+    inertia = np.array([[load["Ixx"], load["Ixy"], load["Ixz"]], [load["Ixy"], load["Iyy"], load["Iyz"]],
+                        [load["Ixz"], load["Iyz"], load["Izz"]]])
+    model.appendBodyToJoint(link.parentJoint, pin.Inertia(load["m"], np.array([load["cx"], load["cy"], load["cz"]]), inertia),
+                            link.placement)
+    worst = _max_difference(_rigid(tmp_path / "tool.xml"), model, seed=7)
+    print(f"check with a 1 kg tool: max |diff| {worst:.3g} N*m")
+    assert worst < 1e-6
+
+
 def test_check_without_the_feasible_parameters_is_one_line(kuka: tuple[Path, subprocess.CompletedProcess[str]]) -> None:
     out, _ = kuka
     doc = json.loads((out / "id.json").read_text())
