@@ -259,12 +259,27 @@ def test_a_body_mujoco_refuses_is_one_error_and_no_file(tmp_path: Path) -> None:
     assert not (tmp_path / "bad.xml").exists()
 
 
-def test_mjcf_to_an_unwritable_path_is_one_line(tmp_path: Path) -> None:
+@pytest.mark.parametrize("command, argv", [
+    ("identify", ["data.csv", "--robot", str(ROBOTS / "puma560.yaml")]),
+    ("diagnose", ["data.csv", "--robot", str(ROBOTS / "puma560.yaml"), "--validate", "data.csv"]),
+    ("check", ["data.csv", "--robot", str(ROBOTS / "puma560.yaml"), "--model", "id.json"]),
+])
+@pytest.mark.parametrize("out, said", [("a_file/puma.xml", "a_file: Not a directory"), (".", ".: Is a directory")])
+def test_mjcf_to_an_unwritable_path_is_one_line(tmp_path: Path, command: str, argv: list[str], out: str, said: str) -> None:
+    """Refused before any work: the data named here do not even exist."""
     (tmp_path / "a_file").write_text("")
-    done = _armid("identify", str(ROOT / "examples" / "puma560_excitation.csv"), "--robot", str(ROBOTS / "puma560.yaml"),
-                  "--mjcf", "a_file/puma.xml", cwd=tmp_path)
+    done = _armid(command, *argv, "--mjcf", out, cwd=tmp_path)
     assert done.returncode == 2, done.stderr
-    assert len(done.stderr.splitlines()) == 1 and "a_file" in done.stderr and "Traceback" not in done.stderr, done.stderr
+    assert done.stderr.splitlines() == [f"armid {command}: error: {said}"]
+
+
+def test_mjcf_to_a_path_that_fails_on_writing_is_one_line(tmp_path: Path) -> None:
+    """A folder no file can be made in though its permissions allow it (``/proc``, for root): refused
+    by the check or by the write itself, in one line either way."""
+    done = _armid("identify", str(ROOT / "examples" / "puma560_excitation.csv"), "--robot", str(ROBOTS / "puma560.yaml"),
+                  "--mjcf", "/proc/armid/puma.xml", cwd=tmp_path)
+    assert done.returncode == 2, done.stderr
+    assert len(done.stderr.splitlines()) == 1 and "/proc/armid" in done.stderr and "Traceback" not in done.stderr, done.stderr
 
 
 @pytest.mark.parametrize("seed", range(5))

@@ -15,7 +15,7 @@ from armid.schema.errors import RecordingError
 from ..check_report import verdict_lines
 from .arguments import ROBOT_HELP, load_robot_argument
 from .identify import preparation_arguments, recipe_from_arguments
-from .output import inputs_read, show_warnings, write_json_and_predictions
+from .output import check_writable, inputs_read, show_warnings, write_json_and_predictions
 
 
 def fixed_model(robot: Any, doc: dict[str, Any], path: str) -> tuple[Any, Any]:
@@ -65,6 +65,7 @@ def _check(args: argparse.Namespace) -> int:
     from .. import pipeline
     from .estimate import identification_document
 
+    check_writable(args.urdf, args.mjcf)
     robot = load_robot_argument(args.robot)
     doc = identification_document(args.model, robot)
     model, reference = fixed_model(robot, doc, args.model)

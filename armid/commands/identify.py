@@ -14,7 +14,7 @@ import numpy as np
 from armid.schema.errors import IdentificationError, RecordingError, UsageError
 
 from .arguments import ROBOT_HELP, gap_factor, load_robot_argument, lowpass_setting
-from .output import inputs_read, show_warnings, strict_json, write_json_and_predictions
+from .output import check_writable, inputs_read, show_warnings, strict_json, write_json_and_predictions
 
 
 def recipe_from_arguments(args: argparse.Namespace, **extra: Any) -> Any:
@@ -46,6 +46,7 @@ def _identify(args: argparse.Namespace) -> int:
 
     from .. import pipeline
 
+    check_writable(args.urdf, args.mjcf)
     robot = load_robot_argument(args.robot)
     recipe = recipe_from_arguments(args, weighting=args.weighting, prior=args.prior)
     if args.single_link:
