@@ -118,7 +118,7 @@ def mjcf_tree(robot: Robot, phi: Array, effects: Sequence[LinearEffect] = ()) ->
     said += approx
     said.append("No MuJoCo equivalent, left out: " + ("; ".join(left_out) if left_out else "nothing") + ".")
     said.append("No geometry: the bodies carry the identified inertia only.")
-    root.append(ET.Comment(" " + "\n  ".join(said) + " "))
+    root.append(ET.Comment(" " + "\n  ".join(said).replace("--", "- -") + " "))  # "--" ends an XML comment
     ET.SubElement(root, "compiler", angle="radian", autolimits="true")
     ET.SubElement(root, "option", gravity=_v(robot.gravity))
     parent = ET.SubElement(root, "worldbody")
