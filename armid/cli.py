@@ -74,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with warnings.catch_warnings():
             warnings.showwarning = HELD_WARNINGS.show
-            extras.require(args.command)  # one line naming the extra before anything starts
+            extras.require(args.command, [k for k, v in vars(args).items() if v not in (None, False)])  # one line naming the extra before anything starts
             code = int(args.run(args))
         HELD_WARNINGS.release()
         return code

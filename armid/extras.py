@@ -5,7 +5,8 @@ every side of the work shares: the arrays, the robot and rig files, the simulate
 physics (Pinocchio), the trajectory designer (SciPy, the compiled regressor), MCAP and
 Zenoh. ``daq`` adds the buses (python-can, canopen, pyserial); ``identify`` adds the convex
 solver of the physically consistent estimate (cvxpy, Clarabel) and the reports' plots
-(matplotlib); ``all`` is both. A command that needs an extra this install lacks ends in one
+(matplotlib); ``mujoco`` lets ``--mjcf`` write the model MuJoCo simulates; ``all`` is the
+three. A command that needs an extra this install lacks ends in one
 line naming it, before anything starts (:func:`require`), or, should an import still fail
 on the way, at the command line's boundary (:func:`missing_module`).
 """
@@ -13,6 +14,7 @@ on the way, at the command line's boundary (:func:`missing_module`).
 from __future__ import annotations
 
 import importlib.util
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 from armid.schema.errors import MissingExtraError
@@ -35,6 +37,7 @@ EXTRAS: dict[str, Extra] = {
     "identify": _IDENTIFY,
     "all": Extra("acquisition and identification extras", _DAQ.modules + _IDENTIFY.modules),
     "fleet": Extra("fleet extra (Ray)", ("ray",)),
+    "mujoco": Extra("MuJoCo extra", ("mujoco",)),
 }
 """Every extra a command may need, by its name in ``pyproject.toml``."""
 
@@ -45,6 +48,11 @@ NEEDS: dict[str, str] = {
 }
 """Command -> the extra it needs (a DAQ PC beside the arm installs ``daq``; the machine that
 identifies installs ``identify``; the demo runs both sides)."""
+
+
+OPTION_NEEDS: dict[str, str] = {"mjcf": "mujoco"}
+"""Option (its name on the parsed command line) -> the extra it needs beyond its command's
+(``--mjcf``: MuJoCo compiles the model before it is written)."""
 
 
 def install_command(extra: str) -> str:
@@ -71,11 +79,12 @@ def error(extra: str, modules: list[str]) -> MissingExtraError:
     return MissingExtraError(f"this command needs the {EXTRAS[extra].purpose} ({what}): {install_command(extra)}")
 
 
-def require(command: str) -> None:
-    """Raise :class:`MissingExtraError` when ``command`` needs an extra this install lacks."""
-    extra = NEEDS.get(command)
-    if extra is not None and (absent := missing(extra)):
-        raise error(extra, absent)
+def require(command: str, options: Iterable[str] = ()) -> None:
+    """Raise :class:`MissingExtraError` when ``command``, or one of the ``options`` given to it
+    (:data:`OPTION_NEEDS`), needs an extra this install lacks."""
+    for extra in [NEEDS.get(command), *(OPTION_NEEDS.get(o) for o in options)]:
+        if extra is not None and (absent := missing(extra)):
+            raise error(extra, absent)
 
 
 def missing_module(command: str, err: ModuleNotFoundError) -> MissingExtraError | None:

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from armid.identify.errors import RobotFileError
-from armid.identify.robot import Robot, inertial_from_parameters
+from armid.identify.robot import Inertial, Robot, inertial_from_parameters
 from armid.schema import Array
 
 
@@ -53,16 +53,23 @@ def _origin(parent: ET.Element, transform: Array) -> None:
     ET.SubElement(parent, "origin", xyz=" ".join(_f(x) for x in transform[:3, 3]), rpy=" ".join(_f(x) for x in rpy_of(transform[:3, :3])))
 
 
-def inertial_element(phi_link: Array) -> ET.Element:
-    """``<inertial>`` of one link's ten parameters (about the link frame, Khosla eq. 10):
-    centre of mass ``h / m``, inertia about it with the link frame's axes (Steiner)."""
+def link_inertial(phi_link: Array) -> Inertial:
+    """One link's ten identified parameters (about the link frame, Khosla eq. 10) as the body a
+    model file holds: mass, centre of mass ``h / m``, inertia about it with the link frame's
+    axes (Steiner). A massless link (``m <= 0``: a physically consistent estimate then has
+    ``h = 0``) keeps its inertia about the link frame's origin: a rotor's moment the torques
+    still see. The one conversion the URDF and the MJCF both write."""
     phi_link = np.asarray(phi_link, dtype=float)
-    el = ET.Element("inertial")
     if phi_link[0] > 0:
-        inert = inertial_from_parameters(phi_link)
-        com, (xx, xy, xz, yy, yz, zz), mass = inert.com_m, inert.inertia_kgm2, inert.mass_kg
-    else:
-        com, (xx, xy, xz, yy, yz, zz), mass = (0.0, 0.0, 0.0), (0.0,) * 6, 0.0
+        return inertial_from_parameters(phi_link)
+    return Inertial(0.0, (0.0, 0.0, 0.0), tuple(float(x) for x in phi_link[4:10]))  # type: ignore[arg-type]
+
+
+def inertial_element(phi_link: Array) -> ET.Element:
+    """``<inertial>`` of one link's ten parameters (:func:`link_inertial`)."""
+    inert = link_inertial(phi_link)
+    com, (xx, xy, xz, yy, yz, zz), mass = inert.com_m, inert.inertia_kgm2, inert.mass_kg
+    el = ET.Element("inertial")
     ET.SubElement(el, "origin", xyz=" ".join(_f(x) for x in com), rpy="0 0 0")
     ET.SubElement(el, "mass", value=_f(mass))
     ET.SubElement(el, "inertia", ixx=_f(xx), ixy=_f(xy), ixz=_f(xz), iyy=_f(yy), iyz=_f(yz), izz=_f(zz))
@@ -76,6 +83,23 @@ def _friction(effects: dict[tuple[str, int], float], j: int) -> dict[str, str]:
     if ("coulomb_friction", j) in effects:
         out["friction"] = _f(effects[("coulomb_friction", j)])
     return out
+
+
+def child_links(robot: Robot) -> list[str] | None:
+    """Per joint, the name of its child link in the URDF the robot file names (the body the
+    identified inertial belongs to); None for a robot described by DH rows."""
+    source = _urdf_path(robot)
+    if source is None:
+        return None
+    try:
+        root = ET.parse(source).getroot()
+    except (OSError, ET.ParseError) as err:
+        raise RobotFileError(str(source), "", f"cannot read the URDF ({err})") from err
+    joints = {el.get("name"): el for el in root.findall("joint")}
+    missing = [j.name for j in robot.joints if j.name not in joints]
+    if missing:
+        raise RobotFileError(str(source), missing[0], "no such joint in the URDF")
+    return [_attr(joints[j.name], "child") for j in robot.joints]
 
 
 def _urdf_path(robot: Robot) -> Path | None:

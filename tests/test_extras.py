@@ -79,7 +79,8 @@ def test_the_table_names_exactly_the_extras_of_pyproject() -> None:
     assert set(extras.NEEDS.values()) <= set(groups)
     commands = set(build_parser()._subparsers._group_actions[0].choices)  # type: ignore[union-attr]
     assert set(extras.NEEDS) <= commands
-    assert _distributions("all", groups) == _distributions("daq", groups) | _distributions("identify", groups)
+    assert _distributions("all", groups) == _distributions("daq", groups) | _distributions("identify", groups) | _distributions("mujoco", groups)
+    assert set(extras.OPTION_NEEDS.values()) <= set(groups)
 
 
 @pytest.mark.parametrize("extra", sorted(extras.EXTRAS))
@@ -131,6 +132,23 @@ def test_analysis_on_a_daq_machine_is_one_line_naming_the_extra(tmp_path: Path, 
     assert done.stderr.splitlines() == [f"armid {command}: error: this command needs the {extras.EXTRAS[extra].purpose} "
                                         f"({missing} are not installed): pip install \"armid[{extra}]\""]
     assert not (tmp_path / "report").exists()
+
+
+@pytest.mark.parametrize("command, argv", [
+    ("identify", [str(ROOT / "examples" / "puma560_excitation.csv"), "--robot", "puma560"]),
+    ("check", ["data.csv", "--robot", "puma560", "--model", "id.json"]),
+])
+def test_mjcf_without_mujoco_is_one_line_naming_its_extra(tmp_path: Path, command: str, argv: list[str]) -> None:
+    """``--mjcf`` needs MuJoCo beyond its command's extra: without it, one line before any work;
+    the same command without ``--mjcf`` needs no MuJoCo."""
+    done = _armid(tmp_path, ("mujoco",), command, *argv, "--mjcf", "out.xml", timeout=60)
+    assert done.returncode == 2
+    assert done.stderr.splitlines() == [f"armid {command}: error: this command needs the MuJoCo extra (mujoco is not installed): "
+                                        'pip install "armid[mujoco]"']
+    if command == "identify":
+        done = _armid(tmp_path, ("mujoco",), command, *argv, "--urdf", "out.urdf", timeout=120)
+        assert done.returncode == 0, done.stderr
+        assert (tmp_path / "out.urdf").is_file() and not (tmp_path / "out.xml").exists()
 
 
 def test_an_identification_machine_identifies_without_the_buses(tmp_path: Path) -> None:

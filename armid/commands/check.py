@@ -15,7 +15,7 @@ from armid.schema.errors import RecordingError
 from ..check_report import verdict_lines
 from .arguments import ROBOT_HELP, load_robot_argument
 from .identify import preparation_arguments, recipe_from_arguments
-from .output import inputs_read, show_warnings, write_json_and_predictions
+from .output import check_writable, inputs_read, show_warnings, write_json_and_predictions
 
 
 def fixed_model(robot: Any, doc: dict[str, Any], path: str) -> tuple[Any, Any]:
@@ -65,9 +65,11 @@ def _check(args: argparse.Namespace) -> int:
     from .. import pipeline
     from .estimate import identification_document
 
+    check_writable(args.urdf, args.mjcf)
     robot = load_robot_argument(args.robot)
     doc = identification_document(args.model, robot)
     model, reference = fixed_model(robot, doc, args.model)
+    to_write = _model_to_write(args, robot, doc, model.effects)
     inputs = pipeline.load(robot, recipe_from_arguments(args), args.data)
     show_warnings(inputs.warnings)
     inputs_read()
@@ -93,7 +95,63 @@ def _check(args: argparse.Namespace) -> int:
         write_check_report(result, robot, Path(args.report))
     for line in verdict_lines(robot.name, result):
         print(line)
+    if to_write is not None:
+        print(f"{robot.name}: {_write_model_files(args, robot, to_write, model.effects, result)}")
     return 0
+
+
+def _model_to_write(args: argparse.Namespace, robot: Any, doc: dict[str, Any], effects: tuple[Any, ...]) -> tuple[Any, Any] | None:
+    """``--urdf`` / ``--mjcf``: the document's physically consistent parameters, the links' and
+    the effects' (in the order of ``effects``), read before the data; None without either option."""
+    if not (args.urdf or args.mjcf):
+        return None
+    feasible = doc.get("feasible")
+    entries = feasible.get("parameters") if isinstance(feasible, dict) else None
+    if not isinstance(feasible, dict) or not isinstance(entries, list) or len(entries) != robot.n_parameters:
+        raise RecordingError(args.model, f"feasible.parameters: --urdf and --mjcf write the physically consistent parameters "
+                                         f"({robot.n_parameters} for {robot.name}): identify with --feasible --json")
+    try:
+        phi = np.array([float(p["value"]) for p in entries])
+        values = {(e["effect"], int(e["joint"]), e["parameter"]): float(e["value"]) for e in feasible.get("effects", [])}
+        effect_phi = np.array([values[(e.effect, e.joint + 1, name)] for e in effects for name in e.parameter_names])
+    except (KeyError, TypeError, ValueError) as err:
+        raise RecordingError(args.model, f"feasible: a parameter or an effect without its value ({err})") from None
+    if not np.all(np.isfinite(phi)) or not np.all(np.isfinite(effect_phi)):
+        raise RecordingError(args.model, "feasible: a parameter that is not a finite number")
+    return phi, effect_phi
+
+
+def _write_model_files(args: argparse.Namespace, robot: Any, model: tuple[Any, Any], effects: tuple[Any, ...], result: Any) -> str:
+    """Write the model checked (:func:`_model_to_write`) with a load found on the last link
+    (its mass, centre and inertia, where these data determine them) added to that link: the
+    arm as these data show it. Other changes are named, not written."""
+    from armid.identify.robot import Inertial, link_parameters
+
+    from ..urdf_export import write_urdf
+    from .identify import model_files_line
+
+    phi, effect_phi = model[0].copy(), model[1]
+    added, named = [], []
+    for c in result.found:
+        p = c.parameters
+        if c.effect == "payload" and p["m"] > 0 and p.get("cx") is not None:
+            load = Inertial(p["m"], (p["cx"], p["cy"], p["cz"]), tuple(p[f"I{k}"] for k in ("xx", "xy", "xz", "yy", "yz", "zz")))
+            phi[-10:] += link_parameters(load)
+            added.append(f"with the load of {p['m']:.3f} kg found on link {robot.n_joints}")
+        else:
+            named.append(f"{'a load' if c.effect == 'payload' else c.effect.replace('_', ' ')} on "
+                         f"{'the arm' if c.joint is None else f'joint {c.joint + 1}'}")
+    notes = added + ([f"not in it, found changed: {', '.join(named)}"] if named else [])
+    labels = [label for e in effects for label in e.labels()]
+    if args.urdf:
+        k = 0
+        values = {}
+        for e in effects:
+            values[(e.effect, e.joint + 1)] = float(effect_phi[k])
+            k += len(e.parameter_names)
+        write_urdf(args.urdf, robot, phi, values)
+    written = model_files_line(args, robot, np.concatenate([phi, effect_phi]), list(effects), robot.parameter_names + labels)
+    return f"the model of {args.model}" + (f" ({', '.join(notes)})" if notes else "") + written.replace("; ", ": ", 1)
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -107,5 +165,8 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--report", metavar="DIR", help="write check.md with each joint's error against the model's own and the floor")
     p.add_argument("--predictions", metavar="CSV", help="write the predicted torques with what changed (t, tau_hat1..n), each "
                                                         "sample from the fit on the other tenths")
+    p.add_argument("--urdf", metavar="OUT", help="write the model checked as a URDF: the physically consistent parameters of "
+                                                 "--model (identify --feasible --json), a load found on the last link added")
+    p.add_argument("--mjcf", metavar="OUT", help="the same as MJCF for MuJoCo (armid identify --mjcf; needs armid[mujoco])")
     preparation_arguments(p)
     p.set_defaults(run=_check)

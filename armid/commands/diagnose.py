@@ -12,8 +12,8 @@ from typing import Any
 from armid.schema.errors import PoorExcitationWarning
 
 from .arguments import ROBOT_HELP, load_robot_argument
-from .identify import add_feasible_arguments, feasible_report, preparation_arguments, recipe_from_arguments
-from .output import inputs_read, show_warnings, write_json_and_predictions
+from .identify import add_feasible_arguments, feasible_report, preparation_arguments, recipe_from_arguments, wants_feasible
+from .output import check_writable, inputs_read, show_warnings, write_json_and_predictions
 
 
 def _diagnose(args: argparse.Namespace) -> int:
@@ -21,6 +21,7 @@ def _diagnose(args: argparse.Namespace) -> int:
 
     from .. import pipeline
 
+    check_writable(args.urdf, args.mjcf)
     robot = load_robot_argument(args.robot)
     inputs = pipeline.load(robot, recipe_from_arguments(args), args.data, args.validate)
     show_warnings(inputs.warnings)
@@ -32,7 +33,7 @@ def _diagnose(args: argparse.Namespace) -> int:
     diag = pipeline.diagnose(robot, inputs)
     doc = diag.to_json()
     feasible_line = None
-    if args.feasible or args.urdf or args.bounding_box:
+    if wants_feasible(args):
         feasible_line = _diagnosed_feasible(args, robot, diag, experiments, validation, doc)
     assert diag.predictions is not None
     t_stamps, _, tau_hat = diag.predictions

@@ -1,5 +1,5 @@
 """``armid identify``: least-squares identification (eq. 18) of recordings, whole arm or
-Khosla's single-link sequence, with ``--feasible``/``--urdf`` the physically consistent estimate."""
+Khosla's single-link sequence, with ``--feasible``/``--urdf``/``--mjcf`` the physically consistent estimate."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import numpy as np
 from armid.schema.errors import IdentificationError, RecordingError, UsageError
 
 from .arguments import ROBOT_HELP, gap_factor, load_robot_argument, lowpass_setting
-from .output import inputs_read, show_warnings, strict_json, write_json_and_predictions
+from .output import check_writable, inputs_read, show_warnings, strict_json, write_json_and_predictions
 
 
 def recipe_from_arguments(args: argparse.Namespace, **extra: Any) -> Any:
@@ -46,6 +46,7 @@ def _identify(args: argparse.Namespace) -> int:
 
     from .. import pipeline
 
+    check_writable(args.urdf, args.mjcf)
     robot = load_robot_argument(args.robot)
     recipe = recipe_from_arguments(args, weighting=args.weighting, prior=args.prior)
     if args.single_link:
@@ -101,8 +102,8 @@ def _identify_single_link(args: argparse.Namespace, robot: Any, recipe: Any) -> 
     from armid.identify.single_link import single_link_sequence
     from armid.io.recordings import write_csv
 
-    if args.feasible or args.urdf or args.bounding_box or args.report:
-        raise UsageError("--single-link gives Khosla's tables and predictions: --feasible, --urdf, --bounding-box and --report "
+    if args.feasible or args.urdf or args.mjcf or args.bounding_box or args.report:
+        raise UsageError("--single-link gives Khosla's tables and predictions: --feasible, --urdf, --mjcf, --bounding-box and --report "
                          "are for a whole-arm identification")
     runs: dict[int, list[Any]] = {}
     recordings = []
@@ -198,10 +199,17 @@ def _excitation_window(path: Path, rec: Any) -> Any:
     return rec
 
 
+def wants_feasible(args: argparse.Namespace) -> bool:
+    """Whether the command line asks for the physically consistent estimate (``--feasible``, or
+    an option that needs it)."""
+    return bool(args.feasible or args.urdf or args.mjcf or args.bounding_box)
+
+
 def feasible_report(args: argparse.Namespace, robot: Any, result: Any, validation: list[Any], doc: dict[str, Any]) -> str | None:
-    """``--feasible`` / ``--urdf``: the physically consistent estimate into ``doc["feasible"]``
-    and, with ``--urdf OUT``, the identified inertials written back as a URDF."""
-    if not (args.feasible or args.urdf or args.bounding_box):
+    """``--feasible`` / ``--urdf`` / ``--mjcf``: the physically consistent estimate into
+    ``doc["feasible"]`` and, with ``--urdf OUT`` or ``--mjcf OUT``, the model written as a URDF
+    or as MJCF."""
+    if not wants_feasible(args):
         return None
     from armid.identify.feasible import feasible_estimate
 
@@ -214,18 +222,36 @@ def feasible_report(args: argparse.Namespace, robot: Any, result: Any, validatio
     doc["feasible"] = fr.to_json()
     if args.urdf:
         write_urdf(args.urdf, robot, fr.phi, effect_values(doc["feasible"]))
+    written = model_files_line(args, robot, fr.phi, list(result.effects), fr.names)
     for note in fr.fit.prior_notes:
         print(f"{robot.source}: {note}", file=sys.stderr)
     for check in fr.least_squares_checks:
         for v in check.violations:
             print(f"least squares, link {check.link}: {v}")
-    return f"{robot.name}: {fr.summary_line()}" + (f"; URDF written to {args.urdf}" if args.urdf else "")
+    return f"{robot.name}: {fr.summary_line()}" + written
+
+
+def model_files_line(args: argparse.Namespace, robot: Any, phi: Any, effects: list[Any], names: list[str]) -> str:
+    """Write ``--mjcf OUT`` (the ``names`` of ``phi``'s entries place each effect's value) and
+    say, for the command's last line, which files were written and what MuJoCo's model leaves out."""
+    text = f"; URDF written to {args.urdf}" if args.urdf else ""
+    if args.mjcf:
+        from ..mjcf_export import write_mjcf
+
+        values = [phi[names.index(label)] for e in effects for label in e.labels()]
+        _, left_out = write_mjcf(args.mjcf, robot, np.concatenate([phi[: robot.n_parameters], values]), effects)
+        text += f"; MJCF written to {args.mjcf}" + (f" (no MuJoCo term, left out: {'; '.join(left_out)})" if left_out else "")
+    return text
 
 
 def add_feasible_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--feasible", action="store_true",
                    help="also the physically consistent estimate (pseudo-inertia PSD, friction >= 0) and a consistency report in the JSON")
     p.add_argument("--urdf", metavar="OUT", help="write the physically consistent model as a URDF (implies --feasible)")
+    p.add_argument("--mjcf", metavar="OUT",
+                   help="write the physically consistent model as MJCF for MuJoCo: viscous and Coulomb friction, rotor inertia and "
+                        "springs as joint damping, frictionloss, armature and stiffness; what MuJoCo has no term for is named "
+                        "(implies --feasible; needs armid[mujoco])")
     p.add_argument("--bounding-box", action="store_true",
                    help="keep each link's mass inside the box of its URDF collision geometry (links with a mesh or without geometry: "
                         "no box; implies --feasible)")

@@ -65,3 +65,25 @@ def write_json_and_predictions(json_out: str | None, doc: Any, predictions_out: 
     if predictions_out:
         t, tau_hat = predictions()
         write_csv(predictions_out, t, {"tau_hat": tau_hat})
+
+
+def check_writable(*paths: str | None) -> None:
+    """Refuse, before any work, an output file that cannot be written: a folder on its way that
+    is a file, or the nearest existing folder not writable (``OSError`` naming the path: exit 2).
+    The folders missing are made when the file is written."""
+    import errno
+    import os
+
+    for given in paths:
+        if not given:
+            continue
+        path = Path(given)
+        if path.is_dir():
+            raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), given)
+        folder = path.parent
+        while not folder.exists() and folder != folder.parent:
+            folder = folder.parent
+        if not folder.is_dir():
+            raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(folder))
+        if not os.access(folder, os.W_OK | os.X_OK) or (path.exists() and not os.access(path, os.W_OK)):
+            raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), given)
