@@ -45,7 +45,11 @@ corrects model error. A Python process on a loaded 2-core machine stalls for ten
 phase, so a 20 ms delay still leaves about 47 degrees of margin (at 3 Hz: 32, and coupled joints 1-3 were seen to oscillate; at 5 Hz: about 2)."""
 
 LOST_CYCLES_STOP = 3
-"""Consecutive cycles without a joint's frames after which the arm is stopped."""
+"""Consecutive cycles without a joint's frames after which the arm is stopped (unless this
+process was not scheduled meanwhile: :meth:`ExcitationControl._waits_through`)."""
+STALL_LOOKBACK_S = 0.05
+"""A stall of this process counts for a gap in the frames when it ended at most this long
+before the gap's newest cycle (the replies it delayed come a few cycles after it)."""
 
 
 @dataclass
@@ -64,6 +68,7 @@ class RunReport:
     saturated_cycles: list[int]
     recording: str
     window_s: tuple[float, float]
+    waited_through: int = 0  # gaps in a joint's frames waited through while this process was not scheduled
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -113,6 +118,7 @@ class ExcitationControl:
         self._invalid_run = np.zeros(n, np.int64)
         self._velocity_age = np.zeros(n, np.int64)  # cycles since each joint's drive last sent its velocity
         self.skipped = 0  # samples supervised but not commanded from (a newer one was waiting)
+        self.waited_through = 0  # gaps in a joint's frames waited through: this process was not scheduled (_waits_through)
         # lost frames stop the arm once the drives are enabled; before that (the trajectories are
         # being designed, which can stall this process for longer than 3 cycles) they are only counted
         self.armed = False
@@ -126,6 +132,7 @@ class ExcitationControl:
             self.max_error[:] = 0.0
             self.peak_torque[:] = 0.0
             self.saturated[:] = 0
+            self.waited_through = 0
             self.active = _Active(plan, self.period_s)
             return self.active
 
@@ -140,6 +147,19 @@ class ExcitationControl:
     def fault(self, fault: DriveFault) -> None:
         last = self.last_sample
         self._stop(f"drive fault: {fault}", last.cycle if last is not None else None)  # the cycle it was seen at
+
+    def _waits_through(self, silent_s: float) -> bool:
+        """Frames missing for ``silent_s`` while this process was not scheduled are waited
+        through, up to the driver's declared silent limit (a serial chain's ``silent_cycles``:
+        past it the driver declares the drive lost and stops the arm itself); a drive silent
+        while this process ran on time stops the arm at :data:`LOST_CYCLES_STOP` cycles.
+        Counted in ``waited_through`` (one per gap)."""
+        limit = self.driver.silent_limit_s
+        if silent_s >= limit or not self.driver.stalled_within(silent_s + STALL_LOOKBACK_S):
+            return False
+        if self._invalid_run.max() == LOST_CYCLES_STOP:
+            self.waited_through += 1
+        return True
 
     def _stop(self, reason: str, cycle: int | None) -> None:
         if self.stop_reason is None:
@@ -156,7 +176,9 @@ class ExcitationControl:
         self._velocity_age = np.where(s.velocity_fresh, 0, self._velocity_age + 1)
         if self.armed and (self._invalid_run >= LOST_CYCLES_STOP).any():
             j = int(np.argmax(self._invalid_run))
-            return self._stop(f"joint {j + 1}: no frames for {LOST_CYCLES_STOP} cycles{self.driver.stall_note()}", s.cycle)
+            silent_s = float(self._invalid_run[j]) * self.period_s
+            if not self._waits_through(silent_s):
+                return self._stop(f"joint {j + 1}: no frames for {int(self._invalid_run[j])} cycles{self.driver.stall_note()}", s.cycle)
         with self._lock:
             active = self.active
         if active is not None and active.first_cycle is None:
@@ -375,7 +397,7 @@ class ExcitationSession:
                               window_s=list(plan.excitation_window), cycles=active.cycles)
         return RunReport(name, c.stop_reason is None, c.stop_reason, c.stop_cycle, active.cycles, self._switch.count - written_before,
                          active.first_cycle or 0, c.max_error.tolist(), c.peak_torque.tolist(), c.saturated.tolist(), str(out / "run.mcap"),
-                         plan.excitation_window)
+                         plan.excitation_window, c.waited_through)
 
     def _run_end(self, interrupted: BaseException | None) -> dict[str, Any]:
         """How the run ended, for its recording's ``armid.run_end`` metadata: the stop line

@@ -118,8 +118,9 @@ class DynamixelDriver(Driver):
         says), or what arrived of it by ``deadline`` (empty when nothing did). With
         ``packet_id``, whole packets of another id before it are stale (a late reply to an
         earlier request): they are skipped and counted in ``stale_replies``. A wait that
-        overran its timeout by more than :data:`STALL_S` was this process not running: the
-        line gets a new reply window (:data:`MAX_STALL_WAITS` at most), counted in ``stalled_waits``."""
+        overran its timeout, or began after it, by more than :data:`STALL_S` was this process
+        not running: the line gets a new reply window (:data:`MAX_STALL_WAITS` at most), counted
+        in ``stalled_waits``."""
         buf = self._rx
         stalls = 0
         while True:
@@ -159,7 +160,9 @@ class DynamixelDriver(Driver):
                     buf += chunk
                     continue
             now = time.perf_counter()
-            overran = now - asked - max(0.0, remaining)  # past its timeout: this process was not running
+            # past its timeout while this process was not running: in the wait, or before it (a
+            # process descheduled between the request and its read came to a window already shut)
+            overran = now - asked - max(0.0, remaining) + max(0.0, -remaining)
             if now >= deadline and stalls < MAX_STALL_WAITS and overran > STALL_S:
                 # a machine that pauses this process (a host's steal, SIGSTOP) paused the chain's
                 # answer too: the line gets its reply window again, from when this process runs
@@ -415,6 +418,11 @@ class DynamixelDriver(Driver):
         return dxl.Block(servo_id, p.error, p.data)
 
     # --- the interface ---
+    @property
+    def silent_limit_s(self) -> float:
+        """The rig's ``bus.silent_cycles`` in seconds: a servo silent that long is declared lost."""
+        return self.cfg.silent_cycles * self.period_s
+
     def read(self, timeout: float | None = None) -> Sample:
         return self._next_sample(timeout, f"is {self.port_name} cycling?")
 

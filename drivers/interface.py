@@ -277,6 +277,18 @@ class Driver(abc.ABC):
         the simulated arm's time: the cycle times the period)."""
         return self.pacing != "clock"
 
+    @property
+    def silent_limit_s(self) -> float:
+        """How long a drive may send nothing usable before it is declared lost: the bound a
+        supervisor may wait through while this process was not scheduled (the rig's declared
+        limit where it has one; else none beyond the supervisor's own)."""
+        return 0.0
+
+    def stalled_within(self, seconds: float) -> bool:
+        """Whether this process was not scheduled when its cycle was due within the last ``seconds``."""
+        when, stall = self.last_stall
+        return bool(stall) and time.monotonic() - when < seconds
+
     def stall_note(self, within_s: float = 0.5) -> str:
         """Why frames went missing, for a stop that says so: this process not scheduled (with
         the figure) when it was within ``within_s``, else the drives or the line."""

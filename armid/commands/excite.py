@@ -126,7 +126,10 @@ def _excite_run(args: argparse.Namespace, rig: Any, robot: Any, n: int, simulate
     write_json(out / "runs.json", [r.to_json() for r in reports])
     for r in reports:
         outcome = "completed" if r.completed else f"STOPPED: {r.stop_reason}"
-        console.print(f"{r.name}: {outcome}; {r.records} records in {r.recording}; max tracking error {1000 * max(r.max_tracking_error):.1f} mrad")
+        gaps = f"{r.waited_through} gap{'s' if r.waited_through != 1 else ''}"
+        waited = f"; waited through {gaps} in the frames while this process was not scheduled" if r.waited_through else ""
+        console.print(f"{r.name}: {outcome}; {r.records} records in {r.recording}; max tracking error "
+                      f"{1000 * max(r.max_tracking_error):.1f} mrad{waited}")
     return 0 if all(r.completed for r in reports) else 1
 
 

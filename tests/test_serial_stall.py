@@ -1,0 +1,65 @@
+"""Issue 66: the serial chain waits through a stall of the machine, as the CAN arm does.
+
+``armid excite --whole`` on the simulated Dynamixel rig, its process and the chain's stopped
+together (a host that deschedules both, SIGSTOP), the excitation's process let go first: its
+reads find the chain still silent for several cycles. Those cycles are waited through, up to
+the rig's ``bus.silent_cycles``, and said; a chain silent while the driver's process ran on
+time still stops the arm at three cycles (tests/test_excitation_dynamixel.py)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from armid.resources import config_file
+
+pytestmark = [pytest.mark.realtime, pytest.mark.slow]
+
+
+def _chain_of(parent: int) -> int:
+    """The pid of ``parent``'s child running ``armid.chain_process``."""
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ")
+        except OSError:
+            continue
+        if int(stat.rsplit(")", 1)[1].split()[1]) == parent and b"armid.chain_process" in cmdline:
+            return int(entry.name)
+    raise AssertionError(f"no chain process under {parent}")
+
+
+def test_a_stall_of_the_machine_is_waited_through_and_said(tmp_path: Path) -> None:
+    rig = config_file("rigs/sim_dynamixel.yaml")
+    excite = subprocess.Popen([sys.executable, "-c", "from armid.cli import run; run()", "excite", "--rig", str(rig), "--whole",
+                               "--out", str(tmp_path / "runs")], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        recording = tmp_path / "runs" / "whole" / "run.mcap"
+        deadline = time.monotonic() + 120.0
+        while not recording.exists() and excite.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert recording.exists(), "the whole-arm run did not start"
+        time.sleep(3.0)  # the arm moving, the drives enabled
+        chain = _chain_of(excite.pid)
+        os.kill(chain, signal.SIGSTOP)
+        os.kill(excite.pid, signal.SIGSTOP)
+        time.sleep(0.05)
+        os.kill(excite.pid, signal.SIGCONT)  # the excitation runs again; the chain only 30 ms later
+        time.sleep(0.03)
+        os.kill(chain, signal.SIGCONT)
+        out, _ = excite.communicate(timeout=120)
+    finally:
+        if excite.poll() is None:
+            excite.kill()
+            excite.wait()
+    assert excite.returncode == 0, out
+    said = " ".join(out.split())  # the console folds its lines
+    assert "whole: completed" in said and "in the frames while this process was not scheduled" in said, out
