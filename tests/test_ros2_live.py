@@ -1,0 +1,299 @@
+"""ROS 2 over rmw_zenoh, live, against ROS 2 code armid did not write: ``zenoh-ros2-sdk`` (ROBOTIS) as
+the ROS 2 node, through a real Zenoh router on loopback (multicast scouting off).
+
+- type hashes (REP-2016) equal the values ROS 2 publishes, and rosbags' independent implementation;
+- the attachment is byte for byte zenoh-ext's serialization of (int64, int64, 16 bytes), rmw_zenoh's;
+- live in: an SDK node publishes JointState at 100 Hz, names reversed; ``armid record --ros2-source``
+  records it by name with its stamps, and re-streams it on armid's keys;
+- live out: ``armid record --rig sim.yaml --ros2``: the SDK node receives /armid/puma560/joint_states,
+  and armid's node and publisher are on the ROS 2 graph (liveliness);
+- a payload and an identified link's inertial reach the SDK node as InertiaStamped.
+
+The SDK reads .msg files; with no local ones it clones ROS 2's repositories (CI has no internet):
+each test writes the ones it needs from rosbags' Jazzy typestore (``_write_msgs``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from armid.cli import main
+
+zenoh = pytest.importorskip("zenoh")
+pytest.importorskip("zenoh_ros2_sdk")
+
+ROOT = Path(__file__).resolve().parent.parent
+PUBLISHED = {  # as ROS 2 prints them (`ros2 topic info --verbose`) and ROS 2 code lists them
+    "sensor_msgs/msg/JointState": "RIHS01_a13ee3a330e346c9d87b5aa18d24e11690752bd33a0350f11c5882bc9179260e",
+    "geometry_msgs/msg/InertiaStamped": "RIHS01_766be45976252babf7f9d8ac4ae7c912a7ceccf71035622529f27518b695aa09",
+    "diagnostic_msgs/msg/DiagnosticArray": "RIHS01_5a8a36efb05fb25070fa0fb3810290c0e6cd4862b54a8fb975a1ee8dc55a333e",
+}
+UR5 = ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint"]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _wait(condition: Any, seconds: float = 10.0) -> bool:
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.05)
+    return bool(condition())
+
+
+@pytest.fixture
+def router() -> Any:
+    """A Zenoh router on loopback, as rmw_zenohd is; yields (endpoint, port)."""
+    port = _free_port()
+    config = zenoh.Config()
+    config.insert_json5("mode", '"router"')
+    config.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(config)
+    try:
+        yield f"tcp/127.0.0.1:{port}", port
+    finally:
+        session.close()
+
+
+def _msg_text(store: Any, kind: str) -> str:
+    """A .msg file of ``kind`` written from the typestore's field definitions."""
+    consts, fields = store.fielddefs[kind]
+
+    def spell(desc: Any) -> str:
+        node, detail = int(desc[0]), desc[1]
+        if node == 1:
+            base, bound = detail
+            return f"{base}<={bound}" if bound else base
+        if node == 2:
+            return detail.replace("/msg/", "/")
+        inner, n = detail
+        return spell(inner) + (f"[{n}]" if node == 3 else (f"[<={n}]" if n else "[]"))
+
+    lines = [f"{typ} {name}={value}" for name, typ, value in consts]
+    lines += [f"{spell(desc)} {name}" for name, desc in fields]
+    return "\n".join(lines) + "\n"
+
+
+@pytest.fixture
+def sdk(tmp_path: Path) -> Any:
+    """The SDK with local .msg files (from rosbags' Jazzy typestore); its one session closed after."""
+    from rosbags.typesys import Stores, get_typestore
+    from zenoh_ros2_sdk import message_registry
+    from zenoh_ros2_sdk.session import ZenohSession
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    msgs = tmp_path / "msgs"
+    for kind in ("sensor_msgs/msg/JointState", "std_msgs/msg/Header", "builtin_interfaces/msg/Time", "geometry_msgs/msg/InertiaStamped",
+                 "geometry_msgs/msg/Inertia", "geometry_msgs/msg/Vector3", "diagnostic_msgs/msg/DiagnosticArray",
+                 "diagnostic_msgs/msg/DiagnosticStatus", "diagnostic_msgs/msg/KeyValue"):
+        path = msgs / f"{kind}.msg"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(_msg_text(store, kind))
+    message_registry._registry = message_registry.MessageRegistry(str(msgs))
+    import zenoh_ros2_sdk
+
+    try:
+        yield zenoh_ros2_sdk
+    finally:
+        if ZenohSession._instance is not None:
+            ZenohSession._instance.close()
+        message_registry._registry = None
+
+
+def test_type_hashes_equal_the_published_ones_and_rosbags() -> None:
+    from rosbags.typesys import Stores, get_typestore
+
+    from armid.io.rmw_zenoh import type_hash
+
+    jazzy = get_typestore(Stores.ROS2_JAZZY)
+    for kind, published in PUBLISHED.items():
+        assert type_hash(kind) == published, kind
+        assert type_hash(kind, jazzy) == jazzy.hash_rihs01(kind) == published
+    # another type through the same code, from rosbags' store: a nested array, constants, a bounded string
+    for kind in ("sensor_msgs/msg/BatteryState", "visualization_msgs/msg/Marker", "std_msgs/msg/Empty"):
+        assert type_hash(kind, jazzy) == jazzy.hash_rihs01(kind), kind
+
+
+def test_the_attachment_is_zenoh_ext_s_serialization_and_the_sdk_reads_it() -> None:
+    from zenoh.ext import Int64, z_serialize
+    from zenoh_ros2_sdk.attachment import Attachment
+
+    from armid.io.rmw_zenoh import attachment, read_attachment
+
+    gid = bytes(range(100, 116))
+    ours = attachment(41, 1_700_000_000_123_456_789, gid)
+    assert ours == z_serialize((Int64(41), Int64(1_700_000_000_123_456_789), gid)).to_bytes()
+    theirs = Attachment.from_bytes(ours)
+    assert (theirs.sequence_id, theirs.timestamp_ns, theirs.gid) == (41, 1_700_000_000_123_456_789, gid)
+    assert read_attachment(Attachment(7, 9, gid).to_bytes()) == (7, 9, gid)
+    with pytest.raises(ValueError, match="not an rmw_zenoh attachment"):
+        read_attachment(b"\x0fsequence_number" + ours)
+
+
+def _publish_joint_states(sdk: Any, port: int, names: list[str], rate_hz: float, seconds: float, sent: dict[int, dict[str, float]],
+                          stop: threading.Event) -> None:
+    pub = sdk.ROS2Publisher(topic="/joint_states", msg_type="sensor_msgs/msg/JointState", router_ip="127.0.0.1", router_port=port,
+                            node_name="joint_state_broadcaster")
+    types = pub.session_mgr.store.types
+    rng = np.random.default_rng(5)
+    start = time.monotonic()
+    k = 0
+    try:
+        while not stop.is_set() and time.monotonic() - start < seconds:
+            ns = 1_700_000_000_000_000_000 + k * int(1e9 / rate_hz)
+            q, qd, tau = rng.uniform(-3, 3, len(names)), rng.normal(size=len(names)), rng.normal(size=len(names))
+            header = types["std_msgs/msg/Header"](stamp=types["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9), frame_id="")
+            pub.publish(header=header, name=names, position=q, velocity=qd, effort=tau)
+            sent[ns] = {n: (float(a), float(b), float(c)) for n, a, b, c in zip(names, q, qd, tau)}  # type: ignore[misc]
+            k += 1
+            time.sleep(max(0.0, start + k / rate_hz - time.monotonic()))
+    finally:
+        pub.close()
+
+
+def test_record_from_a_ros2_node_by_name_with_its_stamps(router: Any, sdk: Any, tmp_path: Path) -> None:
+    """Must hold: 100 Hz, names reversed, 3 s: at least 250 records, every value equal by name, stamps kept;
+    and the records re-streamed on armid's keys (so that serve and estimate run unchanged)."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    from armid.schema.joint_states import JointStates
+
+    endpoint, port = router
+    sent: dict[int, Any] = {}
+    stop = threading.Event()
+    names = list(reversed(UR5)) + ["gripper_joint"]
+    publisher = threading.Thread(target=_publish_joint_states, args=(sdk, port, names, 100.0, 30.0, sent, stop), daemon=True)
+    publisher.start()
+    armid_port = _free_port()
+    listener = zenoh.open(_peer([], [f"tcp/127.0.0.1:{armid_port}"]))
+    streamed: list[int] = []
+    sub = listener.declare_subscriber("armid/ur5/joint_state", lambda s: streamed.append(len(JointStates.unpack(s.payload.to_bytes()))))
+    try:
+        assert _wait(lambda: len(sent) > 5)
+        out = tmp_path / "ros2_run"
+        code = main(["record", "--ros2-source", "/joint_states", "--ros2-router", endpoint, "--robot", "ur5", "--duration", "3",
+                     "--out", str(out), "--zenoh-connect", f"tcp/127.0.0.1:{armid_port}"])
+        assert code == 0
+    finally:
+        stop.set()
+        publisher.join(5)
+        sub.undeclare()
+        listener.close()
+    with open(out / "run.mcap", "rb") as f:  # read by mcap's ROS 2 decoder, not armid's reader
+        msgs = [m.decoded_message for m in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(topics=["/joint_states"])]
+    print(f"\nlive in: {len(msgs)} records in 3 s of the source's stamps ({len(sent)} published); {sum(streamed)} re-streamed")
+    assert len(msgs) >= 250
+    assert sum(streamed) == len(msgs)
+    # armid's records hold time as f64 seconds: at today's epoch a stamp keeps 2**-22 s (238 ns)
+    recorded = np.array([m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in msgs], np.int64)
+    published = np.array(sorted(sent), np.int64)
+    at = np.searchsorted(published, recorded).clip(1, len(published) - 1)
+    at = np.where(np.abs(published[at - 1] - recorded) < np.abs(published[at] - recorded), at - 1, at)
+    off = np.abs(published[at] - recorded)
+    print(f"header stamps: largest difference {off.max()} ns")
+    assert off.max() <= 250 and np.all(np.diff(at) == 1), "the header stamps are the source's, in order, none missed"
+    for m, s in zip(msgs, published[at]):
+        assert list(m.name) == UR5
+        for j, name in enumerate(UR5):
+            q, qd, tau = sent[s][name]
+            assert abs(m.position[j] - q) <= 1e-9 and abs(m.velocity[j] - qd) <= 1e-9 and abs(m.effort[j] - tau) <= 1e-9
+
+
+def _peer(connect: list[str], listen: list[str]) -> Any:
+    from armid.daq.stream import session_config
+
+    return session_config(listen, connect)
+
+
+def test_a_source_that_stops_or_lacks_a_joint_is_named(router: Any, sdk: Any, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    endpoint, port = router
+    sent: dict[int, Any] = {}
+    stop = threading.Event()
+    publisher = threading.Thread(target=_publish_joint_states, args=(sdk, port, list(reversed(UR5)), 100.0, 1.5, sent, stop), daemon=True)
+    publisher.start()
+    try:
+        assert _wait(lambda: len(sent) > 5)
+        out = tmp_path / "stopped"
+        code = main(["record", "--ros2-source", "/joint_states", "--ros2-router", endpoint, "--robot", "ur5", "--duration", "10",
+                     "--out", str(out), "--no-zenoh", "--ros2-timeout", "0.5"])
+    finally:
+        stop.set()
+        publisher.join(5)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1
+    assert "/joint_states: no message for 0.5 s after" in err[-1] and "the source stopped" in err[-1] and "run.mcap" in err[-1]
+    from armid.io.recordings import read_mcap_arrays
+
+    cols, _, _ = read_mcap_arrays(out / "run.mcap")
+    assert len(cols["t"]) > 20, "what was recorded is kept"
+    # a robot whose joints the source does not have: exit 2, naming them
+    sent.clear()
+    stop.clear()
+    publisher = threading.Thread(target=_publish_joint_states, args=(sdk, port, ["a", "b"], 100.0, 3.0, sent, stop), daemon=True)
+    publisher.start()
+    try:
+        assert _wait(lambda: len(sent) > 5)
+        code = main(["record", "--ros2-source", "/joint_states", "--ros2-router", endpoint, "--robot", "ur5", "--duration", "1",
+                     "--out", str(tmp_path / "missing"), "--no-zenoh"])
+    finally:
+        stop.set()
+        publisher.join(5)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and "/joint_states: the messages have no joint shoulder_pan_joint" in err[-1]
+
+
+def test_record_with_ros2_is_a_ros2_publisher_the_sdk_receives_and_discovers(router: Any, sdk: Any, tmp_path: Path) -> None:
+    """Must hold: `armid record --rig sim.yaml --ros2 --duration 3`: at least 1,000 JointState messages
+    on /armid/puma560/joint_states with the robot file's joint names; its node and publisher on the graph."""
+    from armid.io.rmw_zenoh import type_hash
+    from armid.io.robot_file import load_robot
+
+    endpoint, port = router
+    names = [j.name for j in load_robot(ROOT / "config" / "robots" / "puma560.yaml").joints]
+    got: list[Any] = []
+    sub = sdk.ROS2Subscriber(topic="/armid/puma560/joint_states", msg_type="sensor_msgs/msg/JointState", callback=got.append,
+                             router_ip="127.0.0.1", router_port=port)
+    assert sub.type_hash == PUBLISHED["sensor_msgs/msg/JointState"], "the SDK's own hash of its .msg files"
+    proc = subprocess.Popen([sys.executable, "-m", "armid.cli", "record", "--rig", str(ROOT / "config" / "rigs" / "sim.yaml"), "--ros2",
+                             "--ros2-router", endpoint, "--duration", "3", "--out", str(tmp_path / "run"),
+                             "--zenoh-listen", f"tcp/127.0.0.1:{_free_port()}"],
+                            stderr=subprocess.PIPE, text=True, env={**os.environ, "ARMID_REALTIME": "off"})
+    tokens: list[str] = []
+    try:
+        assert _wait(lambda: len(got) > 50, 60), "no JointState reached the ROS 2 node"
+        replies = sub.session_mgr.session.liveliness().get("@ros2_lv/**", timeout=5.0)
+        tokens = [str(r.ok.key_expr) for r in replies if r.ok is not None]
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        sub.close()
+    assert proc.returncode == 0, err[-2000:]
+    time.sleep(0.5)
+    print(f"\nlive out: the ROS 2 node received {len(got)} JointState messages")
+    assert len(got) >= 1000
+    assert all(list(m.name) == names for m in got)
+    stamps = [m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in got]
+    assert np.all(np.diff(stamps) > 0)
+    ours = [t for t in tokens if "/armid_puma560/" in t or t.endswith("/armid_puma560")]
+    assert any("/NN/%/%/armid_puma560" in t for t in ours), tokens
+    hash_ = type_hash("sensor_msgs/msg/JointState")
+    assert any(f"/MP/%/%/armid_puma560/%armid%puma560%joint_states/sensor_msgs::msg::dds_::JointState_/{hash_}/" in t for t in ours), ours
