@@ -40,6 +40,14 @@ from .stream import key
 LEAVES = ("joint_state", "events", "estimate/parameters", "estimate/payload")
 
 
+def stamp_ns(t: Any) -> Any:
+    """Seconds (f64) as whole nanoseconds, the whole seconds apart: ``round(t * 1e9)`` alone
+    rounds to 256 ns at today's epoch."""
+    t = np.asarray(t, float)
+    whole = np.floor(t)
+    return whole.astype(np.int64) * 1_000_000_000 + np.round((t - whole) * 1e9).astype(np.int64)
+
+
 def topic_prefix(robot: str) -> str:
     return f"/armid/{ros_name(robot)}"
 
@@ -146,7 +154,7 @@ class Ros2Bridge:
     def joint_states(self, states: JointStates) -> None:
         """Each record as a ``sensor_msgs/msg/JointState`` (effort: the joint torque)."""
         pub = self._publishers["joint_states"]
-        ns = np.round(states.time * 1e9).astype(np.int64)
+        ns = stamp_ns(states.time)
         for k in range(len(states)):
             pub.put(joint_state_cdr(self.names, int(ns[k]), states.position[k], states.velocity[k], states.torque[k]))
         self.published += len(states)
@@ -155,14 +163,14 @@ class Ros2Bridge:
         """A payload estimate that has a mass, centre of mass and inertia, in the last link's frame."""
         if doc.get("mass") is None or doc.get("com") is None or doc.get("inertia") is None:
             return
-        stamp = int(round(float(doc["time"]) * 1e9))
+        stamp = int(stamp_ns(doc["time"]))
         frame = f"link{len(self.names)}"
         self._publisher("payload", INERTIA_STAMPED_TYPE).put(inertia_stamped_cdr(stamp, frame, doc["mass"], doc["com"], doc["inertia"]))
         self.published += 1
 
     def parameters(self, doc: dict[str, Any]) -> None:
         """Each identified link's inertial, and the experiment's outcome as a diagnostic."""
-        stamp = int(round(float(doc.get("time") or 0.0) * 1e9))
+        stamp = int(stamp_ns(doc.get("time") or 0.0))
         for link, (mass, com, inertia) in link_inertials(doc).items():
             name = f"link{link}"
             self._publisher(f"inertia/{name}", INERTIA_STAMPED_TYPE).put(inertia_stamped_cdr(stamp, name, mass, com, inertia))
@@ -178,7 +186,7 @@ class Ros2Bridge:
     def event(self, doc: dict[str, Any]) -> None:
         """A drive fault (ERROR), a drive's event (WARN) or a run that stopped short (WARN)."""
         kind = doc.get("event")
-        stamp = int(round(float(doc.get("time") or 0.0) * 1e9))
+        stamp = int(stamp_ns(doc.get("time") or 0.0))
         joint = doc.get("joint")
         name = f"armid/{self.robot}" + (f"/joint{joint}" if joint is not None else "")
         if kind == "fault":

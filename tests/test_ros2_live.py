@@ -297,3 +297,65 @@ def test_record_with_ros2_is_a_ros2_publisher_the_sdk_receives_and_discovers(rou
     assert any("/NN/%/%/armid_puma560" in t for t in ours), tokens
     hash_ = type_hash("sensor_msgs/msg/JointState")
     assert any(f"/MP/%/%/armid_puma560/%armid%puma560%joint_states/sensor_msgs::msg::dds_::JointState_/{hash_}/" in t for t in ours), ours
+
+
+def test_payload_and_an_identified_link_reach_the_ros2_node_as_inertia_stamped(router: Any, sdk: Any) -> None:
+    """What `serve --ros2` and `estimate --ros2` hear on armid's keys (estimate/parameters,
+    estimate/payload: documents of their shape) reaches the ROS 2 node; a link's inertial is the
+    identified parameters about the centre of mass (parallel axis, computed here)."""
+    from armid.daq.ros2_bridge import Ros2Bridge
+    from armid.daq.stream import key
+    from armid.io.rmw_zenoh import Ros2Node, open_session
+
+    endpoint, port = router
+    armid_port = _free_port()
+    armid = zenoh.open(_peer([], [f"tcp/127.0.0.1:{armid_port}"]))
+    ros = open_session(endpoint)
+    names = [f"j{i}" for i in range(1, 7)]
+    bridge = Ros2Bridge(armid, Ros2Node(ros, "armid_puma560", 0), "puma560", names, ("estimate/parameters", "estimate/payload", "events"))
+    payloads: list[Any] = []
+    links: list[Any] = []
+    diagnostics: list[Any] = []
+    subs = [sdk.ROS2Subscriber(topic=topic, msg_type=kind, callback=got.append, router_ip="127.0.0.1", router_port=port)
+            for topic, kind, got in (("/armid/puma560/payload", "geometry_msgs/msg/InertiaStamped", payloads),
+                                     ("/armid/puma560/inertia/link6", "geometry_msgs/msg/InertiaStamped", links),
+                                     ("/armid/puma560/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", diagnostics))]
+    # link 6: mass 0.9 kg, centre of mass c, inertia about it ic; the parameters are about the link frame
+    m, c = 0.9, np.array([0.01, -0.02, 0.05])
+    ic = np.array([[0.004, 0.0002, -0.0001], [0.0002, 0.005, 0.0003], [-0.0001, 0.0003, 0.003]])
+    io = ic + m * (c @ c * np.eye(3) - np.outer(c, c))
+    phi6 = [m, *(m * c), io[0, 0], io[0, 1], io[0, 2], io[1, 1], io[1, 2], io[2, 2]]
+    params = [{"name": f"p{k}", "link": link, "value": phi6[k] if link == 6 else 1.0, "identified": link == 6} for link in range(1, 7)
+              for k in range(10)]
+    doc = {"robot": "puma560", "time": 1_700_000_100.5, "source": "whole_arm whole", "experiment": {"run": "whole", "kind": "whole_arm"},
+           "whole_arm": {"whole": {"parameters": params}}, "base_parameters": [{}] * 3, "validation": {"relative_error": 0.031}}
+    payload = {"time": 1_700_000_101.25, "mass": 2.013, "com": [0.001, 0.002, 0.081], "inertia": [0.01, 0.0, 0.0, 0.011, 0.0, 0.012]}
+    try:
+        time.sleep(1.0)  # the subscriptions known to the router
+        armid.put(key("puma560", "estimate/parameters"), json.dumps(doc))
+        armid.put(key("puma560", "estimate/payload"), json.dumps(payload))
+        armid.put(key("puma560", "estimate/payload"), json.dumps({**payload, "mass": None, "com": None, "inertia": None}))
+        armid.put(key("puma560", "events"), json.dumps({"time": 1_700_000_102.0, "event": "fault", "joint": 3, "node": 3,
+                                                         "code": 0x8130, "meaning": "heartbeat lost"}))
+        assert _wait(lambda: payloads and links and len(diagnostics) >= 2)
+        time.sleep(0.3)
+    finally:
+        for s in subs:
+            s.close()
+        bridge.close()
+        ros.close()
+        armid.close()
+    assert len(payloads) == 1, "an estimate without a mass, centre of mass and inertia is not published"
+    p = payloads[0]
+    assert (p.header.frame_id, p.inertia.m, [p.inertia.com.x, p.inertia.com.y, p.inertia.com.z]) == ("link6", 2.013, payload["com"])
+    assert p.header.stamp.sec == 1_700_000_101 and p.header.stamp.nanosec == 250_000_000
+    assert [p.inertia.ixx, p.inertia.ixy, p.inertia.ixz, p.inertia.iyy, p.inertia.iyz, p.inertia.izz] == payload["inertia"]
+    li = links[0].inertia
+    assert links[0].header.frame_id == "link6" and abs(li.m - m) < 1e-12
+    assert np.allclose([li.com.x, li.com.y, li.com.z], c, atol=1e-12)
+    got = np.array([[li.ixx, li.ixy, li.ixz], [li.ixy, li.iyy, li.iyz], [li.ixz, li.iyz, li.izz]])
+    assert np.allclose(got, ic, atol=1e-12)
+    levels = sorted(s.level for d in diagnostics for s in d.status)
+    assert levels == [0, 2], "the experiment identified (OK) and the drive fault (ERROR)"
+    fault = next(s for d in diagnostics for s in d.status if s.level == 2)
+    assert fault.name == "armid/puma560/joint3" and fault.message == "heartbeat lost"
