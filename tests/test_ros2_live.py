@@ -359,3 +359,88 @@ def test_payload_and_an_identified_link_reach_the_ros2_node_as_inertia_stamped(r
     assert levels == [0, 2], "the experiment identified (OK) and the drive fault (ERROR)"
     fault = next(s for d in diagnostics for s in d.status if s.level == 2)
     assert fault.name == "armid/puma560/joint3" and fault.message == "heartbeat lost"
+
+
+BAD_OPTIONS = {
+    "neither rig nor source": (["record", "--out", "x"], r"armid record needs --rig RIG .* or --ros2-source TOPIC --robot ROBOT"),
+    "source without robot": (["record", "--ros2-source", "/joint_states", "--out", "x"], r"--ros2-source needs --robot ROBOT"),
+    "source and rig": (["record", "--ros2-source", "/joint_states", "--robot", "ur5", "--rig", "r.yaml", "--out", "x"],
+                       r"--ros2-source records a ROS 2 arm, --rig the drives: one or the other"),
+    "ros2 without the stream": (["record", "--rig", "r.yaml", "--ros2", "--no-zenoh", "--out", "x"], r"--ros2 publishes what armid streams"),
+    "domain out of range": (["record", "--ros2-source", "/joint_states", "--robot", "ur5", "--ros2-domain", "300", "--out", "x"],
+                            r"--ros2-domain: 300 is not a ROS 2 domain id"),
+    "not a topic name": (["record", "--ros2-source", "joint states", "--robot", "ur5", "--out", "x"],
+                         r"--ros2-source: 'joint states' is not a ROS 2 topic name"),
+    "timeout zero": (["record", "--ros2-source", "/joint_states", "--robot", "ur5", "--ros2-timeout", "0", "--out", "x"],
+                     r"--ros2-timeout must be a positive number"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_OPTIONS))
+def test_bad_ros2_options_exit_2_with_one_line(case: str, capsys: pytest.CaptureFixture[str], tmp_path: Path,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    argv, expect = BAD_OPTIONS[case]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and __import__("re").search(expect, err[0]), err
+    assert not (tmp_path / "x").exists()
+
+
+def test_a_router_that_is_not_there_is_named(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    assert main(["record", "--ros2-source", "/joint_states", "--robot", "ur5", "--ros2-router", endpoint, "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"--ros2-router: cannot reach a ROS 2 Zenoh router at {endpoint}" in err[0], err
+
+
+@pytest.mark.slow
+def test_estimate_live_with_ros2_publishes_its_payload_to_the_ros2_node(router: Any, sdk: Any, tmp_path: Path) -> None:
+    """`armid estimate live --ros2` in a process of its own, on a simulated run with a 2 kg payload
+    streamed on armid's keys: the ROS 2 node receives the payload as InertiaStamped, each message
+    one of the estimates the command wrote."""
+    from test_payload import PAYLOAD, _arm_and_design, _ident_doc
+
+    from armid.daq.stream import Stream
+    from armid.schema.joint_states import JointStates
+    from armid.sim_bus.offline import simulate
+
+    endpoint, port = router
+    arm, plan, cfg = _arm_and_design()
+    run = simulate(arm.robot, cfg, plan.evaluate, plan.duration_s, payloads=[(0.0, PAYLOAD)], seed=4)  # type: ignore[arg-type]
+    n = len(run.t)
+    records = JointStates.of_log(np.arange(n), 1_700_000_000.0 + run.t, np.ones((n, 6), bool), run.position, run.torque)
+    ident = _ident_doc(arm, tmp_path / "ident.json")
+    stream_port = _free_port()
+    got: list[Any] = []
+    sub = sdk.ROS2Subscriber(topic="/armid/puma560/payload", msg_type="geometry_msgs/msg/InertiaStamped", callback=got.append,
+                             router_ip="127.0.0.1", router_port=port)
+    out = tmp_path / "estimates.jsonl"
+    proc = subprocess.Popen([sys.executable, "-m", "armid.cli", "estimate", "live", "--robot", "puma560", "--params", str(ident),
+                             "--ros2", "--ros2-router", endpoint, "--zenoh-listen", f"tcp/127.0.0.1:{stream_port}", "--out", str(out),
+                             "--duration", "120"], stderr=subprocess.PIPE, text=True)
+    publisher = zenoh.open(_peer([f"tcp/127.0.0.1:{stream_port}"], []))
+    stream = Stream(publisher, "puma560", "test", lambda: {})
+    try:
+        assert proc.stderr is not None
+        while "listening" not in (line := proc.stderr.readline()):
+            assert line, "estimate ended before it listened"
+        time.sleep(1.0)
+        for a in range(0, n, 50):  # 0.1 s of the arm's time a put, at about its own pace
+            stream.publish(records[a : a + 50])
+            time.sleep(0.05)
+        assert _wait(lambda: len(got) > 20 and got[-1].inertia.m > 1.0, 30)
+        time.sleep(1.0)
+    finally:
+        stream.close()
+        publisher.close()
+        sub.close()
+        proc.terminate()
+        _, err = proc.communicate(timeout=60)
+    docs = [json.loads(line) for line in out.read_text().splitlines()]
+    published = {(round(d["time"], 6), d["mass"]) for d in docs if d["mass"] is not None and d["com"] is not None}
+    print(f"\nestimate --ros2: {len(got)} payload messages, {len(published)} estimates with a mass; last {got[-1].inertia.m:.3f} kg")
+    assert all(m.header.frame_id == "link6" for m in got)
+    assert all((round(m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec, 6), m.inertia.m) in published for m in got)
+    assert len(got) == len(published)
+    assert abs(got[-1].inertia.m - PAYLOAD.mass) < 0.1 * PAYLOAD.mass

@@ -32,7 +32,7 @@ def add_ros2_arguments(p: argparse.ArgumentParser, source: bool = False) -> None
 def ros2_bridge(args: argparse.Namespace, session: Any, robot: str, joint_names: Sequence[str], listen: Sequence[str]) -> Iterator[Any]:
     """With ``--ros2``: a bridge republishing ``listen`` (armid's keys on ``session``) as ROS 2
     topics for the block's duration; else None."""
-    if not getattr(args, "ros2", False):
+    if not getattr(args, "ros2", False) or getattr(args, "dry_run", False):  # a dry run publishes nothing
         yield None
         return
     if session is None:
@@ -59,7 +59,13 @@ def ros2_bridge(args: argparse.Namespace, session: Any, robot: str, joint_names:
 
 
 def check_source_arguments(args: argparse.Namespace) -> None:
-    """``--ros2-source`` takes ``--robot`` and no rig; a rig takes no ``--robot``."""
+    """``--ros2-source`` takes ``--robot`` and no rig; a rig takes no ``--robot``; ``--ros2``
+    needs the stream (checked before any drive starts)."""
+    from armid.io.rmw_zenoh import domain_id
+
+    if args.ros2 and args.no_zenoh:
+        raise UsageError("--ros2 publishes what armid streams: it cannot go with --no-zenoh")
+    domain_id(args.ros2_domain)
     if args.ros2_source is None:
         if args.rig is None:
             raise UsageError("armid record needs --rig RIG (the drives) or --ros2-source TOPIC --robot ROBOT (a ROS 2 arm)")
