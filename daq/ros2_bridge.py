@@ -9,7 +9,7 @@ the same session and publishes again over rmw_zenoh (:mod:`armid.io.rmw_zenoh`),
 |---|---|---|
 | ``/armid/<robot>/joint_states`` | ``sensor_msgs/msg/JointState`` | each record: the robot file's joint names, position, velocity, effort = joint torque, header stamp = the record's time |
 | ``/armid/<robot>/payload`` | ``geometry_msgs/msg/InertiaStamped`` | each payload estimate with a mass, centre of mass and inertia (frame ``link<N>``, the last link) |
-| ``/armid/<robot>/inertia/link<i>`` | ``geometry_msgs/msg/InertiaStamped`` | each parameters document: every link whose ten parameters the newest whole-arm fit identifies |
+| ``/armid/<robot>/inertia/link<i>`` | ``geometry_msgs/msg/InertiaStamped`` | each parameters document: every link of which the newest whole-arm fit identifies a parameter (:func:`link_inertials`) |
 | ``/armid/<robot>/diagnostics`` | ``diagnostic_msgs/msg/DiagnosticArray`` | drive faults (ERROR) and events (WARN), a run that stopped (WARN), each experiment's outcome (OK, or WARN with the reason it was not identified) |
 
 Zenoh's callbacks only queue bytes; one thread of the bridge converts and publishes, so the
@@ -52,12 +52,15 @@ def topic_prefix(robot: str) -> str:
     return f"/armid/{ros_name(robot)}"
 
 
-def link_inertials(doc: dict[str, Any]) -> dict[int, tuple[float, tuple[float, ...], tuple[float, ...]]]:
-    """Each link (1-based) whose ten parameters the newest whole-arm fit of an
-    ``estimate/parameters`` document identifies, as (mass, centre of mass, inertia about it)."""
+def link_inertials(doc: dict[str, Any]) -> dict[int, tuple[float, tuple[float, ...], tuple[float, ...], int]]:
+    """Each link (1-based) of which the newest whole-arm fit of an ``estimate/parameters``
+    document identifies at least one parameter, as (mass, centre of mass, inertia about it,
+    how many of its ten parameters are identified): the estimate where the data identify the
+    parameter, the robot file's modeled value elsewhere (a whole-arm fit identifies combinations,
+    rarely a whole link); a link whose values are not a body with mass is left out."""
     source = str(doc.get("source") or "")
     whole = (doc.get("whole_arm") or {}).get(source.removeprefix("whole_arm ")) if source.startswith("whole_arm ") else None
-    out: dict[int, tuple[float, tuple[float, ...], tuple[float, ...]]] = {}
+    out: dict[int, tuple[float, tuple[float, ...], tuple[float, ...], int]] = {}
     if not whole:
         return out
     by_link: dict[int, list[dict[str, Any]]] = {}
@@ -65,13 +68,15 @@ def link_inertials(doc: dict[str, Any]) -> dict[int, tuple[float, tuple[float, .
         by_link.setdefault(int(p["link"]), []).append(p)
     for link, params in sorted(by_link.items()):
         rows = params[: len(LINK_PARAMETER_NAMES)]
-        if len(rows) < len(LINK_PARAMETER_NAMES) or not all(p.get("identified") and p.get("value") is not None for p in rows):
+        identified = sum(bool(p.get("identified")) and p.get("value") is not None for p in rows)
+        if len(rows) < len(LINK_PARAMETER_NAMES) or not identified:
             continue
-        phi = np.array([float(p["value"]) for p in rows])
-        if not phi[0] > 0:
+        phi = np.array([float(p["value"]) if p.get("identified") and p.get("value") is not None
+                        else float(p["modeled"]) if p.get("modeled") is not None else np.nan for p in rows])
+        if not (np.all(np.isfinite(phi)) and phi[0] > 0):
             continue
         inertial = inertial_from_parameters(phi)
-        out[link] = (inertial.mass_kg, tuple(inertial.com_m), tuple(inertial.inertia_kgm2))
+        out[link] = (inertial.mass_kg, tuple(inertial.com_m), tuple(inertial.inertia_kgm2), identified)
     return out
 
 
@@ -171,13 +176,14 @@ class Ros2Bridge:
     def parameters(self, doc: dict[str, Any]) -> None:
         """Each identified link's inertial, and the experiment's outcome as a diagnostic."""
         stamp = int(stamp_ns(doc.get("time") or 0.0))
-        for link, (mass, com, inertia) in link_inertials(doc).items():
-            name = f"link{link}"
-            self._publisher(f"inertia/{name}", INERTIA_STAMPED_TYPE).put(inertia_stamped_cdr(stamp, name, mass, com, inertia))
-            self.published += 1
         e = doc.get("experiment") or {}
         v = doc.get("validation") or {}
         values = {"run": e.get("run"), "kind": e.get("kind"), "base_parameters": len(doc.get("base_parameters") or [])}
+        for link, (mass, com, inertia, identified) in link_inertials(doc).items():
+            name = f"link{link}"
+            self._publisher(f"inertia/{name}", INERTIA_STAMPED_TYPE).put(inertia_stamped_cdr(stamp, name, mass, com, inertia))
+            self.published += 1
+            values[f"{name}_identified"] = f"{identified} of {len(LINK_PARAMETER_NAMES)}"
         if v.get("relative_error") is not None:
             values["validation_error_percent"] = f"{100 * float(v['relative_error']):.4g}"
         self._diagnostic(stamp, [{"level": DIAGNOSTIC_LEVELS["warn" if e.get("note") else "ok"], "name": f"armid/{self.robot}/identification",

@@ -313,6 +313,8 @@ def test_payload_and_an_identified_link_reach_the_ros2_node_as_inertia_stamped(r
     ros = open_session(endpoint)
     names = [f"j{i}" for i in range(1, 7)]
     bridge = Ros2Bridge(armid, Ros2Node(ros, "armid_puma560", 0), "puma560", names, ("estimate/parameters", "estimate/payload", "events"))
+    keys: set[str] = set()
+    raw = ros.declare_subscriber("0/armid/puma560/inertia/**", lambda sample: keys.add(str(sample.key_expr)))
     payloads: list[Any] = []
     links: list[Any] = []
     diagnostics: list[Any] = []
@@ -325,8 +327,11 @@ def test_payload_and_an_identified_link_reach_the_ros2_node_as_inertia_stamped(r
     ic = np.array([[0.004, 0.0002, -0.0001], [0.0002, 0.005, 0.0003], [-0.0001, 0.0003, 0.003]])
     io = ic + m * (c @ c * np.eye(3) - np.outer(c, c))
     phi6 = [m, *(m * c), io[0, 0], io[0, 1], io[0, 2], io[1, 1], io[1, 2], io[2, 2]]
-    params = [{"name": f"p{k}", "link": link, "value": phi6[k] if link == 6 else 1.0, "identified": link == 6} for link in range(1, 7)
-              for k in range(10)]
+    # link 6: five parameters identified (their estimates), five not (their modeled values count, not their values);
+    # links 1-5: none identified, none published
+    params = [{"name": f"p{k}", "link": link, "value": phi6[k] if link == 6 and k in (0, 1, 2, 3, 9) else 99.0,
+               "identified": link == 6 and k in (0, 1, 2, 3, 9), "modeled": phi6[k] if link == 6 else 1.0}
+              for link in range(1, 7) for k in range(10)]
     doc = {"robot": "puma560", "time": 1_700_000_100.5, "source": "whole_arm whole", "experiment": {"run": "whole", "kind": "whole_arm"},
            "whole_arm": {"whole": {"parameters": params}}, "base_parameters": [{}] * 3, "validation": {"relative_error": 0.031}}
     payload = {"time": 1_700_000_101.25, "mass": 2.013, "com": [0.001, 0.002, 0.081], "inertia": [0.01, 0.0, 0.0, 0.011, 0.0, 0.012]}
@@ -342,9 +347,11 @@ def test_payload_and_an_identified_link_reach_the_ros2_node_as_inertia_stamped(r
     finally:
         for s in subs:
             s.close()
+        raw.undeclare()
         bridge.close()
         ros.close()
         armid.close()
+    assert keys == {f"0/armid/puma560/inertia/link6/geometry_msgs::msg::dds_::InertiaStamped_/{PUBLISHED['geometry_msgs/msg/InertiaStamped']}"}
     assert len(payloads) == 1, "an estimate without a mass, centre of mass and inertia is not published"
     p = payloads[0]
     assert (p.header.frame_id, p.inertia.m, [p.inertia.com.x, p.inertia.com.y, p.inertia.com.z]) == ("link6", 2.013, payload["com"])
@@ -359,6 +366,8 @@ def test_payload_and_an_identified_link_reach_the_ros2_node_as_inertia_stamped(r
     assert levels == [0, 2], "the experiment identified (OK) and the drive fault (ERROR)"
     fault = next(s for d in diagnostics for s in d.status if s.level == 2)
     assert fault.name == "armid/puma560/joint3" and fault.message == "heartbeat lost"
+    outcome = next(s for d in diagnostics for s in d.status if s.level == 0)
+    assert {kv.key: kv.value for kv in outcome.values}["link6_identified"] == "5 of 10"
 
 
 BAD_OPTIONS = {
