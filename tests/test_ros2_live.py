@@ -453,3 +453,84 @@ def test_estimate_live_with_ros2_publishes_its_payload_to_the_ros2_node(router: 
     assert all((round(m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec, 6), m.inertia.m) in published for m in got)
     assert len(got) == len(published)
     assert abs(got[-1].inertia.m - PAYLOAD.mass) < 0.1 * PAYLOAD.mass
+
+
+def _stream_run(stream: Any, name: str, records: Any, n_joints: int, pace_s: float = 0.02) -> None:
+    """A run on armid's keys as `armid record` streams one: a start event, the records, a stop event."""
+    from armid.daq.experiment_stream import experiment_description
+
+    experiment = experiment_description(name, None, n_joints, {"robot": "puma560", "period_s": 0.002})
+    stream.event("start", rig=None, run=name, experiment=experiment)
+    for a in range(0, len(records), 50):
+        stream.publish(records[a : a + 50])
+        time.sleep(pace_s)
+    stream.event("stop", rig=None, run=name, experiment=experiment, records=len(records), completed=True, reason=None,
+                 first_sequence=int(records.sequence[0]), last_sequence=int(records.sequence[-1]), first_cycle=int(records.cycle[0]),
+                 window_s=None)
+
+
+@pytest.mark.slow
+def test_serve_with_ros2_publishes_the_arms_links_and_then_its_payload(router: Any, sdk: Any, tmp_path: Path) -> None:
+    """`armid serve --ros2` in a process of its own: a whole-arm run streamed on armid's keys is
+    identified, its identified links reach the ROS 2 node as InertiaStamped and its outcome as a
+    diagnostic; a second run with a 2 kg payload then reaches it as the payload topic."""
+    from test_payload import PAYLOAD, _arm_and_design
+
+    from armid.daq.stream import Stream
+    from armid.schema.joint_states import JointStates
+    from armid.sim_bus.offline import simulate
+
+    endpoint, port = router
+    arm, plan, cfg = _arm_and_design()
+    runs = []
+    for k, payloads in enumerate(([], [(0.0, PAYLOAD)])):
+        run = simulate(arm.robot, cfg, plan.evaluate, plan.duration_s, payloads=payloads, seed=7 + k)  # type: ignore[arg-type]
+        n = len(run.t)
+        t0 = 1_700_000_000.0 + k * (plan.duration_s + 1.0)
+        seq, nan = np.arange(k * n, (k + 1) * n), np.full((n, 6), np.nan)
+        runs.append(JointStates(seq, seq.copy(), t0 + run.t, np.ones((n, 6), bool), np.ones((n, 6), bool), run.position, run.velocity,
+                                nan, nan.copy(), run.torque, np.zeros((n, 6), np.int64)))  # what a ROS 2 arm's JointState gives
+    got: dict[str, list[Any]] = {"link6": [], "payload": [], "diagnostics": []}
+    subs = [sdk.ROS2Subscriber(topic=f"/armid/puma560/{topic}", msg_type=kind, callback=got[name].append, router_ip="127.0.0.1",
+                               router_port=port)
+            for name, topic, kind in (("link6", "inertia/link6", "geometry_msgs/msg/InertiaStamped"),
+                                      ("payload", "payload", "geometry_msgs/msg/InertiaStamped"),
+                                      ("diagnostics", "diagnostics", "diagnostic_msgs/msg/DiagnosticArray"))]
+    stream_port = _free_port()
+    docs = tmp_path / "parameters.jsonl"
+    proc = subprocess.Popen([sys.executable, "-m", "armid.cli", "serve", "--robot", "puma560", "--ros2", "--ros2-router", endpoint,
+                             "--zenoh-listen", f"tcp/127.0.0.1:{stream_port}", "--json", str(docs), "--duration", "400"],
+                            stderr=subprocess.PIPE, text=True)
+    publisher = zenoh.open(_peer([f"tcp/127.0.0.1:{stream_port}"], []))
+    stream = Stream(publisher, "puma560", "test", lambda: {})
+    try:
+        assert proc.stderr is not None
+        while "listening" not in (line := proc.stderr.readline()):
+            assert line, "serve ended before it listened"
+        time.sleep(1.0)
+        _stream_run(stream, "unloaded", runs[0], 6)
+        assert _wait(lambda: got["diagnostics"] and docs.exists() and docs.read_text().strip(), 300), "no identification published"
+        time.sleep(2.0)  # the payload estimator starts once the arm is identified
+        _stream_run(stream, "loaded", runs[1], 6)
+        _wait(lambda: len(got["payload"]) > 20 and got["payload"][-1].inertia.m > 1.0, 120)
+        time.sleep(1.0)
+    finally:
+        stream.close()
+        publisher.close()
+        for s in subs:
+            s.close()
+        proc.terminate()
+        _, err = proc.communicate(timeout=60)
+    assert len(got["payload"]) > 20, err[-3000:]
+    doc = json.loads(docs.read_text().splitlines()[0])
+    from armid.daq.ros2_bridge import link_inertials
+
+    expected = link_inertials(doc)
+    print(f"\nserve --ros2: links published {sorted(expected)}, link 6 {len(got['link6'])} message(s), "
+          f"{len(got['payload'])} payload messages, last {got['payload'][-1].inertia.m:.3f} kg")
+    assert 6 in expected and len(got["link6"]) >= 1
+    m, com, inertia, _ = expected[6]
+    li = got["link6"][0].inertia
+    assert (li.m, (li.com.x, li.com.y, li.com.z), (li.ixx, li.ixy, li.ixz, li.iyy, li.iyz, li.izz)) == (m, com, inertia)
+    assert any(s.name == "armid/puma560/identification" and s.level == 0 for d in got["diagnostics"] for s in d.status)
+    assert abs(got["payload"][-1].inertia.m - PAYLOAD.mass) < 0.1 * PAYLOAD.mass
