@@ -148,7 +148,9 @@ def test_the_attachment_is_zenoh_ext_s_serialization_and_the_sdk_reads_it() -> N
 
 
 def _publish_joint_states(sdk: Any, port: int, names: list[str], rate_hz: float, seconds: float, sent: dict[int, dict[str, float]],
-                          stop: threading.Event) -> None:
+                          stop: threading.Event, mutate: Any = None) -> None:
+    """An SDK node publishing JointState on /joint_states; ``mutate(k, names, ns) -> (names, ns)``
+    changes message ``k`` (a fault of the source)."""
     pub = sdk.ROS2Publisher(topic="/joint_states", msg_type="sensor_msgs/msg/JointState", router_ip="127.0.0.1", router_port=port,
                             node_name="joint_state_broadcaster")
     types = pub.session_mgr.store.types
@@ -158,10 +160,13 @@ def _publish_joint_states(sdk: Any, port: int, names: list[str], rate_hz: float,
     try:
         while not stop.is_set() and time.monotonic() - start < seconds:
             ns = 1_700_000_000_000_000_000 + k * int(1e9 / rate_hz)
-            q, qd, tau = rng.uniform(-3, 3, len(names)), rng.normal(size=len(names)), rng.normal(size=len(names))
+            these = names
+            if mutate is not None:
+                these, ns = mutate(k, names, ns)
+            q, qd, tau = rng.uniform(-3, 3, len(these)), rng.normal(size=len(these)), rng.normal(size=len(these))
             header = types["std_msgs/msg/Header"](stamp=types["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9), frame_id="")
-            pub.publish(header=header, name=names, position=q, velocity=qd, effort=tau)
-            sent[ns] = {n: (float(a), float(b), float(c)) for n, a, b, c in zip(names, q, qd, tau)}  # type: ignore[misc]
+            pub.publish(header=header, name=these, position=q, velocity=qd, effort=tau)
+            sent[ns] = {n: (float(a), float(b), float(c)) for n, a, b, c in zip(these, q, qd, tau)}  # type: ignore[misc]
             k += 1
             time.sleep(max(0.0, start + k / rate_hz - time.monotonic()))
     finally:
@@ -258,6 +263,65 @@ def test_a_source_that_stops_or_lacks_a_joint_is_named(router: Any, sdk: Any, tm
         publisher.join(5)
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and "/joint_states: the messages have no joint shoulder_pan_joint" in err[-1]
+
+
+FAULTS = {
+    "back in time": (lambda k, names, ns: (names, ns - 50_000_000 if k == 150 else ns), r"message \d+ goes back in time by 0\.04 s"),
+    "a repeated stamp": (lambda k, names, ns: (names, ns - 10_000_000 if k == 150 else ns), r"message \d+ repeats the stamp"),
+    "joints changed": (lambda k, names, ns: (names[:-1] if k >= 150 else names, ns),
+                       r"the joint names changed at message \d+: \['wrist_3_joint', .*'shoulder_pan_joint'\] before, \['wrist_3_joint', .*'shoulder_lift_joint'\] now"),
+}
+
+
+@pytest.mark.parametrize("fault", list(FAULTS))
+def test_a_source_that_goes_back_in_time_or_changes_its_joints_is_named(router: Any, sdk: Any, tmp_path: Path, fault: str,
+                                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    """The run ends with one line naming what the source did (exit 1), the records before it kept."""
+    from armid.io.recordings import read_mcap_arrays
+
+    endpoint, port = router
+    mutate, expect = FAULTS[fault]
+    sent: dict[int, Any] = {}
+    stop = threading.Event()
+    publisher = threading.Thread(target=_publish_joint_states, args=(sdk, port, list(reversed(UR5)), 100.0, 20.0, sent, stop),
+                                 kwargs={"mutate": lambda k, names, ns: mutate(k + 1 - first[0], names, ns)}, daemon=True)
+    first = [10**9]
+    publisher.start()
+    try:
+        assert _wait(lambda: len(sent) > 5)
+        first[0] = len(sent)  # message k of the fault counts from the first the recorder can have seen
+        code = main(["record", "--ros2-source", "/joint_states", "--ros2-router", endpoint, "--robot", "ur5", "--duration", "10",
+                     "--out", str(tmp_path / "run"), "--no-zenoh"])
+    finally:
+        stop.set()
+        publisher.join(5)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1 and __import__("re").search(expect, err[-1]), err[-1]
+    cols, _, _ = read_mcap_arrays(tmp_path / "run" / "run.mcap")
+    assert 50 < len(cols["t"]) < 200 and f"the {len(cols['t'])} records before it are in" in err[-1]
+
+
+def test_a_second_publisher_on_the_topic_is_named(router: Any, sdk: Any, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    endpoint, port = router
+    sent: dict[int, Any] = {}
+    stop = threading.Event()
+    one = threading.Thread(target=_publish_joint_states, args=(sdk, port, UR5, 100.0, 20.0, sent, stop), daemon=True)
+    other: dict[int, Any] = {}
+    two = threading.Thread(target=_publish_joint_states, args=(sdk, port, UR5, 100.0, 20.0, other, stop),
+                           kwargs={"mutate": lambda k, names, ns: (names, ns + 5_000_000)}, daemon=True)
+    one.start()
+    try:
+        assert _wait(lambda: len(sent) > 5)
+        threading.Timer(1.0, two.start).start()
+        code = main(["record", "--ros2-source", "/joint_states", "--ros2-router", endpoint, "--robot", "ur5", "--duration", "10",
+                     "--out", str(tmp_path / "run"), "--no-zenoh"])
+    finally:
+        stop.set()
+        one.join(5)
+        time.sleep(1.1)
+        two.join(5)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1 and "/joint_states: a second publisher (GID" in err[-1], err[-1]
 
 
 def test_record_with_ros2_is_a_ros2_publisher_the_sdk_receives_and_discovers(router: Any, sdk: Any, tmp_path: Path) -> None:
