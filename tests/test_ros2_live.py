@@ -32,6 +32,7 @@ from armid.cli import main
 
 zenoh = pytest.importorskip("zenoh")
 pytest.importorskip("zenoh_ros2_sdk")
+pytestmark = pytest.mark.realtime  # live streams, a 100 Hz source, a simulated arm: run with the timing-sensitive tests
 
 ROOT = Path(__file__).resolve().parent.parent
 PUBLISHED = {  # as ROS 2 prints them (`ros2 topic info --verbose`) and ROS 2 code lists them
