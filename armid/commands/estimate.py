@@ -16,6 +16,7 @@ from armid.schema.joint_states import JointStates
 
 from .arguments import load_robot_argument
 from .output import show_warnings
+from .ros2 import add_ros2_arguments, ros2_bridge
 from .session import add_zenoh_arguments, open_zenoh
 
 
@@ -169,7 +170,7 @@ def _estimate(args: argparse.Namespace) -> int:
         from .rig import run_until, stopped_by_signals
 
         try:
-            with stopped_by_signals() as stop:
+            with stopped_by_signals() as stop, ros2_bridge(args, session, robot.name, [j.name for j in robot.joints], ("estimate/payload",)):
                 print(f"armid estimate: listening on armid/{robot.name}/joint_state (Ctrl-C stops)", file=sys.stderr, flush=True)
                 run_until(stop, args.duration)
         finally:
@@ -201,4 +202,5 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--publish-every", type=int, default=10, help="publish on every Nth record (default 10: 50 Hz at 2 ms)")
     p.add_argument("--duration", type=float, help="live: stop after this many seconds")
     add_zenoh_arguments(p)
+    add_ros2_arguments(p)
     p.set_defaults(run=_estimate)

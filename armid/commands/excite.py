@@ -17,6 +17,7 @@ from ..schema.json_text import write_json
 from .arguments import positive_number, seed_number, whole_count
 from .output import inputs_read
 from .rig import open_rig_driver, rig_from_arguments, simulating
+from .ros2 import add_ros2_arguments, ros2_bridge
 from .session import add_zenoh_arguments, open_zenoh
 
 
@@ -65,7 +66,8 @@ def _excite(args: argparse.Namespace) -> int:
 
         stream = Stream(zsession, robot.name, "excite", status)
     try:
-        return _excite_run(args, rig, robot, n, simulate, links, trajectory, out, start, console, stream, holder)
+        with ros2_bridge(args, None if args.dry_run else zsession, robot.name, [j.name for j in robot.joints], ("joint_state", "events")):
+            return _excite_run(args, rig, robot, n, simulate, links, trajectory, out, start, console, stream, holder)
     finally:
         if stream is not None:
             stream.close()
@@ -230,4 +232,5 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
                    help="run the rig's simulated arm in this process (default: when the bus is virtual)")
     p.add_argument("--no-zenoh", action="store_true", help="do not stream the records and the experiments' events")
     add_zenoh_arguments(p)
+    add_ros2_arguments(p)
     p.set_defaults(run=_excite)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 from pathlib import Path
 from typing import Any
@@ -10,10 +11,18 @@ from typing import Any
 from .arguments import positive_number
 from .output import inputs_read
 from .rig import open_rig_driver, rig_from_arguments, stopped_by_signals
+from .ros2 import add_ros2_arguments, check_source_arguments, record_ros2_source, ros2_bridge
 from .session import add_zenoh_arguments, open_zenoh
 
 
 def _record(args: argparse.Namespace) -> int:
+    check_source_arguments(args)
+    if args.ros2_source is not None:
+        return record_ros2_source(args)
+    return _record_rig(args)
+
+
+def _record_rig(args: argparse.Namespace) -> int:
     import time
 
     from armid.daq.acquisition import Acquisition, Sink, SinkFailure
@@ -29,7 +38,7 @@ def _record(args: argparse.Namespace) -> int:
     # for the consumer or the drives); --duration is then the arm's time, whatever the wall clock does
     session = stream = None
     can_log = None
-    with stopped_by_signals() as stop:
+    with stopped_by_signals() as stop, contextlib.ExitStack() as ros2:
         try:
             driver.start()
             if not rig.is_serial:
@@ -54,6 +63,7 @@ def _record(args: argparse.Namespace) -> int:
                 stream = Stream(session, rig.robot.name, "recorder", lambda: {"records": acq.sequence, "invalid": acq.invalid.tolist(),
                                                                               "dropped_by_stream": sinks[-1].dropped})
                 sinks.append(Sink("zenoh", stream.publish, bounded=True, capacity=5000))
+            ros2.enter_context(ros2_bridge(args, session, rig.robot.name, [j.name for j in rig.robot.joints], ("joint_state", "events")))
             from armid.daq.supervision import Supervision
 
             supervision = Supervision(lambda text: print(f"armid record: {text}", file=sys.stderr, flush=True), stream)
@@ -109,6 +119,7 @@ def _record(args: argparse.Namespace) -> int:
             return 1 if acq.error or supervision.failed else 0
         finally:
             driver.close()
+            ros2.close()  # what is queued published before the session it listens on closes
             if stream:
                 stream.close()
             if session is not None:
@@ -131,8 +142,9 @@ def _close(recorder: Any, end: dict[str, Any]) -> str | None:
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """``armid record``: its options."""
-    p = sub.add_parser("record", help="record the drives through daq/: MCAP, raw CAN log, live Zenoh stream")
-    p.add_argument("--rig", required=True, help="rig file")
+    p = sub.add_parser("record", help="record the drives through daq/ (or a ROS 2 arm's JointState): MCAP, raw CAN log, live Zenoh stream")
+    p.add_argument("--rig", help="rig file (the drives to record)")
+    p.add_argument("--robot", help="with --ros2-source: the robot file (or a shipped robot's name) whose joints the messages are matched to")
     p.add_argument("--out", required=True, help="output folder (run.mcap, can.log)")
     p.add_argument("--duration", type=positive_number, help="seconds to record (the arm's time when it is simulated here; default: until Ctrl-C)")
     p.add_argument("--interface", help="override the rig's python-can interface")
@@ -141,4 +153,5 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
                    help="run the rig's simulated arm in this process (default: when the bus is virtual)")
     p.add_argument("--no-zenoh", action="store_true", help="do not stream")
     add_zenoh_arguments(p)
+    add_ros2_arguments(p, source=True)
     p.set_defaults(run=_record)

@@ -10,6 +10,7 @@ from typing import Any
 
 from .arguments import ROBOT_HELP, load_robot_argument, positive_number, whole_count
 from .output import inputs_read, strict_json
+from .ros2 import add_ros2_arguments, ros2_bridge
 from .session import add_zenoh_arguments, open_zenoh
 
 
@@ -52,7 +53,8 @@ def _serve(args: argparse.Namespace) -> int:
 
     options = ServiceOptions(max_backlog=args.max_backlog, whole_arm=args.whole_arm, payload=not args.no_payload)
     try:
-        with open_zenoh(args) as session:
+        with open_zenoh(args) as session, ros2_bridge(args, session, robot.name, [j.name for j in robot.joints],
+                                                      ("estimate/parameters", "estimate/payload", "events")):
             service = EstimatorService(session, robot, out, options, on_publish=published,
                                        log=lambda m: print(f"armid serve: {m}", file=sys.stderr, flush=True))
             print(f"armid serve: {robot.name}: listening on armid/{robot.name}/joint_state and events; publishing "
@@ -88,4 +90,5 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--duration", type=positive_number, help="stop after this many seconds (default: until Ctrl-C)")
     p.add_argument("--json", metavar="JSONL", help="also write every published estimate/parameters document as a JSON line")
     add_zenoh_arguments(p)
+    add_ros2_arguments(p)
     p.set_defaults(run=_serve)

@@ -32,6 +32,7 @@ from armid.schema.joint_state import (
     ROS2_SECONDS,
     JointStateRecord,
 )
+from armid.schema.ros2_types import DIAGNOSTIC_ARRAY_TYPE, INERTIA_STAMPED_TYPE, LIVE_MSGDEFS
 
 if TYPE_CHECKING:
     from rosbags.typesys.store import Typestore
@@ -50,9 +51,10 @@ def typestore() -> Typestore:
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     store = get_typestore(Stores.EMPTY)
-    for kind, text in ROS2_MSGDEFS.items():
+    defs = {**ROS2_MSGDEFS, **LIVE_MSGDEFS}
+    for kind, text in defs.items():
         store.register(get_types_from_msg(text, kind))
-    for kind in ROS2_MSGDEFS:
+    for kind in defs:
         store.get_msgdef(kind)  # generates the type's serializer and deserializer
     return store
 
@@ -65,8 +67,7 @@ def ros2_messages(record: JointStateRecord, names: list[str]) -> tuple[bytes, by
                                 "(builtin_interfaces/Time counts int32 seconds: 1901-12-13 to 2038-01-19)")
     store = typestore()
     ns = int(round(s.time_s * 1e9))
-    header = store.types["std_msgs/msg/Header"](stamp=store.types["builtin_interfaces/msg/Time"](sec=ns // 1_000_000_000,
-                                                                                              nanosec=ns % 1_000_000_000), frame_id="")
+    header = _header(ns)
 
     def floats(values: Any) -> NDArray[np.float64]:
         return np.ascontiguousarray(values, np.float64)
@@ -79,6 +80,52 @@ def ros2_messages(record: JointStateRecord, names: list[str]) -> tuple[bytes, by
                                     statusword=(np.asarray(s.status, np.int64) & 0xFFFF).astype(np.uint16))
     return (bytes(store.serialize_cdr(state, JOINT_STATE_TYPE, little_endian=True)),
             bytes(store.serialize_cdr(extra, EXTRA_TYPE, little_endian=True)))
+
+
+def _header(stamp_ns: int, frame_id: str = "") -> Any:
+    """A ``std_msgs/msg/Header`` at ``stamp_ns`` (nanoseconds since the epoch)."""
+    store = typestore()
+    if not ROS2_SECONDS[0] * 1e9 <= stamp_ns < ROS2_SECONDS[1] * 1e9:
+        raise RecordFormatError(f"time stamp {stamp_ns} ns cannot be written in a ROS 2 header (int32 seconds)")
+    return store.types["std_msgs/msg/Header"](stamp=store.types["builtin_interfaces/msg/Time"](sec=stamp_ns // 1_000_000_000,
+                                                                                            nanosec=stamp_ns % 1_000_000_000),
+                                              frame_id=frame_id)
+
+
+def _cdr(message: Any, kind: str) -> bytes:
+    return bytes(typestore().serialize_cdr(message, kind, little_endian=True))
+
+
+def joint_state_cdr(names: list[str], stamp_ns: int, position: Any, velocity: Any, effort: Any) -> bytes:
+    """One ``sensor_msgs/msg/JointState`` as CDR: the live stream's message (effort = joint torque)."""
+    def floats(values: Any) -> NDArray[np.float64]:
+        return np.ascontiguousarray(values, np.float64)
+
+    msg = typestore().types[JOINT_STATE_TYPE](header=_header(stamp_ns), name=list(names), position=floats(position),
+                                              velocity=floats(velocity), effort=floats(effort))
+    return _cdr(msg, JOINT_STATE_TYPE)
+
+
+def inertia_stamped_cdr(stamp_ns: int, frame_id: str, mass: float, com: Any, inertia: Any) -> bytes:
+    """One ``geometry_msgs/msg/InertiaStamped`` as CDR: ``mass`` (kg), ``com`` (3, m) and
+    ``inertia`` (ixx, ixy, ixz, iyy, iyz, izz; kg m^2, about the centre of mass) in ``frame_id``'s axes."""
+    store = typestore()
+    c = [float(x) for x in com]
+    ixx, ixy, ixz, iyy, iyz, izz = (float(x) for x in inertia)
+    body = store.types["geometry_msgs/msg/Inertia"](m=float(mass), com=store.types["geometry_msgs/msg/Vector3"](x=c[0], y=c[1], z=c[2]),
+                                                    ixx=ixx, ixy=ixy, ixz=ixz, iyy=iyy, iyz=iyz, izz=izz)
+    return _cdr(store.types[INERTIA_STAMPED_TYPE](header=_header(stamp_ns, frame_id), inertia=body), INERTIA_STAMPED_TYPE)
+
+
+def diagnostic_array_cdr(stamp_ns: int, statuses: list[dict[str, Any]]) -> bytes:
+    """One ``diagnostic_msgs/msg/DiagnosticArray`` as CDR; each status a dict of ``level`` (0-3),
+    ``name``, ``message``, ``hardware_id`` and ``values`` (key to text)."""
+    store = typestore()
+    status = store.types["diagnostic_msgs/msg/DiagnosticStatus"]
+    pair = store.types["diagnostic_msgs/msg/KeyValue"]
+    items = [status(level=int(s["level"]), name=str(s["name"]), message=str(s["message"]), hardware_id=str(s.get("hardware_id", "")),
+                    values=[pair(key=str(k), value=str(v)) for k, v in (s.get("values") or {}).items()]) for s in statuses]
+    return _cdr(store.types[DIAGNOSTIC_ARRAY_TYPE](header=_header(stamp_ns), status=items), DIAGNOSTIC_ARRAY_TYPE)
 
 
 def decode(data: bytes, kind: str) -> Any:
