@@ -71,9 +71,11 @@ class McapRecorder:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(self.path, "wb")  # noqa: SIM115 - closed in close()
         # chunks are closed here (whole cycles only), never by the writer's own size limit
-        # chunk indexes in the summary, no per-chunk message index: readers (rosbag2's, mcap's)
-        # find messages without them, and the file is its chunks, each checked by its CRC
-        self._writer = Writer(self._file, chunk_size=1 << 62, compression=CompressionType.ZSTD, index_types=IndexType.ALL & ~IndexType.MESSAGE)
+        # every index (chunk indexes in the summary, a message index after each chunk): rosbags'
+        # reader finds no message without the message indexes (it read 0 of 2,078 in a 2 s
+        # run); they cost 16 bytes a message (a 2 s run 66 -> 103 kB). armid's own reader
+        # walks the chunks and checks each by its CRC either way
+        self._writer = Writer(self._file, chunk_size=1 << 62, compression=CompressionType.ZSTD, index_types=IndexType.ALL)
         self._writer.start(profile="ros2", library="armid")
         self._channel = {}
         for topic, kind in ((JOINT_STATES_TOPIC, JOINT_STATE_TYPE), (EXTRA_TOPIC, EXTRA_TYPE)):
