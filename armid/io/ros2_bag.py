@@ -130,7 +130,7 @@ class _Bag:
             raise
         except Exception as err:  # rosbags' ReaderError, sqlite3's and the MCAP reader's errors for a damaged file
             what = " ".join(str(err).split()) or type(err).__name__
-            raise RecordingError(src, f"not a readable rosbag2 bag ({what})") from None
+            raise self.error(f"the bag cannot be read, cut short or damaged? ({what})") from None
         if not data:
             raise self.error("no message on it")
         return times, data
