@@ -430,6 +430,8 @@ BAG_CASES: dict[str, tuple[Callable[[Path, str], Path], str]] = {
     "effort empty": (lambda p, s: _bag(p, s, _each("effort", lambda m: [])), r"effort is empty in every message \(600 messages\)"),
     "effort NaN": (lambda p, s: _bag(p, s, _each("effort", lambda m: np.where(np.arange(6) == 3, np.nan, m.effort))),
                    r"effort is NaN in every message for joint\(s\) j3"),
+    "position NaN": (lambda p, s: _bag(p, s, _each("position", lambda m: np.where(np.arange(6) == 0, np.nan, m.position))),
+                     r"position is NaN in every message for joint\(s\) j6"),
     "second publisher, stamps go back": (lambda p, s: _bag(p, s, _two_publishers), r"header stamps go back 600 time\(s\) \(first at message 2"),
     "two publishers of every joint": (lambda p, s: _bag(p, s, _two_orders), r"two publishers name every joint of puma560"),
     "joints split across messages": (lambda p, s: _bag(p, s, _split), r"the joints of puma560 are split across messages"),

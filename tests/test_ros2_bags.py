@@ -299,3 +299,14 @@ def test_estimate_replays_a_bag_as_its_csv(kuka: dict[str, Path], tmp_path: Path
         assert code == 0, capsys.readouterr().err
         out[name] = (tmp_path / f"{name}.jsonl").read_text()
     assert out["csv"] and out["csv"] == out["mcap"]
+
+
+def test_a_velocity_nan_throughout_is_left_for_the_positions_and_said(tmp_path: Path) -> None:
+    """Some drivers publish NaN for a velocity they do not measure: velocity from the positions."""
+    robot = load_robot(ROBOTS / "puma560.yaml")
+    _, messages = puma_messages()
+    for m in messages:
+        m.velocity = np.where(np.arange(6) == 2, np.nan, m.velocity)
+    rec = read_recording(write_bag(tmp_path / "bag", "mcap", messages), robot)
+    assert rec.qd is None
+    assert any("velocity is NaN in every message for joint(s) j4: velocity from the positions throughout" in n for n in rec.notes)

@@ -293,7 +293,14 @@ def read_bag(path: str | Path, robot: Robot, topic: str | None = None) -> Record
         said.append(f"joint(s) {', '.join(extra)} on {bag.topic} are not in {robot.name}'s robot file: ignored")
     notes = said + notes
     q = s.position[:, column]
+    blind = [robot.joints[k].name for k in np.flatnonzero(np.isnan(q).all(axis=0))]
+    if blind:
+        raise bag.error(f"position is NaN in every message for joint(s) {', '.join(blind)}")
     qd = None if s.velocity is None else s.velocity[:, column]
+    if qd is not None and np.isnan(qd).all(axis=0).any():
+        unknown = [robot.joints[k].name for k in np.flatnonzero(np.isnan(qd).all(axis=0))]
+        notes.append(f"velocity is NaN in every message for joint(s) {', '.join(unknown)}: velocity from the positions throughout")
+        qd = None
     if robot.effort == "current":
         nan = np.full(q.shape, np.nan)
         states, how = with_torque(JointStates.from_columns({
