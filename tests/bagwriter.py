@@ -58,14 +58,18 @@ def cdr(m: Message, store: Any = None) -> bytes:
     return bytes(store.serialize_cdr(msg, JOINT_STATE))
 
 
-def write_bag(folder: Path, storage: str, messages: Iterable[Message]) -> Path:
+def write_bag(folder: Path, storage: str, messages: Iterable[Message], compression: str | None = None) -> Path:
     """A rosbag2 bag (``storage``: ``sqlite3`` or ``mcap``) at ``folder`` holding ``messages`` in
-    their order, each on its topic with its type; returns the folder."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
+    their order, each on its topic with its type (``compression``: zstd by ``file`` or by
+    ``message``, as ``ros2 bag record --compression-mode`` does); returns the folder."""
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 
     store = _store()
     plugin = {"sqlite3": StoragePlugin.SQLITE3, "mcap": StoragePlugin.MCAP}[storage]
-    with Writer(folder, version=9, storage_plugin=plugin) as writer:
+    bag = Writer(folder, version=9, storage_plugin=plugin)
+    if compression is not None:
+        bag.set_compression({"file": CompressionMode.FILE, "message": CompressionMode.MESSAGE}[compression], CompressionFormat.ZSTD)
+    with bag as writer:
         connections: dict[tuple[str, str], Any] = {}
         for m in messages:
             key = (m.topic, m.msgtype)

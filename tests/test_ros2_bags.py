@@ -310,3 +310,15 @@ def test_a_velocity_nan_throughout_is_left_for_the_positions_and_said(tmp_path: 
     rec = read_recording(write_bag(tmp_path / "bag", "mcap", messages), robot)
     assert rec.qd is None
     assert any("velocity is NaN in every message for joint(s) j4: velocity from the positions throughout" in n for n in rec.notes)
+
+
+@pytest.mark.parametrize("storage", STORAGES)
+@pytest.mark.parametrize("compression", ["file", "message"])
+def test_a_compressed_bag_reads_as_its_plain_twin(storage: str, compression: str, tmp_path: Path) -> None:
+    """zstd by file (``.db3.zstd``, ``.mcap.zstd``) or by message: read through the bag's folder."""
+    robot = load_robot(ROBOTS / "puma560.yaml")
+    _, messages = puma_messages()
+    plain = read_recording(write_bag(tmp_path / "plain", storage, messages), robot)
+    rec = read_recording(write_bag(tmp_path / "zstd", storage, messages, compression), robot)
+    for name in ("t", "q", "qd", "tau"):
+        assert np.array_equal(getattr(rec, name), getattr(plain, name)), name
