@@ -35,7 +35,7 @@ from armid.identify.plausibility import check_against_model, check_positions, ch
 from armid.identify.preprocess import Prepared, PrepareOptions, prepare
 from armid.identify.recordings import Recording, with_torque
 from armid.identify.robot import Robot
-from armid.io.recordings import read_mcap_arrays, read_recording, stop_line
+from armid.io.recordings import read_mcap_arrays, read_recording, recording_kind, stop_line
 from armid.schema.errors import OptionError, PoorExcitationWarning, RecordingError
 from armid.schema.joint_states import JointStates
 
@@ -118,9 +118,11 @@ def plausibility(source: str, robot: Robot, t: np.ndarray, q: np.ndarray, qd: np
     return check_recording(t, q, qd, tau, source, need_motion) + check_positions(q, limits, [j.revolute for j in robot.joints], source)
 
 
-def read(path: str | Path, robot: Robot, need_motion: bool = True, window: Window | None = None) -> tuple[Recording, list[str]]:
-    """Read and check one recording (cut to ``window`` when given); its warnings."""
-    return checked(read_recording(path, robot), robot, need_motion, window)
+def read(path: str | Path, robot: Robot, need_motion: bool = True, window: Window | None = None,
+         topic: str | None = None) -> tuple[Recording, list[str]]:
+    """Read and check one recording (cut to ``window`` when given; ``topic``: a rosbag2 bag's
+    JointState topic, ``--topic``); its warnings."""
+    return checked(read_recording(path, robot, topic), robot, need_motion, window)
 
 
 def checked(rec: Recording, robot: Robot, need_motion: bool = True, window: Window | None = None) -> tuple[Recording, list[str]]:
@@ -178,10 +180,12 @@ def prepare_checked(recordings: Sequence[tuple[Recording, list[str]]], robot: Ro
     return Inputs(prepared, [], names, found, {name: r.stopped for name, r in zip(names, recs) if r.stopped})
 
 
-def load(robot: Robot, recipe: Recipe, data: Sequence[str | Path], validate: Sequence[str | Path] = ()) -> Inputs:
-    """Read, check and prepare the identification and validation recordings of a command."""
+def load(robot: Robot, recipe: Recipe, data: Sequence[str | Path], validate: Sequence[str | Path] = (),
+         topic: str | None = None) -> Inputs:
+    """Read, check and prepare the identification and validation recordings of a command
+    (``topic``: the JointState topic of those that are rosbag2 bags)."""
     paths = [str(p) for p in [*data, *validate]]
-    inputs = prepare_checked([read(p, robot) for p in paths], robot, recipe, paths)
+    inputs = prepare_checked([read(p, robot, topic=topic) for p in paths], robot, recipe, paths)
     return Inputs(inputs.experiments[: len(data)], inputs.experiments[len(data) :], paths, inputs.warnings, inputs.stopped)
 
 
@@ -213,19 +217,20 @@ def diagnose(robot: Robot, inputs: Inputs, options: DiagnoseOptions | None = Non
     return _diagnose(robot, inputs.experiments, inputs.validation, options)
 
 
-def replay_records(path: str | Path, robot: Robot) -> tuple[JointStates, list[str], list[str]]:
+def replay_records(path: str | Path, robot: Robot, topic: str | None = None) -> tuple[JointStates, list[str], list[str]]:
     """A recording's records in order, on its own stamps, for the payload estimator (``armid
     estimate --replay``); its notes and its checks' warnings.
 
     An MCAP's records keep their sequence numbers and validity flags (the estimator counts
-    what was lost), their torque by :func:`~armid.identify.recordings.with_torque`; a CSV's
-    rows are numbered. Both pass :func:`plausibility`."""
+    what was lost), their torque by :func:`~armid.identify.recordings.with_torque`; the rows of
+    any other recording (a CSV, an NPZ, a rosbag2 bag's messages on ``topic``) are numbered.
+    Both pass :func:`plausibility`."""
     path = Path(path)
-    if path.suffix.lower() != ".mcap":
-        rec, found = read(path, robot, need_motion=False)
-        return _numbered(rec, robot), list(rec.notes), found
     if not path.exists():
         raise RecordingError(str(path), "no such file")
+    if recording_kind(path) != "mcap":
+        rec, found = read(path, robot, need_motion=False, topic=topic)
+        return _numbered(rec, robot), list(rec.notes), found
     a, metadata, notes = read_mcap_arrays(path)
     if not a:
         raise RecordingError(str(path), "no joint_state record could be read" + (f": {notes[0]}" if notes else ""))

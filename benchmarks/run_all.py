@@ -32,6 +32,7 @@ RUNS = {
     "check_cases": ["bench_command.py", "check_cases"],
     "payload": ["bench_payload.py"],
     "recording": ["bench_recording.py"],
+    "bags": ["bench_bags.py"],
     "daq": ["bench_daq.py"],
     "canopen": ["bench_canopen.py", "10", "virtual", "udp_multicast"],
     "canopen_busy2": ["bench_canopen.py", "10", "virtual", "udp_multicast", "--busy", "2"],

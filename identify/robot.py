@@ -97,6 +97,10 @@ class Robot:
     joints: tuple[Joint, ...]
     effects: tuple[DeclaredEffect, ...] = ()
     source: str = ""
+    # what a ROS 2 JointState's ``effort`` holds for this arm (a rosbag2 bag, a live source):
+    # "torque", joint torque (N*m, or N); "current", motor current (A) that each joint's
+    # torque_constant makes a torque (UR's driver publishes current by default)
+    effort: str = "torque"
 
     @property
     def n_joints(self) -> int:

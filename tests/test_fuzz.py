@@ -331,6 +331,147 @@ def test_an_mcap_that_names_no_robot_is_read_and_said(tmp_path: Path) -> None:
         read_recording(_mcap_with(tmp_path / "other.mcap", lambda m: None, metadata={"robot": "ur5"}), load_robot(PUMA))
 
 
+# -- rosbag2 bags (written by rosbags: tests/bagwriter.py) ------------------------------
+
+BAG_T0_NS = 1_600_000_000 * 10**9  # the example's 2 ms stamps from an epoch second (a zero stamp means "not stamped")
+PUMA_NAMES = [f"j{j + 1}" for j in range(6)]
+
+
+def _bag_messages(order: list[int] | None = None, t_shift_ns: int = 0) -> list[Any]:
+    """The example's rows as JointState messages, joints in ``order`` (reversed unless given)."""
+    from bagwriter import arm_messages
+
+    t_ns = BAG_T0_NS + t_shift_ns + np.round(T * 1e9).astype(np.int64)
+    return arm_messages(t_ns, PUMA_NAMES, Q, QD, TAU, list(range(6))[::-1] if order is None else order)
+
+
+def _bag(path: Path, storage: str, change: Callable[[list[Any]], list[Any] | None] | None = None) -> Path:
+    from bagwriter import write_bag
+
+    messages = _bag_messages()
+    if change is not None:
+        messages = change(messages) or messages
+    return write_bag(path, storage, messages)
+
+
+def _cut(path: Path, storage: str) -> Path:
+    from bagwriter import storage_file
+
+    f = storage_file(_bag(path, storage))
+    f.write_bytes(f.read_bytes()[: f.stat().st_size * 9 // 10])
+    return path
+
+
+def _each(field: str, value: Callable[[Any], Any]) -> Callable[[list[Any]], None]:
+    def change(messages: list[Any]) -> None:
+        for m in messages:
+            setattr(m, field, value(m))
+    return change
+
+
+def _two_publishers(messages: list[Any]) -> list[Any]:
+    """A second publisher of the same joints interleaved (received 1 us after the first), its stamps 1 s behind."""
+    behind = _bag_messages(t_shift_ns=-10**9)
+    for m, b in zip(messages, behind):
+        b.received_ns = m.stamp_ns + 1000
+    return [m for pair in zip(messages, behind) for m in pair]
+
+
+def _two_orders(messages: list[Any]) -> list[Any]:
+    other = _bag_messages(order=list(range(6)), t_shift_ns=1000)
+    return [m for pair in zip(messages, other) for m in pair]
+
+
+def _split(messages: list[Any]) -> list[Any]:
+    """The arm's joints in two messages a cycle (3 and 3), as two controllers might publish them."""
+    from bagwriter import Message
+
+    out = []
+    for m in messages:
+        for part in (slice(0, 3), slice(3, 6)):
+            out.append(Message(m.stamp_ns, m.names[part], m.position[part], m.velocity[part], m.effort[part]))
+    return out
+
+
+def _same_stamp_other_values(messages: list[Any]) -> list[Any]:
+    from bagwriter import Message
+
+    m = messages[50]
+    return [*messages[:51], Message(m.stamp_ns, m.names, m.position + 0.1, m.velocity, m.effort), *messages[51:]]
+
+
+def _garbage_message(messages: list[Any]) -> None:
+    messages[10].raw = b"\x00\x01\x00\x00not a joint state"
+
+
+def _wrong_type(messages: list[Any]) -> list[Any]:
+    from bagwriter import Message
+
+    return [Message(m.stamp_ns, [], [], msgtype="std_msgs/msg/String", extra={"data": "hello"}) for m in messages]
+
+
+def _short_position(messages: list[Any]) -> None:
+    messages[20].position = messages[20].position[:5]
+
+
+def _no_folder_metadata(path: Path, storage: str) -> Path:
+    _bag(path, storage)
+    (path / "metadata.yaml").unlink()
+    return path
+
+
+BAG_CASES: dict[str, tuple[Callable[[Path, str], Path], str]] = {
+    "truncated": (_cut, r"the bag cannot be read, cut short or damaged\?"),
+    "wrong message type": (lambda p, s: _bag(p, s, _wrong_type), r"carries std_msgs/msg/String, not sensor_msgs/msg/JointState"),
+    "topic absent": (lambda p, s: _bag(p, s, _each("topic", lambda m: "/other")),
+                     r"not in the bag \(it holds /other \(sensor_msgs/msg/JointState\); --topic chooses another\)"),
+    "joint missing": (lambda p, s: _bag(p, s, lambda ms: [type(m)(m.stamp_ns, m.names[1:], m.position[1:], m.velocity[1:], m.effort[1:])
+                                                          for m in ms]), r"joint\(s\) j6 of .*puma560\.yaml missing \(the messages name j5, j4"),
+    "effort empty": (lambda p, s: _bag(p, s, _each("effort", lambda m: [])), r"effort is empty in every message \(600 messages\)"),
+    "effort NaN": (lambda p, s: _bag(p, s, _each("effort", lambda m: np.where(np.arange(6) == 3, np.nan, m.effort))),
+                   r"effort is NaN in every message for joint\(s\) j3"),
+    "position NaN": (lambda p, s: _bag(p, s, _each("position", lambda m: np.where(np.arange(6) == 0, np.nan, m.position))),
+                     r"position is NaN in every message for joint\(s\) j6"),
+    "second publisher, stamps go back": (lambda p, s: _bag(p, s, _two_publishers), r"header stamps go back 600 time\(s\) \(first at message 2"),
+    "two publishers of every joint": (lambda p, s: _bag(p, s, _two_orders), r"two publishers name every joint of puma560"),
+    "joints split across messages": (lambda p, s: _bag(p, s, _split), r"the joints of puma560 are split across messages"),
+    "one stamp, two values": (lambda p, s: _bag(p, s, _same_stamp_other_values), r"messages 51 and 52 are both stamped .* with different values"),
+    "not JointState CDR": (lambda p, s: _bag(p, s, _garbage_message), r"message 11: not a sensor_msgs/msg/JointState in CDR"),
+    "position short": (lambda p, s: _bag(p, s, _short_position), r"message 21: 'position' has 5 values for 6 joint names"),
+    "folder without metadata.yaml": (_no_folder_metadata, r"a folder without metadata\.yaml: not a rosbag2 bag"),
+}
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+@pytest.mark.parametrize("case", list(BAG_CASES))
+def test_bad_bag(case: str, storage: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Exit 2, one line naming the bag, the topic and the problem."""
+    make, expect = BAG_CASES[case]
+    bad = make(tmp_path / "bad", storage)
+    where = r"bad: " if case == "folder without metadata.yaml" else r"bad: topic /joint_states: "
+    assert_clean_error(*run(["identify", str(bad), "--robot", str(PUMA)], capsys), where + expect)
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_a_bag_s_storage_file_cut_short_is_named(storage: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from bagwriter import storage_file
+
+    f = storage_file(_cut(tmp_path / "bad", storage))
+    assert_clean_error(*run(["identify", str(f), "--robot", str(PUMA)], capsys), rf"{f.name}: topic /joint_states: the bag cannot be read")
+
+
+def test_the_unbroken_bag_and_its_unstamped_twin_identify(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The bags the cases break identify; a bag without header stamps too, on its receive time, said."""
+    assert run(["identify", str(_bag(tmp_path / "good", "mcap")), "--robot", str(PUMA)], capsys)[0] == 0
+
+    def unstamped(messages: list[Any]) -> None:
+        for m in messages:
+            m.received_ns, m.stamp_ns = m.stamp_ns, 0
+
+    code, err = run(["identify", str(_bag(tmp_path / "unstamped", "sqlite3", unstamped)), "--robot", str(PUMA)], capsys)
+    assert code == 0 and "every header stamp on /joint_states is zero: timed by the bag's receive time" in err
+
+
 # -- robot descriptions ------------------------------------------------------------------
 
 def _robot(path: Path, change: Callable[[dict[str, Any]], None]) -> Path:
@@ -392,6 +533,12 @@ ROBOT_CASES: dict[str, tuple[Callable[[Path], Path], str]] = {
     "position limits reversed": (lambda p: _robot(p, _joint(1, "limits.position", [1.0, -1.0])), r"lower 1.0 must be below"),
     "negative velocity limit": (lambda p: _robot(p, _joint(1, "limits.velocity", -1.5)), r"velocity: must be positive"),
     "zero torque constant": (lambda p: _robot(p, _joint(0, "torque_constant", 0)), r"torque_constant: must be positive"),
+    "effort neither torque nor current": (lambda p: _robot(p, lambda d: d.update(effort="voltage")),
+                                          r"effort: must be one of torque, current .*got 'voltage'"),
+    "effort current without torque constants": (lambda p: (p.write_text(UR5.read_text().replace("torque_constant: 13.3}", "type: revolute}")
+                                                                        .replace("urdf: ur5.urdf", f"urdf: {UR5.parent / 'ur5.urdf'}")
+                                                                        + "effort: current\n"), p)[1],
+                                                r"effort: current needs each joint's torque_constant .*none for shoulder_pan_joint, shoulder_lift_joint$"),
     "unknown effect": (lambda p: _robot(p, lambda d: d.update(effects=[{"effect": "magic"}])), r"unknown effect 'magic'"),
     "effect on joint 9": (lambda p: _robot(p, lambda d: d.update(effects=[{"effect": "viscous_friction", "joint": 9}])),
                           r"must be a joint number 1\.\.6"),

@@ -11,6 +11,8 @@ from typing import Any
 from armid.schema.errors import RobotFileError
 
 ROBOT_HELP = "robot file (YAML), a URDF, or the name of a shipped robot (puma560, kuka_lwr4, ...)"
+RECORDINGS = "CSV, NPZ, MCAP, or a rosbag2 bag: its folder or its .db3/.mcap file"
+"""What a command that reads recordings takes (``armid.io.recordings.recording_kind``)."""
 
 
 def finite_number(text: str) -> float:
@@ -89,3 +91,18 @@ def load_robot_argument(value: str) -> Any:
         names = sorted(p.stem for p in config_file("robots").glob("*.yaml"))
         raise RobotFileError(value, "", f"no such file, nor a shipped robot (shipped: {', '.join(names)})")
     return load_robot(path)
+
+
+def ros2_topic(text: str) -> str:
+    """A ROS 2 topic name, fully qualified as a bag stores it (``joint_states``: ``/joint_states``)."""
+    name = text.strip()
+    if not name or any(c.isspace() for c in name):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a ROS 2 topic name")
+    return name if name.startswith("/") else "/" + name
+
+
+def add_topic_argument(p: argparse.ArgumentParser) -> None:
+    """``--topic``: which topic of a rosbag2 bag holds the arm's ``sensor_msgs/msg/JointState``."""
+    p.add_argument("--topic", type=ros2_topic, default=None, metavar="TOPIC",
+                   help="the sensor_msgs/msg/JointState topic read from a rosbag2 bag (default /joint_states; other recordings "
+                        "have no topic)")

@@ -13,7 +13,7 @@ import numpy as np
 from armid.schema.errors import RecordingError
 
 from ..check_report import verdict_lines
-from .arguments import ROBOT_HELP, load_robot_argument
+from .arguments import RECORDINGS, ROBOT_HELP, add_topic_argument, load_robot_argument
 from .identify import preparation_arguments, recipe_from_arguments
 from .output import check_writable, inputs_read, show_warnings, write_json_and_predictions
 
@@ -70,7 +70,7 @@ def _check(args: argparse.Namespace) -> int:
     doc = identification_document(args.model, robot)
     model, reference = fixed_model(robot, doc, args.model)
     to_write = _model_to_write(args, robot, doc, model.effects)
-    inputs = pipeline.load(robot, recipe_from_arguments(args), args.data)
+    inputs = pipeline.load(robot, recipe_from_arguments(args), args.data, topic=args.topic)
     show_warnings(inputs.warnings)
     inputs_read()
     for path, prep in zip(inputs.sources, inputs.experiments):
@@ -157,7 +157,7 @@ def _write_model_files(args: argparse.Namespace, robot: Any, model: tuple[Any, A
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """``armid check``: its options."""
     p = sub.add_parser("check", help="does an identified model hold on new data; if not, what changed (a load, friction, a gain ...)")
-    p.add_argument("data", nargs="+", help="the new recordings (CSV, NPZ or MCAP)")
+    p.add_argument("data", nargs="+", help=f"the new recordings ({RECORDINGS})")
     p.add_argument("--robot", required=True, help=ROBOT_HELP)
     p.add_argument("--model", required=True, metavar="IDENTIFIED.json",
                    help="the model to check: what armid identify --json wrote (held fixed: nothing it identified is refitted)")
@@ -169,4 +169,5 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
                                                  "--model (identify --feasible --json), a load found on the last link added")
     p.add_argument("--mjcf", metavar="OUT", help="the same as MJCF for MuJoCo (armid identify --mjcf; needs armid[mujoco])")
     preparation_arguments(p)
+    add_topic_argument(p)
     p.set_defaults(run=_check)

@@ -11,7 +11,7 @@ from typing import Any
 
 from armid.schema.errors import PoorExcitationWarning
 
-from .arguments import ROBOT_HELP, load_robot_argument
+from .arguments import RECORDINGS, ROBOT_HELP, add_topic_argument, load_robot_argument
 from .identify import add_feasible_arguments, feasible_report, preparation_arguments, recipe_from_arguments, wants_feasible
 from .output import check_writable, inputs_read, show_warnings, write_json_and_predictions
 
@@ -23,7 +23,7 @@ def _diagnose(args: argparse.Namespace) -> int:
 
     check_writable(args.urdf, args.mjcf)
     robot = load_robot_argument(args.robot)
-    inputs = pipeline.load(robot, recipe_from_arguments(args), args.data, args.validate)
+    inputs = pipeline.load(robot, recipe_from_arguments(args), args.data, args.validate, args.topic)
     show_warnings(inputs.warnings)
     inputs_read()
     experiments, validation = inputs.experiments, inputs.validation
@@ -101,7 +101,7 @@ def _diagnosed_feasible(args: argparse.Namespace, robot: Any, diag: Any, experim
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """``armid diagnose``: its options."""
     p = sub.add_parser("diagnose", help="residual analysis: find undeclared effects, add them, refit, error before/after")
-    p.add_argument("data", nargs="+", help="recordings to identify on (CSV, NPZ or MCAP)")
+    p.add_argument("data", nargs="+", help=f"recordings to identify on ({RECORDINGS})")
     p.add_argument("--robot", required=True, help=ROBOT_HELP)
     p.add_argument("--validate", nargs="+", metavar="DATA", required=True, help="held-out recordings: the errors before and after are measured on them, and a finding they contradict is set aside (findings are chosen on the identification data)")
     p.add_argument("--json", metavar="OUT", help="write the findings and the errors before and after as JSON")
@@ -109,4 +109,5 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--predictions", metavar="CSV", help="write the final model's predicted validation torques (t, tau_hat1..n)")
     add_feasible_arguments(p)
     preparation_arguments(p)
+    add_topic_argument(p)
     p.set_defaults(run=_diagnose)

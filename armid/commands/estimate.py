@@ -14,18 +14,18 @@ import numpy as np
 from armid.schema.errors import RecordingError, UsageError
 from armid.schema.joint_states import JointStates
 
-from .arguments import load_robot_argument
+from .arguments import RECORDINGS, add_topic_argument, load_robot_argument
 from .output import show_warnings
 from .ros2 import add_ros2_arguments, ros2_bridge
 from .session import add_zenoh_arguments, open_zenoh
 
 
-def _replay_records(path: Path, robot: Any, period_s: float | None) -> tuple[JointStates, list[str]]:
+def _replay_records(path: Path, robot: Any, period_s: float | None, topic: str | None = None) -> tuple[JointStates, list[str]]:
     """The replay's records by :func:`armid.pipeline.replay_records` (identify's checks: ms stamps,
     degrees refused; their warnings held), and ``--period`` against their stamps."""
     from ..pipeline import replay_records
 
-    records, notes, found = replay_records(path, robot)
+    records, notes, found = replay_records(path, robot, topic)
     show_warnings(found)
     t = records.time
     if t.size >= 2 and period_s is not None:
@@ -123,7 +123,7 @@ def _estimate(args: argparse.Namespace) -> int:
     arm = arm_model_from_identification(robot, doc)
     reference = None
     if args.reference:
-        ref_records, ref_notes = _replay_records(Path(args.reference), robot, args.period)
+        ref_records, ref_notes = _replay_records(Path(args.reference), robot, args.period, args.topic)
         for note in ref_notes:
             print(f"{args.reference}: {note}", file=sys.stderr)
         kept = ref_records[np.flatnonzero(ref_records.valid.all(axis=1))]
@@ -135,7 +135,7 @@ def _estimate(args: argparse.Namespace) -> int:
     stream = EstimateStream(estimator, publish_every=args.publish_every, strict_time=bool(args.replay),
                             source=str(args.replay or "stream"))
     if args.replay:
-        records, notes = _replay_records(Path(args.replay), robot, args.period)
+        records, notes = _replay_records(Path(args.replay), robot, args.period, args.topic)
         for note in notes:
             print(f"{args.replay}: {note}", file=sys.stderr)
     out = open(args.out, "w") if args.out else sys.stdout  # noqa: SIM115 - closed below
@@ -190,10 +190,11 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("mode", nargs="?", choices=["live"], help="live: subscribe to armid/<robot>/joint_state")
     p.add_argument("--robot", required=True, help="robot description")
     p.add_argument("--params", required=True, metavar="IDENT.json", help="the arm's identification (armid identify --json)")
-    p.add_argument("--replay", metavar="DATA", help="run on a recording (MCAP or CSV) and write what would have been published")
+    p.add_argument("--replay", metavar="DATA", help=f"run on a recording ({RECORDINGS}) and write what would have been published")
+    add_topic_argument(p)
     p.add_argument("--out", metavar="JSONL", help="write the estimates as JSON lines (default: standard output)")
     p.add_argument("--reference", metavar="UNLOADED",
-                   help="a run of the same trajectory without the payload (MCAP or CSV): estimate from the torque difference at the "
+                   help="a run of the same trajectory without the payload (a recording as --replay takes): estimate from the torque difference at the "
                         "same positions, so that arm-model and friction errors cancel")
     p.add_argument("--period", type=float, default=None,
                    help="expected sample period in s: only checked against the time stamps, which the estimator always uses")

@@ -13,7 +13,7 @@ import numpy as np
 
 from armid.schema.errors import IdentificationError, RecordingError, UsageError
 
-from .arguments import ROBOT_HELP, gap_factor, load_robot_argument, lowpass_setting
+from .arguments import RECORDINGS, ROBOT_HELP, add_topic_argument, gap_factor, load_robot_argument, lowpass_setting
 from .output import check_writable, inputs_read, show_warnings, strict_json, write_json_and_predictions
 
 
@@ -51,7 +51,7 @@ def _identify(args: argparse.Namespace) -> int:
     recipe = recipe_from_arguments(args, weighting=args.weighting, prior=args.prior)
     if args.single_link:
         return _identify_single_link(args, robot, recipe)
-    inputs = pipeline.load(robot, recipe, args.data, args.validate or [])
+    inputs = pipeline.load(robot, recipe, args.data, args.validate or [], args.topic)
     show_warnings(inputs.warnings)
     inputs_read()
     experiments, validation = inputs.experiments, inputs.validation
@@ -108,10 +108,10 @@ def _identify_single_link(args: argparse.Namespace, robot: Any, recipe: Any) -> 
     runs: dict[int, list[Any]] = {}
     recordings = []
     for path in args.data:
-        rec, link = _single_joint_run(path, robot)
+        rec, link = _single_joint_run(path, robot, args.topic)
         runs.setdefault(link, []).append(prepare(rec, robot, recipe.prepare))
         recordings.append({"path": path, "role": "identification", "stopped": rec.stopped})
-    checked = [(path, *_single_joint_run(path, robot)) for path in args.validate or []]
+    checked = [(path, *_single_joint_run(path, robot, args.topic)) for path in args.validate or []]
     recordings += [{"path": path, "role": "validation", "stopped": rec.stopped} for path, rec, _ in checked]
     inputs_read()
     seq = single_link_sequence(robot, runs)
@@ -156,14 +156,14 @@ def not_identified(std: float, physical_range: float | None) -> str:
     return f"not identified by these data (+-{IDENTIFIED_SIGMAS * std:.3g} at {IDENTIFIED_SIGMAS:g} sigma against {bound})"
 
 
-def _single_joint_run(path: str, robot: Any) -> tuple[Any, int]:
+def _single_joint_run(path: str, robot: Any, topic: str | None = None) -> tuple[Any, int]:
     """The recording, cut to its excitation window where ``armid excite``'s ``runs.json`` gives
     it, and the one joint (0-based) that moved in it."""
     from armid.identify.plausibility import MOVING_RAD, moving_joints
 
     from ..pipeline import read
 
-    rec, found = read(path, robot, need_motion=False)
+    rec, found = read(path, robot, need_motion=False, topic=topic)
     show_warnings(found)
     rec = _excitation_window(Path(path), rec)
     moved = np.flatnonzero(moving_joints(rec.q))
@@ -260,7 +260,7 @@ def add_feasible_arguments(p: argparse.ArgumentParser) -> None:
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """``armid identify``: its options."""
     p = sub.add_parser("identify", help="least-squares identification (eq. 18) with identifiability classes")
-    p.add_argument("data", nargs="+", help="recordings to identify on (CSV, NPZ or MCAP)")
+    p.add_argument("data", nargs="+", help=f"recordings to identify on ({RECORDINGS})")
     p.add_argument("--robot", required=True, help=ROBOT_HELP)
     p.add_argument("--validate", nargs="+", metavar="DATA", help="held-out recordings for the validation error")
     p.add_argument("--json", metavar="OUT", help="write the result as JSON (docs/reference/interfaces.md)")
@@ -271,6 +271,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
                    help="the robot file's modeled values as a prior for what the data do not excite (default), or least squares alone")
     add_feasible_arguments(p)
     preparation_arguments(p)
+    add_topic_argument(p)
     p.add_argument("--single-link", action="store_true",
                    help="Khosla's off-line sequence: each recording moves one joint alone; identified last link first, its "
                         "combinations with their std; each --validate run predicted on the joint that moved")

@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ..commands.arguments import whole_count
+from ..commands.arguments import add_topic_argument, whole_count
 from . import engine
 from .discover import find_arms, jobs_of
 from .outputs import detect, in_order, write_changes, write_parameters
@@ -23,13 +23,14 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     """Register ``armid fleet`` on the command line's sub-parsers."""
     p: argparse.ArgumentParser = sub.add_parser(
         "fleet", help="a lab's arms: every recording identified (Ray tasks), parameters tracked over time, changes found")
-    p.add_argument("root", metavar="ROOT", help="one folder per arm: ROOT/<arm>/robot.yaml and the arm's recordings (CSV, MCAP, NPZ; any sub-folder)")
+    p.add_argument("root", metavar="ROOT", help="one folder per arm: ROOT/<arm>/robot.yaml and the arm's recordings (CSV, MCAP, NPZ, rosbag2 bags; any sub-folder)")
     p.add_argument("--out", required=True, metavar="DIR", help="where parameters.csv, changes.json and report.md (with its PNGs) go")
     p.add_argument("--workers", type=whole_count, metavar="N",
                    help="recordings identified at once (default: this machine's CPUs, or the cluster's with --address)")
     p.add_argument("--address", metavar="RAY_ADDRESS", help="join this Ray cluster (ROOT at the same path on every node) instead of starting one here")
     p.add_argument("--engine", choices=engine.ENGINES, default="ray",
                    help=f"ray (default; {engine.EXTRA}), or local: in this process, one recording at a time (--workers 1)")
+    add_topic_argument(p)
     p.set_defaults(run=run)
     return p
 
@@ -73,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     arms, notes = find_arms(root, skip=out)
     for note in notes:
         print(f"armid fleet: warning: {note}", file=sys.stderr)
-    jobs = jobs_of(arms, root)
+    jobs = jobs_of(arms, root, args.topic)
     out.mkdir(parents=True, exist_ok=True)
     start = time.monotonic()
     results, where = _identify_all(args, jobs)

@@ -1,8 +1,9 @@
 """A fleet's folder: one sub-folder per arm, each with its robot file and its recordings.
 
 ``ROOT/<arm>/robot.yaml`` describes the arm (its kinematics, modeled inertials, declared
-effects); every ``*.csv``, ``*.mcap`` and ``*.npz`` below ``ROOT/<arm>/``, in any sub-folder,
-is one of its recordings. Hidden files and folders, and the output folder when it lies
+effects); every ``*.csv``, ``*.mcap``, ``*.npz`` and ``*.db3`` below ``ROOT/<arm>/``, in any
+sub-folder, is one of its recordings, and so is every rosbag2 bag's folder (its ``metadata.yaml``
+beside its storage files, which are not read on their own). Hidden files and folders, and the output folder when it lies
 inside ROOT, are not read. A folder without a robot file is not an arm: it is said, and
 left alone.
 """
@@ -12,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from armid.io.ros2_bag import is_bag_folder
 from armid.schema.errors import InputFileError
 
 from .task import RECORDING_SUFFIXES, Job
@@ -46,10 +48,12 @@ def find_arms(root: Path, skip: Path | None = None) -> tuple[list[ArmFolder], li
         if not robot.is_file():
             notes.append(f"{folder.name}/: no {ROBOT_FILE}, not an arm: left out")
             continue
-        found = sorted(p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in RECORDING_SUFFIXES and _visible(p, folder)
+        bags = [p for p in folder.rglob("*") if is_bag_folder(p)]
+        found = sorted(p for p in folder.rglob("*") if (is_bag_folder(p) or (p.is_file() and p.suffix.lower() in RECORDING_SUFFIXES))
+                       and _visible(p, folder) and not any(b in p.parents for b in bags)
                        and (skip is None or skip not in p.resolve().parents))
         if not found:
-            notes.append(f"{folder.name}/: no recording (*.csv, *.mcap, *.npz)")
+            notes.append(f"{folder.name}/: no recording (*.csv, *.mcap, *.npz, *.db3, a rosbag2 bag's folder)")
         arms.append(ArmFolder(folder.name, robot, tuple(p.relative_to(root).as_posix() for p in found)))
     loose = [p.name for p in root.iterdir() if p.is_file() and p.suffix.lower() in RECORDING_SUFFIXES]
     if loose:
@@ -60,6 +64,6 @@ def find_arms(root: Path, skip: Path | None = None) -> tuple[list[ArmFolder], li
     return arms, notes
 
 
-def jobs_of(arms: list[ArmFolder], root: Path) -> list[Job]:
-    """One job per recording, arm by arm."""
-    return [Job(arm.name, str(root), rec, str(arm.robot_file)) for arm in arms for rec in arm.recordings]
+def jobs_of(arms: list[ArmFolder], root: Path, topic: str | None = None) -> list[Job]:
+    """One job per recording, arm by arm (``topic``: the JointState topic of the rosbag2 bags)."""
+    return [Job(arm.name, str(root), rec, str(arm.robot_file), topic) for arm in arms for rec in arm.recordings]

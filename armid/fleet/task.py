@@ -25,18 +25,20 @@ from armid.identify.robot import Robot
 from armid.identify.tracked import Tracked, tracked_quantities
 from armid.schema.errors import ArmidError
 
-RECORDING_SUFFIXES = (".csv", ".mcap", ".npz")
+RECORDING_SUFFIXES = (".csv", ".mcap", ".npz", ".db3")
+"""The files that are recordings; a rosbag2 bag's folder is one too (:func:`armid.io.ros2_bag.is_bag_folder`)."""
 
 
 @dataclass(frozen=True)
 class Job:
     """A recording to identify: its arm (the folder's name), the fleet's root, its path relative
-    to the root, and the arm's robot file."""
+    to the root, the arm's robot file, and the JointState topic if it is a rosbag2 bag."""
 
     arm: str
     root: str
     recording: str
     robot_file: str
+    topic: str | None = None
 
 
 @dataclass
@@ -127,7 +129,7 @@ def _identify_into(job: Job, out: Result) -> None:
 
     robot = load_robot(job.robot_file)
     path = Path(job.root) / job.recording
-    rec, found = pipeline.read(path, robot)
+    rec, found = pipeline.read(path, robot, topic=job.topic)
     stamps = rec.t[np.isfinite(rec.t)]
     out.start_time = float(stamps[0]) if stamps.size else None
     if rec.stopped:  # a run cut short is not the arm's usual experiment: tracked, it would pass for a change

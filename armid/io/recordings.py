@@ -8,7 +8,8 @@ layout of the shared KUKA LWR4+ data). MCAP recordings from ``armid record``: RO
 the torque as the driver recorded it). The ``mcap`` library parses the records and checks each
 chunk's CRC; reading resumes after a bad chunk, and the notes say what was lost
 (:func:`read_mcap_arrays`). The JSON layout armid wrote before its ROS 2 recordings is refused
-with its name."""
+with its name. rosbag2 bags (a folder, a ``.db3``, an ``.mcap`` a ROS 2 tool wrote): JointState
+on one topic, by :mod:`armid.io.ros2_bag`. :func:`recording_kind` decides which reader a path takes."""
 
 from __future__ import annotations
 
@@ -35,20 +36,38 @@ from armid.schema import Array
 from armid.schema.joint_state import EXTRA_TOPIC, EXTRA_TYPE, JOINT_STATE_TYPE, JOINT_STATES_TOPIC
 from armid.schema.joint_states import JointStates
 
+from .ros2_bag import is_rosbag2_mcap, read_bag
 from .ros2_cdr import decoded_columns, kind_of, ros2_columns, same_length
 
 _JOINT_COLUMN = re.compile(r"(q|qd|qdd|tau|i)(\d+)")
 
 
-def read_recording(path: str | Path, robot: Robot) -> Recording:
-    """Read one recording for ``robot``; raises :class:`RecordingError` naming what is wrong."""
+def recording_kind(path: str | Path) -> str:
+    """Which reader a recording takes, the one place that decides: ``bag`` (a rosbag2 bag: a
+    folder, a ``.db3``, an ``.mcap`` a ROS 2 tool wrote: :mod:`armid.io.ros2_bag`), ``mcap``
+    (armid's own recording), ``npz``, else ``csv``."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if path.is_dir() or suffix == ".db3":
+        return "bag"
+    if suffix == ".mcap":
+        return "bag" if is_rosbag2_mcap(path) else "mcap"
+    return "npz" if suffix == ".npz" else "csv"
+
+
+def read_recording(path: str | Path, robot: Robot, topic: str | None = None) -> Recording:
+    """Read one recording for ``robot`` by :func:`recording_kind`; ``topic``: a bag's JointState
+    topic (default ``/joint_states``; other recordings have none). Raises
+    :class:`RecordingError` naming what is wrong."""
     path = Path(path)
     if not path.exists():
         raise RecordingError(str(path), "no such file")
-    suffix = path.suffix.lower()
-    if suffix == ".npz":
+    kind = recording_kind(path)
+    if kind == "bag":
+        return read_bag(path, robot, topic)
+    if kind == "npz":
         return _read_npz(path, robot)
-    if suffix == ".mcap":
+    if kind == "mcap":
         return _read_mcap(path, robot)
     return _read_csv(path, robot)
 

@@ -43,7 +43,9 @@ from armid.identify.robot import (
 )
 
 CONVENTIONS = ("dh", "mdh")
-TOP_LEVEL = {"name", "gravity", "convention", "urdf", "joints", "effects", "description"}
+TOP_LEVEL = {"name", "gravity", "convention", "urdf", "joints", "effects", "description", "effort"}
+EFFORTS = ("torque", "current")
+"""What a ROS 2 JointState's ``effort`` holds for the arm (``effort:``; torque unless said)."""
 JOINT_FIELDS = {"name", "type", "a", "alpha", "d", "theta", "torque_constant", "torque_constant_std", "limits", "inertial"}
 DEFAULT_TORQUE_CONSTANT_STD = 0.05
 """A torque constant the file gives (N*m per A from a datasheet) is known to about 5 %, and a
@@ -113,7 +115,20 @@ def robot_from_dict(doc: Any, src: str = "<robot>", base_dir: Path | None = None
     if dup:
         raise RobotFileError(src, "joints", f"duplicate joint name {dup[0]!r}")
     effects = _effects(doc.get("effects", []) or [], len(joints), src)
-    return Robot(name, gravity, tuple(joints), tuple(effects), src)
+    return Robot(name, gravity, tuple(joints), tuple(effects), src, _effort(doc, joints_doc, src))
+
+
+def _effort(doc: dict[str, Any], joints_doc: list[Any], src: str) -> str:
+    """``effort:`` (:data:`EFFORTS`): ``current`` needs every joint's own ``torque_constant``,
+    the one figure that makes its current a torque (a default of 1 would pass amperes for N*m)."""
+    effort = doc.get("effort", "torque")
+    if effort not in EFFORTS:
+        raise RobotFileError(src, "effort", f"must be one of {', '.join(EFFORTS)} (what a ROS 2 JointState's effort holds), got {effort!r}")
+    if effort == "current":
+        lacking = [str(j.get("name", f"joints[{k}]")) for k, j in enumerate(joints_doc) if isinstance(j, dict) and "torque_constant" not in j]
+        if lacking:
+            raise RobotFileError(src, "effort", f"current needs each joint's torque_constant (N*m per A); none for {', '.join(lacking)}")
+    return str(effort)
 
 
 def _field(where: str, key: str) -> str:
