@@ -13,6 +13,7 @@ an interface that is down or not CAN fails only at its first frame, with ``ENETD
 from __future__ import annotations
 
 import errno
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -93,7 +94,7 @@ def serial_open_error(port: str, err: BaseException, what: str = "serial port") 
     elif code == errno.EBUSY:
         cause = f"{port} is busy: another process holds it (`fuser -v {port}` names it)"
     elif code in (errno.ENOTTY, errno.EISDIR, errno.ENXIO, errno.ENODEV):
-        cause = f"{port}: not a serial port ({_reason(err)}); name the adapter's device, e.g. /dev/ttyUSB0"
+        cause = f"{port}: not a serial port ({os.strerror(code)}); name the adapter's device, e.g. /dev/ttyUSB0"
     else:
         cause = f"{port}: cannot open the {what} ({_reason(err)})"
     return BusOpenError("serial", port, cause)
