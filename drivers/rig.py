@@ -196,6 +196,7 @@ def open_bus(**kwargs: Any) -> Any:
 
         return FieldCopyVirtualBus(**{k: v for k, v in kwargs.items() if k != "interface"})
     bitrate = int(kwargs.get("bitrate") or 1_000_000)
+    bus: can.BusABC
     try:
         if interface == "udp_multicast":  # pinned to loopback unless the rig names an interface (drivers.multicast)
             from .multicast import PinnedMulticastBus

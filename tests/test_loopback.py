@@ -20,10 +20,10 @@ import can
 import numpy as np
 import pytest
 import yaml
+from conftest import joined_devices, zenoh_off_loopback
 
 from armid.drivers.multicast import socket_pinning
 from armid.drivers.rig import open_bus
-from conftest import joined_devices, zenoh_off_loopback
 
 ROOT = Path(__file__).resolve().parent.parent
 SIM_RIG = ROOT / "config" / "rigs" / "sim.yaml"
@@ -55,9 +55,8 @@ def test_python_cans_own_bus_would_leave_the_machine() -> None:
     """What the pinning is for: python-can's ``udp_multicast`` as it comes sends on the kernel's
     default interface with a TTL of 1 and joins on every interface the kernel picks, and the
     check in conftest would refuse it (its socket is checked here and closed, nothing sent)."""
-    from can.interfaces.udp_multicast.bus import GeneralPurposeUdpMulticastBus
-
     import conftest
+    from can.interfaces.udp_multicast.bus import GeneralPurposeUdpMulticastBus
 
     group = _group()
     before = len(conftest._OFF_LOOPBACK)

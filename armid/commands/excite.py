@@ -16,7 +16,7 @@ from armid.schema.errors import BusOpenError, InputFileError, OptionError, Usage
 from ..schema.json_text import write_json
 from .arguments import positive_number, seed_number, whole_count
 from .output import inputs_read
-from .rig import check_rig_budget, open_rig_driver, rig_from_arguments, rest_pose, simulating
+from .rig import check_rig_budget, open_rig_driver, rest_pose, rig_from_arguments, simulating
 from .session import add_zenoh_arguments, open_zenoh
 
 
