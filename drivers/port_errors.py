@@ -40,6 +40,7 @@ class LinkState:
     exists: bool
     up: bool = False
     link_type: int | None = None
+    bitrate: int | None = None  # a CAN controller's bit rate (``ip -details link``); None: unknown, or virtual (vcan)
 
     @property
     def is_can(self) -> bool:
@@ -56,7 +57,21 @@ def link_state(name: str) -> LinkState:
         link_type = int((folder / "type").read_text().strip())
     except (OSError, ValueError):
         return LinkState(name, exists=True)
-    return LinkState(name, exists=True, up=bool(flags & IFF_UP), link_type=link_type)
+    bitrate = _can_bitrate(name) if link_type == ARPHRD_CAN else None
+    return LinkState(name, exists=True, up=bool(flags & IFF_UP), link_type=link_type, bitrate=bitrate)
+
+
+def _can_bitrate(name: str) -> int | None:
+    """The bit rate the kernel set on CAN interface ``name`` (``ip -details -json link``), if any."""
+    import json
+    import subprocess
+
+    try:
+        done = subprocess.run(["ip", "-details", "-json", "link", "show", "dev", name], capture_output=True, text=True, timeout=5)
+        info = json.loads(done.stdout)[0]["linkinfo"]["info_data"]["bittiming"]
+        return int(info["bitrate"])
+    except (OSError, subprocess.SubprocessError, ValueError, LookupError, TypeError):
+        return None
 
 
 def socketcan_link_problem(state: LinkState, bitrate: int) -> str | None:
@@ -70,6 +85,9 @@ def socketcan_link_problem(state: LinkState, bitrate: int) -> str | None:
                 f"name the CAN interface (`ip -details link show type can`) in the rig file's bus.channel or --channel")
     if not state.up:
         return f"socketcan {name} is down: `sudo ip link set {name} up type can bitrate {bitrate}` (the drives' bit rate)"
+    if state.bitrate is not None and state.bitrate != bitrate:
+        return (f"socketcan {name} runs at {state.bitrate} bit/s, the rig's bus.bitrate is {bitrate}: "
+                f"`sudo ip link set {name} down && sudo ip link set {name} up type can bitrate {bitrate}` (the drives' bit rate)")
     return None
 
 

@@ -139,6 +139,10 @@ def test_socketcan_links_as_the_kernel_shows_them() -> None:
     assert socketcan_link_problem(can_down, 500_000) == (
         "socketcan can0 is down: `sudo ip link set can0 up type can bitrate 500000` (the drives' bit rate)")
     assert socketcan_link_problem(LinkState("can0", exists=True, up=True, link_type=ARPHRD_CAN), 500_000) is None
+    assert socketcan_link_problem(LinkState("can0", exists=True, up=True, link_type=ARPHRD_CAN, bitrate=500_000), 500_000) is None
+    assert socketcan_link_problem(LinkState("can0", exists=True, up=True, link_type=ARPHRD_CAN, bitrate=250_000), 500_000) == (
+        "socketcan can0 runs at 250000 bit/s, the rig's bus.bitrate is 500000: "
+        "`sudo ip link set can0 down && sudo ip link set can0 up type can bitrate 500000` (the drives' bit rate)")
 
 
 @pytest.mark.parametrize("interface", ["pcan", "slcan", "udp_multicast"])

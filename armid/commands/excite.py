@@ -89,7 +89,7 @@ def _excite_run(args: argparse.Namespace, rig: Any, robot: Any, n: int, simulate
         except BusOpenError as err:
             if not args.dry_run:
                 raise
-            start, unchecked = rest_pose(rig), "the bus and the drives"
+            start, unchecked = rest_pose(rig), "the serial port and the servos" if rig.is_serial else "the bus and the drives"
             console.print(f"armid excite: not checked: {err}; designing from {np.round(start, 4).tolist()} rad "
                           f"instead of the drives' pose", markup=False, highlight=False, soft_wrap=True)
     if trajectory is not None:
