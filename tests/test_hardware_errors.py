@@ -190,21 +190,32 @@ def _unprivileged() -> str | None:
 
 
 @pytest.mark.skipif(sys.platform != "linux", reason="a pty with Linux's permissions")
-def test_a_serial_port_the_user_may_not_open_says_dialout(tmp_path: Path) -> None:
-    """A real pty whose slave only root may open, opened by an unprivileged user (this test's
-    user, or ``nobody`` through ``setpriv`` when the tests run as root): the kernel says EACCES."""
+@pytest.mark.parametrize(("case", "expect"), [
+    ("only root may open it", "permission denied on {port}: add the user to the dialout group (`sudo usermod -aG dialout $USER`"),
+    ("another process holds it (TIOCEXCL)", "{port} is busy: another process holds it (`fuser -v {port}` names it)"),
+])
+def test_a_serial_port_the_user_may_not_open(case: str, expect: str) -> None:
+    """A real pty opened by an unprivileged user (this test's user, or ``nobody`` through
+    ``setpriv`` when the tests run as root): a slave only root may open (the kernel says EACCES),
+    or one this process holds exclusively, as a running program holds its port (EBUSY)."""
+    import fcntl
     import tempfile
+    import termios
 
     master, slave = os.openpty()
     name = os.ttyname(slave)
     out = Path(tempfile.mkdtemp(prefix="armid-port-"))  # under /tmp: pytest's own folder is its user's only
     try:
-        os.chmod(name, 0o600)
+        if case.startswith("only root"):
+            os.chmod(name, 0o600)
+        else:
+            os.chmod(name, 0o666)
+            fcntl.ioctl(slave, termios.TIOCEXCL)
         os.chmod(out, 0o777)
         argv = [sys.executable, "-m", "armid.cli", *_serial_argv(name, out / "run")]
         how = _unprivileged()
         if how is None:
-            if os.stat(name).st_uid == os.geteuid():
+            if case.startswith("only root") and os.stat(name).st_uid == os.geteuid():
                 pytest.skip("this user owns its ptys: no port it may not open")
         else:
             argv = ["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups", *argv]
@@ -216,7 +227,7 @@ def test_a_serial_port_the_user_may_not_open_says_dialout(tmp_path: Path) -> Non
         shutil.rmtree(out, ignore_errors=True)
     lines = [line for line in done.stderr.strip().splitlines() if line.strip()]
     assert done.returncode == 1 and len(lines) == 1, done.stderr
-    assert f"permission denied on {name}: add the user to the dialout group" in lines[0], lines[0]
+    assert expect.format(port=name) in lines[0], lines[0]
 
 
 # -- armid sim -----------------------------------------------------------------------------------
