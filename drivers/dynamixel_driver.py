@@ -37,6 +37,7 @@ from armid.schema.errors import ServoLost
 from . import dynamixel_protocol as dxl
 from .dynamixel_protocol import Address, ProtocolError, ReplyTimeout, StatusError
 from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverError, DriverTimeout, Sample
+from .port_errors import serial_open_error
 from .rig import Rig
 
 REBOOT_WAIT_S = 1.0  # a rebooting servo answers a ping again within this
@@ -44,6 +45,13 @@ ONE_OFF_TIMEOUT_S = 0.05  # a one-off transaction's reply timeout, at least (a l
 ONE_OFF_ATTEMPTS = 3
 STALL_S = 0.002  # a wait that returns this much after its timeout: this process was not running
 MAX_STALL_WAITS = 3  # new reply windows one read gets for stalls of this process (a silent servo still times out)
+
+
+def serial_budget(rig: Rig) -> dxl.SerialBudget:
+    """The time budget of one cycle of the rig's servo chain (:func:`dxl.check_budget` refuses it)."""
+    cfg = rig.serial
+    assert cfg is not None, "a serial rig (bus.interface: dynamixel)"
+    return dxl.cycle_budget(rig.n_joints, cfg.baudrate, rig.period_s, cfg.return_delay_us, cfg.host_latency_ms / 1000.0, cfg.read_mode)
 
 
 class DynamixelDriver(Driver):
@@ -61,8 +69,7 @@ class DynamixelDriver(Driver):
         self.ids = [d.node_id for d in rig.drives]
         self.models = [dxl.SERVO_MODELS[d.model] for d in rig.drives]
         self.fast = cfg.read_mode == "fast_sync_read"
-        self.budget = dxl.cycle_budget(self.n_joints, cfg.baudrate, rig.period_s, cfg.return_delay_us, cfg.host_latency_ms / 1000.0,
-                                       cfg.read_mode)
+        self.budget = serial_budget(rig)
         self.reply_timeout_s = (cfg.reply_timeout_ms / 1000.0 if cfg.reply_timeout_ms is not None
                                 else self.budget.reply_s + 2.0 * self.budget.host_latency_s + 0.002)
         self._lsb = np.array([m.current_lsb_a for m in self.models])
@@ -100,7 +107,7 @@ class DynamixelDriver(Driver):
         try:
             self._serial = serial.Serial(self.port_name, self.cfg.baudrate, timeout=0, write_timeout=0.1)
         except (serial.SerialException, OSError) as err:
-            raise DriverError(f"{self.rig.source}: cannot open serial port {self.port_name}: {err}") from err
+            raise serial_open_error(self.port_name, err) from err
         self._fd = self._serial.fileno()
 
     def _send(self, packet: bytes) -> None:

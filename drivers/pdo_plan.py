@@ -22,6 +22,7 @@ A plan above 80 % is refused with the numbers and the ways out.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from armid.schema.errors import BusBudgetError
@@ -106,18 +107,36 @@ def bus_load(plan: str, n_axes: int, period_s: float, bitrate: int, heartbeat_ms
     return BusLoad(bits, bitrate * period_s, frames)
 
 
+PLAN_WORDS = {
+    "alternate_velocity": "velocity on alternate cycles",
+    "full": "every value on every cycle",
+    "position_current": "position and current only, velocity differentiated",
+}
+
+
+def shortest_period_s(plan: str, n_axes: int, bitrate: int, heartbeat_ms: int = 100) -> float:
+    """The shortest SYNC period at which ``plan`` stays within :data:`MAX_LOAD` (s): the cyclic
+    frames are a fixed count per cycle, the heartbeats a fixed rate (:func:`bus_load`)."""
+    fixed = bus_load(plan, n_axes, 0.0, bitrate, heartbeat_ms).bits_per_cycle
+    heartbeat_bits_per_s = (n_axes + 1) * frame_bits(1) / (heartbeat_ms / 1000.0)
+    return fixed / (MAX_LOAD * bitrate - heartbeat_bits_per_s)
+
+
 def check_bus_budget(plan: str, n_axes: int, period_s: float, bitrate: int, heartbeat_ms: int = 100) -> BusLoad:
-    """:func:`bus_load`, refused above 80 % with the numbers and the ways out."""
+    """:func:`bus_load`, refused above 80 % with the numbers and the ways out: the other plans
+    that fit (never the one in use), the shortest period that fits this plan, and the rest."""
     b = bus_load(plan, n_axes, period_s, bitrate, heartbeat_ms)
     if b.load > MAX_LOAD:
-        others = ", ".join(
-            f"{p} {bus_load(p, n_axes, period_s, bitrate, heartbeat_ms).load:.0%}" for p in PLANS if p != plan
-        )
+        loads = {p: bus_load(p, n_axes, period_s, bitrate, heartbeat_ms).load for p in PLANS if p != plan}
+        fitting = [f"pdo_plan: {p} ({PLAN_WORDS[p]}: {load:.0%} here)" for p, load in loads.items() if load <= MAX_LOAD]
+        shortest = math.ceil(shortest_period_s(plan, n_axes, bitrate, heartbeat_ms) * 1e5) / 1e5  # up to 10 us
+        options = [*fitting, f"a period of at least {shortest * 1000:g} ms with this plan (period_s: {shortest:g})",
+                   "two buses", "fewer axes commanded per cycle", "CAN FD"]
+        others = ", ".join(f"{p} {load:.0%}" for p, load in loads.items() if load > MAX_LOAD)
         raise BusBudgetError(
             f"PDO plan {plan!r} loads the bus to {b.load:.1%} (worst case with bit stuffing: "
             f"{b.bits_per_cycle:.0f} of {b.capacity_bits:.0f} bits per {period_s * 1000:g} ms cycle, "
-            f"{n_axes} axes at {bitrate / 1e6:g} Mbit/s); the limit is {MAX_LOAD:.0%}. Options: velocity on "
-            f"alternate cycles (pdo_plan: alternate_velocity), position and current only (position_current), "
-            f"a longer period, two buses, fewer axes commanded per cycle, or CAN FD. Other plans here: {others}"
+            f"{n_axes} axes at {bitrate / 1e6:g} Mbit/s); the limit is {MAX_LOAD:.0%}. Options: {', '.join(options)}"
+            + (f". Beyond the limit here too: {others}" if others else "")
         )
     return b

@@ -16,7 +16,7 @@ from typing import Any, Generic, Literal, Protocol, TypeVar, get_args
 
 import numpy as np
 
-from armid.schema.errors import RigFileError
+from armid.schema.errors import BusOpenError, RigFileError
 
 
 class ArmDescription(Protocol):
@@ -179,17 +179,36 @@ about 20 frames a cycle, Linux's default 212 KB receive buffer overflows in abou
 
 
 def open_bus(**kwargs: Any) -> Any:
-    """``can.Bus(**kwargs)``, with a receive buffer that survives a stall on ``udp_multicast``,
-    and on ``virtual`` :class:`~drivers.virtual_bus.FieldCopyVirtualBus`."""
+    """``can.Bus(**kwargs)``, with a receive buffer that survives a stall on ``udp_multicast``
+    (pinned to loopback: :class:`~drivers.multicast.PinnedMulticastBus`), and on ``virtual``
+    :class:`~drivers.virtual_bus.FieldCopyVirtualBus`. A bus that will not
+    open, or a SocketCAN link that is down or not CAN, raises
+    :class:`~armid.schema.errors.BusOpenError` (:mod:`drivers.port_errors` words it)."""
     import socket
 
     import can
 
-    if kwargs.get("interface") == "virtual":
+    from .port_errors import can_open_error, link_state, socketcan_link_problem
+
+    interface, channel = kwargs.get("interface"), kwargs.get("channel")
+    if interface == "virtual":
         from .virtual_bus import FieldCopyVirtualBus
 
         return FieldCopyVirtualBus(**{k: v for k, v in kwargs.items() if k != "interface"})
-    bus = can.Bus(**kwargs)
+    bitrate = int(kwargs.get("bitrate") or 1_000_000)
+    bus: can.BusABC
+    try:
+        if interface == "udp_multicast":  # pinned to loopback unless the rig names an interface (drivers.multicast)
+            from .multicast import PinnedMulticastBus
+
+            bus = PinnedMulticastBus(**{k: v for k, v in kwargs.items() if k != "interface"})
+        else:
+            bus = can.Bus(**kwargs)
+    except Exception as err:  # OSError, CanError, ImportError, ValueError: each interface raises its own
+        raise can_open_error(str(interface), channel, bitrate, err) from err
+    if interface == "socketcan" and (problem := socketcan_link_problem(link_state(str(channel)), bitrate)) is not None:
+        bus.shutdown()
+        raise BusOpenError("socketcan", str(channel), problem)
     sock = getattr(getattr(bus, "_multicast", None), "_socket", None)
     if sock is not None:
         for option in (getattr(socket, "SO_RCVBUFFORCE", None), socket.SO_RCVBUF):

@@ -56,7 +56,7 @@ def drop_own_frames(bus: can.BusABC, cob_ids: Iterable[int]) -> bool:
     (standard identifiers: each has one sender on a CAN bus, here this process). Returns
     whether it is attached: only ``udp_multicast`` buses on Linux take one."""
     ids = sorted({int(c) for c in cob_ids})
-    if not ids or not sys.platform.startswith("linux") or type(bus).__name__ != "UdpMulticastBus":
+    if not ids or not sys.platform.startswith("linux") or "UdpMulticastBus" not in {c.__name__ for c in type(bus).__mro__}:
         return False
     if len(ids) > 250:  # a conditional jump reaches 255 instructions
         return False

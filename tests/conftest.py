@@ -120,11 +120,77 @@ def _track_buses_and_sessions() -> None:
     original_open = zenoh.open
 
     def open_session(*args: Any, **kwargs: Any) -> Any:
+        config = args[0] if args else kwargs.get("config")
+        _OFF_LOOPBACK.extend(zenoh_off_loopback(config) if config is not None else ["a Zenoh session on the default configuration"])
         session = original_open(*args, **kwargs)
         _SESSIONS.append(session)
         return session
 
     zenoh.open = open_session
+
+
+# --- loopback only -------------------------------------------------------------------------
+_OFF_LOOPBACK: list[str] = []  # multicast sockets and Zenoh sessions this process opened that could reach another machine
+_LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "[::1]")
+
+
+def joined_devices(group: str) -> set[str]:
+    """The network devices on which this machine has joined IPv4 ``group`` (``/proc/net/igmp``)."""
+    import socket
+
+    wanted = socket.inet_aton(group)[::-1].hex().upper()  # the kernel prints the address as a host-order word
+    devices, device = set(), ""
+    for line in Path("/proc/net/igmp").read_text().splitlines()[1:]:
+        if not line.startswith("\t"):
+            device = line.split()[1]
+        elif line.split()[0] == wanted:
+            devices.add(device)
+    return devices
+
+
+def _track_network() -> None:
+    """Check every multicast socket (python-can's ``udp_multicast``, pinned or not) and every
+    Zenoh session this process opens, as it opens: nothing may be sent beyond loopback."""
+    from can.interfaces.udp_multicast.bus import GeneralPurposeUdpMulticastBus
+
+    from armid.drivers.multicast import socket_pinning
+
+    if getattr(GeneralPurposeUdpMulticastBus.__init__, "_armid_tracked", False):
+        return
+    original_init = GeneralPurposeUdpMulticastBus.__init__
+
+    def init(self: Any, *args: Any, **kwargs: Any) -> None:
+        original_init(self, *args, **kwargs)
+        interface, ttl = socket_pinning(self._socket)
+        outside = joined_devices(self.group) - {"lo"}
+        if interface != "127.0.0.1" or ttl != 0 or outside:
+            _OFF_LOOPBACK.append(f"multicast {self.group}: sends on {interface} with TTL {ttl}, joined on {sorted(outside) or 'lo only'}")
+
+    init._armid_tracked = True  # type: ignore[attr-defined]
+    GeneralPurposeUdpMulticastBus.__init__ = init  # type: ignore[method-assign]
+
+
+def zenoh_off_loopback(config: Any) -> list[str]:
+    """What of a Zenoh configuration could send to another machine: multicast scouting on, an
+    endpoint to connect to that is not on loopback, a listener on one other host. Zenoh's default
+    listener (``tcp/[::]:0``, every interface, where no listen endpoint is given) sends nothing
+    by itself: a peer that learns its addresses by gossip reaches this machine's own address,
+    which the kernel delivers on loopback (test_loopback's capture sees none of it elsewhere)."""
+    import json
+
+    problems = []
+    if json.loads(config.get_json("scouting/multicast/enabled")) is not False:
+        problems.append("Zenoh multicast scouting is on")
+    for side in ("listen", "connect"):
+        endpoints = json.loads(config.get_json(f"{side}/endpoints")) or []
+        if isinstance(endpoints, dict):  # per mode: {router: [...], peer: [...]}
+            endpoints = [e for es in endpoints.values() for e in es]
+        for endpoint in endpoints:
+            host = endpoint.split("/", 1)[-1].split("#")[0].rsplit(":", 1)[0]
+            wildcard = side == "listen" and host in ("[::]", "0.0.0.0")
+            if not host.startswith(_LOOPBACK_HOSTS) and not endpoint.startswith("unixsock") and not wildcard:
+                problems.append(f"Zenoh {side} endpoint {endpoint} is not on loopback")
+    return problems
 
 
 def _process_settings() -> dict[str, Any]:
@@ -136,9 +202,11 @@ def _process_settings() -> dict[str, Any]:
 @pytest.fixture(autouse=True)
 def no_leaks() -> Iterator[None]:
     """Fail a test that leaves a bus open, a Zenoh session open, a thread running or a
-    process-wide setting changed (python-can's and zenoh-python's test suites do the same)."""
+    process-wide setting changed (python-can's and zenoh-python's test suites do the same), or
+    that opens a multicast socket or a Zenoh session able to reach another machine."""
     _track_buses_and_sessions()
-    buses, sessions = set(map(id, _BUSES)), len(_SESSIONS)
+    _track_network()
+    buses, sessions, off_loopback = set(map(id, _BUSES)), len(_SESSIONS), len(_OFF_LOOPBACK)
     threads = set(threading.enumerate())
     settings = _process_settings()
     yield
@@ -147,6 +215,7 @@ def no_leaks() -> Iterator[None]:
         if id(bus) not in buses and not getattr(bus, "_is_shutdown", True):
             problems.append(f"a python-can bus left open: {bus!r}")
             bus.shutdown()
+    problems += [f"beyond loopback: {what}" for what in _OFF_LOOPBACK[off_loopback:]]
     for session in _SESSIONS[sessions:]:
         if not session.is_closed():
             problems.append("a Zenoh session left open")

@@ -20,6 +20,7 @@ from armid.drivers.canopen_driver import PACE_WAIT_S, CanopenDriver
 from armid.drivers.interface import DriveConfigError, DriveFault, HeartbeatLost
 from armid.drivers.pdo_plan import BusBudgetError, bus_load, check_bus_budget, frame_bits
 from armid.drivers.realtime import HARDWARE_ABOVE, requested_priority
+from armid.drivers.rig import open_bus
 from armid.drivers.udp_filter import drop_own_frames
 from armid.identify.control import ComputedTorque
 from armid.io.rig_file import load_rig, rig_from_dict
@@ -426,7 +427,7 @@ def test_a_udp_multicast_bus_does_not_receive_what_it_sends_itself() -> None:
     and any frame in a layout it does not know (an integer time stamp), and filters nothing
     on a bus that is not udp_multicast."""
     group = f"239.75.{np.random.default_rng().integers(1, 250)}.{np.random.default_rng().integers(1, 250)}"
-    mine, other = (can.Bus(interface="udp_multicast", channel=group) for _ in range(2))
+    mine, other = (open_bus(interface="udp_multicast", channel=group) for _ in range(2))  # pinned to loopback
     try:
         assert drop_own_frames(mine, [0x07, 0x80, 0x181, 0x7FF])
         for cob in (0x07, 0x80, 0x181, 0x7FF, 0x182, 0x08):

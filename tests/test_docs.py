@@ -134,7 +134,8 @@ def test_the_readme_is_undated() -> None:
 def test_the_readme_keeps_its_two_setup_commands() -> None:
     text = (ROOT / "README.md").read_text()
     assert 'python3 -m venv .venv && . .venv/bin/activate && pip install -e ".[all,dev]" && armid demo --out report\n' in text
-    assert '\npython -m pytest tests -m "not realtime" -n 2 && python -m pytest tests -m "realtime and not alone" -n 2 && python -m pytest tests -m alone\n' in text
+    assert ('\npython -m pytest tests -rs -m "not realtime" -n 2 && python -m pytest tests -rs -m "realtime and not alone" -n 2 '
+            '&& python -m pytest tests -rs -m alone\n') in text  # -rs: each skipped test's reason
 
 
 def test_the_cli_reference_is_what_the_parser_says() -> None:

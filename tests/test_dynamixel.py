@@ -19,11 +19,11 @@ from armid.daq.recorder import McapRecorder
 from armid.drivers import dynamixel_protocol as dxl
 from armid.drivers.canopen_driver import CanopenDriver
 from armid.drivers.dynamixel_driver import DynamixelDriver, ServoLost
-from armid.drivers.interface import DriveConfigError, DriveFault, DriverError
+from armid.drivers.interface import DriveConfigError, DriveFault
 from armid.identify.control import ComputedTorque
 from armid.io.recordings import read_recording
 from armid.io.rig_file import load_rig, rig_from_dict
-from armid.schema.errors import RigFileError
+from armid.schema.errors import BusOpenError, RigFileError
 from armid.schema.joint_states import JointStates
 from armid.sim_bus.arm import SimulatedArm
 
@@ -409,7 +409,7 @@ def test_start_up_refuses_a_chain_that_disagrees_with_the_rig(chain: ServoChainP
     missing = dict(doc, drives=doc["drives"][:5] + [{"id": 42, "model": "XM430-W350"}])
     with pytest.raises(DriveConfigError, match=r"joint 6 \(servo 42 .*no reply"):
         DynamixelDriver(rig_from_dict(missing, "missing.yaml"), port=chain.port).start()
-    with pytest.raises(DriverError, match="cannot open serial port /nonexistent/tty"):
+    with pytest.raises(BusOpenError, match=r"^/nonexistent/tty: no such device \(is the adapter plugged in"):
         DynamixelDriver(rig, port="/nonexistent/tty").start()
 
 

@@ -11,12 +11,12 @@ from typing import Any
 
 import numpy as np
 
-from armid.schema.errors import InputFileError, OptionError, UsageError
+from armid.schema.errors import BusOpenError, InputFileError, OptionError, UsageError
 
 from ..schema.json_text import write_json
 from .arguments import positive_number, seed_number, whole_count
 from .output import inputs_read
-from .rig import open_rig_driver, rig_from_arguments, simulating
+from .rig import check_rig_budget, open_rig_driver, rest_pose, rig_from_arguments, simulating
 from .ros2 import add_ros2_arguments, ros2_bridge
 from .session import add_zenoh_arguments, open_zenoh
 
@@ -82,10 +82,18 @@ def _excite_run(args: argparse.Namespace, rig: Any, robot: Any, n: int, simulate
 
     from ..experiments import Experiment, design_experiments, run_experiments
 
+    checked, unchecked = (check_rig_budget(rig), "") if args.dry_run else ("", "")
     if start is None:  # the pose the drives report; the drives are let be while this process designs
-        driver, sim = open_rig_driver(rig, args)
-        with ExcitationSession(rig, driver, simulator=sim, tracking_limit_rad=args.tracking_limit) as probe:
-            start = probe.position
+        try:
+            driver, sim = open_rig_driver(rig, args)
+            with ExcitationSession(rig, driver, simulator=sim, tracking_limit_rad=args.tracking_limit) as probe:
+                start = probe.position
+        except BusOpenError as err:
+            if not args.dry_run:
+                raise
+            start, unchecked = rest_pose(rig), "the serial port and the servos" if rig.is_serial else "the bus and the drives"
+            console.print(f"armid excite: not checked: {err}; designing from {np.round(start, 4).tolist()} rad "
+                          f"instead of the drives' pose", markup=False, highlight=False, soft_wrap=True)
     if trajectory is not None:
         traj, moving = trajectory
         limits = ex.Limits.of(robot)
@@ -100,7 +108,9 @@ def _excite_run(args: argparse.Namespace, rig: Any, robot: Any, n: int, simulate
                                           log=lambda m: console.print(f"  {m}"))
     write_json(out / "designs.json", {e.name: e.design.to_json() for e in experiments})
     if args.dry_run:
-        console.print(f"armid excite: {len(experiments)} trajectories checked against every limit (dry run: nothing recorded)")
+        console.print(f"armid excite: dry run, nothing recorded: {len(experiments)} trajector{'y' if len(experiments) == 1 else 'ies'} "
+                      f"checked against every limit; checked {checked}" + (f"; not checked: {unchecked}" if unchecked else ""),
+                      markup=False, highlight=False, soft_wrap=True)
         return 0
     console.print(f"armid excite: {len(experiments)} trajectories checked against every limit; recording to {out}")
     # designing can keep this process busy for tens of seconds: only now the drives run with it
@@ -225,7 +235,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--tracking-limit", type=positive_number, default=0.2, metavar="RAD", help="quick stop beyond this tracking error (default 0.2 rad)")
     p.add_argument("--seed", type=seed_number, default=0, help="seed of the trajectory optimiser's starts")
     p.add_argument("--out", help="output folder (default runs/<date-time>)")
-    p.add_argument("--dry-run", action="store_true", help="design and check only; enable nothing")
+    p.add_argument("--dry-run", action="store_true", help="check all that needs no drive (every limit, the plan, the bus budget), say what was not; enable nothing")
     p.add_argument("--interface", help="override the rig's python-can interface")
     p.add_argument("--channel", help="override the rig's channel")
     p.add_argument("--simulate", action=argparse.BooleanOptionalAction, default=None,

@@ -40,6 +40,34 @@ def open_rig_driver(rig: Any, args: argparse.Namespace) -> tuple[Any, Any]:
     return open_driver(rig, **kwargs), None
 
 
+def check_rig_budget(rig: Any) -> str:
+    """The rig's bus budget, checked as its driver checks it at start-up, without the bus (a
+    refusal raises ``BusBudgetError`` or ``SerialBudgetError``): what was checked, as a phrase."""
+    if rig.serial is not None:
+        from armid.drivers import dynamixel_protocol as dxl
+        from armid.drivers.dynamixel_driver import serial_budget
+
+        return f"the line's budget ({dxl.check_budget(serial_budget(rig)).describe()})"
+    from armid.drivers.pdo_plan import check_bus_budget
+
+    load = check_bus_budget(rig.pdo_plan, rig.n_joints, rig.period_s, rig.bus.bitrate, rig.heartbeat_ms).load
+    return (f"the PDO plan and the bus budget ({rig.pdo_plan}: {load:.1%} of {rig.bus.bitrate / 1e6:g} Mbit/s "
+            f"at {rig.period_s * 1000:g} ms, {rig.n_joints} axes)")
+
+
+def rest_pose(rig: Any) -> Any:
+    """Where a dry run designs from when the drives cannot say where the arm is: the rig's
+    simulated start, else every joint at 0 rad (moved inside its limits)."""
+    import numpy as np
+
+    from armid.identify.excitation import Limits
+
+    if "initial_position" in rig.simulation:
+        return np.asarray(rig.simulation["initial_position"], float)
+    limits = Limits.of(rig.robot)
+    return np.clip(np.zeros(rig.n_joints), limits.position_low, limits.position_high)
+
+
 @contextmanager
 def stopped_by_signals() -> Iterator[threading.Event]:
     """An event that SIGINT and SIGTERM set while the block runs; the handlers before are put

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -25,20 +26,56 @@ def _sim_arm(rig: Any, args: argparse.Namespace, stop: Any) -> int:
     from armid.sim_bus.arm import SimulatedArm
 
     arm = SimulatedArm(rig, seed=args.seed, own_process=True)
+    where = f"{rig.bus.interface}:{rig.bus.channel}"
     print(f"armid sim: {rig.name}: {rig.n_joints} drives (nodes {', '.join(str(d.node_id) for d in rig.drives)}) "
-          f"on {rig.bus.interface}:{rig.bus.channel}, lock-step with SYNC at {rig.period_s * 1000:g} ms (co-simulated: a late "
+          f"on {where}, lock-step with SYNC at {rig.period_s * 1000:g} ms (co-simulated: a late "
           f"SYNC pauses the arm); {arm.timing.sentence('simulator threads')}{'' if arm.cpu is None else f' on CPU {arm.cpu}'}", file=sys.stderr, flush=True)
+    print(f"armid sim: waiting for a master's SYNC (COB-ID 0x080) on {where}{_reach(rig)}", file=sys.stderr, flush=True)
     if args.ready:
         Path(args.ready).write_text("ready\n")
+    started = time.monotonic()
     try:
-        run_until(stop, args.duration)
+        first = _wait_for_syncs(arm, stop, args.duration, started, where)
+        waited = time.monotonic() - started
     finally:
         arm.close()
         if args.log:
             _write_sim_log(arm, Path(args.log))
     st = arm.status()
-    print(f"armid sim: {st['syncs']} SYNC periods simulated ({st['time_s']:.3f} s of arm time)", file=sys.stderr)
+    if st["syncs"] == 0:
+        print(f"armid sim: no SYNC came on {where} in {waited:.1f} s of waiting: 0 SYNC periods simulated; "
+              f"a master (armid record or excite --rig with this bus) sends them{_reach(rig)}", file=sys.stderr)
+    else:
+        print(f"armid sim: {st['syncs']} SYNC periods simulated ({st['time_s']:.3f} s of arm time); the first SYNC came "
+              f"{first:.1f} s after the drives were on {where}, {waited:.1f} s in all", file=sys.stderr)
     return 0
+
+
+NO_SYNC_NOTE_S = 5.0
+"""Without a SYNC this long, ``armid sim`` says once that it is still waiting, and for what."""
+
+
+def _reach(rig: Any) -> str:
+    """Who can reach the simulated drives on the rig's bus, where that is not every process."""
+    if rig.bus.interface == "virtual":
+        return ("; python-can's virtual bus stays inside this process, so no master in another process reaches it: "
+                "--interface udp_multicast (the master too), or armid demo (both in one process)")
+    return ""
+
+
+def _wait_for_syncs(arm: Any, stop: Any, duration: float | None, started: float, where: str) -> float:
+    """Until ``stop`` or ``duration``: seconds from ``started`` to the first SYNC (nan when none)."""
+    first, said = float("nan"), False
+    while not stop.wait(0.05):
+        now = time.monotonic() - started
+        if first != first and arm.syncs:
+            first = now
+        elif first != first and not said and now > NO_SYNC_NOTE_S:
+            print(f"armid sim: no SYNC on {where} yet after {now:.0f} s; still waiting", file=sys.stderr, flush=True)
+            said = True
+        if duration and now > duration:
+            break
+    return first
 
 
 def _sim_chain(rig: Any, args: argparse.Namespace, stop: Any) -> int:

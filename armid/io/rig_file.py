@@ -38,6 +38,22 @@ def load_rig(path: str | Path) -> Rig[Robot]:
     return rig_from_dict(doc, src, path.parent)
 
 
+def _check_multicast(bus_doc: dict[str, Any], src: str) -> None:
+    """``bus.multicast_interface`` (an IPv4 address of this machine's interface that carries a
+    ``udp_multicast`` bus; 127.0.0.1 when absent) and ``bus.hop_limit`` (its TTL, 0..255)."""
+    import ipaddress
+
+    if "multicast_interface" in bus_doc:
+        value = bus_doc["multicast_interface"]
+        try:
+            ipaddress.IPv4Address(value if isinstance(value, str) else "")
+        except ValueError:
+            raise RigFileError(src, "bus.multicast_interface", f"must be an IPv4 address of this machine's interface "
+                                                               f"(127.0.0.1 keeps the bus on this machine), got {value!r}") from None
+    if "hop_limit" in bus_doc:
+        _int(bus_doc["hop_limit"], src, "bus.hop_limit", 0, 255)
+
+
 def rig_from_dict(doc: Any, src: str = "<rig>", base_dir: Path | None = None) -> Rig[Robot]:
     if not isinstance(doc, dict):
         raise RigFileError(src, "", "must be a mapping")
@@ -70,6 +86,7 @@ def rig_from_dict(doc: Any, src: str = "<rig>", base_dir: Path | None = None) ->
     interface = bus_doc.get("interface", "virtual")
     if "interface" in bus_doc:
         check_interface(interface, src, "bus.interface")
+    _check_multicast(bus_doc, src)
     bus = BusConfig(
         interface=str(interface),
         channel=str(bus_doc.get("channel", "armid")),

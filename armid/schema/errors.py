@@ -22,6 +22,7 @@ Errors that were ``ValueError`` stay catchable as ``ValueError`` (python-can's
      +-- DriverError                                    runtime: the driver cannot go on
      |    +-- DriveConfigError(InputError, ValueError)  a drive refuses the rig's configuration
      |    |    +-- SerialBudgetError                    the servo cycle does not fit the period
+     |    +-- BusOpenError(OSError)                     the bus or serial port will not open: cause, what to do
      |    +-- DriverTimeout(TimeoutError)               no cycle, state or answer within its time
      |    +-- DriveFault                                a drive's fault (EMCY) or silence
      |    |    +-- HeartbeatLost                        no heartbeat within 3 periods
@@ -131,6 +132,22 @@ class DriveConfigError(DriverError, InputError, ValueError):
 
 class SerialBudgetError(DriveConfigError):
     """The cycle does not fit the period at this baud rate: the message gives the numbers."""
+
+
+class BusOpenError(DriverError, OSError):
+    """A CAN bus or a serial port would not open (``drivers.port_errors`` words it): names the
+    interface (``socketcan``, ``pcan``, ``serial``, ...), the channel or port, the cause and what
+    to do. A runtime fault (exit 1): the rig may be right and the hardware not ready."""
+
+    def __init__(self, interface: str, channel: str, cause: str) -> None:
+        self.interface, self.channel, self.cause = interface, channel, cause
+        super().__init__(cause)
+
+    def __str__(self) -> str:
+        return self.cause
+
+    def __reduce__(self) -> tuple[type[BusOpenError], tuple[str, str, str]]:
+        return (type(self), (self.interface, self.channel, self.cause))
 
 
 class DriverTimeout(DriverError, TimeoutError):
