@@ -14,7 +14,6 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-from scipy import optimize
 
 from .dynamics import regressor
 from .effects import LOAD_DEPENDENT, PROFILED, SETTINGS, LinearEffect, LoadFriction, effect_columns, linear_effect, load_friction
@@ -144,6 +143,8 @@ def _profile_gains(factors: JointFactors, joints: list[int], weighting: str) -> 
     the gains (variable projection: the linear parameters eliminated for each try). Scaling
     ``W_j`` by ``s`` scales the columns of its R factor, so a try costs one small QR and
     never touches the data. Weights are the joints' noise levels of the fit without gains."""
+    from scipy import optimize  # here: its import is a tenth of a whole identification's time
+
     p = factors.n_parameters
     weights = np.ones(len(factors.r))
     if weighting == "wls":
@@ -523,7 +524,7 @@ def _triangle(columns: Array) -> Array:
 def _factors(system: Array, columns: Array) -> JointFactors:
     """Per-joint R factors of the chosen regressor columns and the torque."""
     keep = np.append(columns, system.shape[1] - 1)
-    return factor_columns([system[j][keep] for j in range(system.shape[0])])
+    return factor_columns(system[j][keep] for j in range(system.shape[0]))  # one joint's copy at a time
 
 
 def _robust(system: Array, columns: Array, residual: Array, est: LeastSquares, factors: JointFactors, weighting: str,
