@@ -9,12 +9,13 @@ The file is made here with Pinocchio alone (no armid code): the UR5 that armid s
 Fourier trajectory of five harmonics per joint at 500 Hz, its torque Pinocchio's RNEA plus
 viscous and Coulomb friction plus noise. The two processes run interleaved (armid, plain, armid,
 ...) so that a load that comes and goes falls on both; each is given as its best and its median,
-with the load average at the start and the end.
+wall-clock and CPU seconds (steadier on a shared machine), with the load average at the start and the end.
 """
 
 from __future__ import annotations
 
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -52,14 +53,18 @@ def make_csv(path: Path, n: int, seed: int = 0) -> None:
     np.savetxt(path, np.column_stack([t, q, qd, tau]), delimiter=",", header=header, comments="", fmt="%.10g")
 
 
-def wall_seconds(argv: list[str]) -> tuple[float, str]:
-    """One whole process, start to exit, and its last line; a failed run is no figure."""
+def wall_seconds(argv: list[str]) -> tuple[float, float, str]:
+    """One whole process, start to exit: its wall-clock and CPU seconds (user and system,
+    all its threads) and its last line; a failed run is no figure."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
     done = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True)
     took = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if done.returncode != 0:
         raise SystemExit(f"{' '.join(argv)} exited {done.returncode}: {done.stderr[-1000:]}")
-    return took, (done.stdout.strip().splitlines() or [""])[-1]
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return took, cpu, (done.stdout.strip().splitlines() or [""])[-1]
 
 
 def main(repeats: int = 5, n: int = 100_000) -> None:
@@ -75,17 +80,22 @@ def main(repeats: int = 5, n: int = 100_000) -> None:
             wall_seconds(argv)
         load_start = load_average()
         times: dict[str, list[float]] = {name: [] for name in commands}
+        cpus: dict[str, list[float]] = {name: [] for name in commands}
         last: dict[str, str] = {}
         for _ in range(repeats):
             for name, argv in commands.items():
-                took, last[name] = wall_seconds(argv)
+                took, cpu, last[name] = wall_seconds(argv)
                 times[name].append(took)
+                cpus[name].append(cpu)
     print(f"{n} samples x 6 joints (UR5, {RATE_HZ:g} Hz, CSV), {repeats} interleaved runs each, {os.cpu_count()} cores, "
           f"load average {load_start} at the start, {load_average()} at the end")
     for name, secs in times.items():
-        print(f"{name}: best {min(secs):.2f} s, median {statistics.median(secs):.2f} s ({last[name]})")
+        print(f"{name}: best {min(secs):.2f} s, median {statistics.median(secs):.2f} s; CPU best {min(cpus[name]):.2f} s, "
+              f"median {statistics.median(cpus[name]):.2f} s ({last[name]})")
     a, p = times["armid identify"], times["plain script"]
-    print(f"armid identify / plain script: {min(a) / min(p):.2f}x (best), {statistics.median(a) / statistics.median(p):.2f}x (median)")
+    print(f"armid identify / plain script: {min(a) / min(p):.2f}x (best), {statistics.median(a) / statistics.median(p):.2f}x (median); "
+          f"CPU seconds {min(cpus['armid identify']) / min(cpus['plain script']):.2f}x (best), "
+          f"{statistics.median(cpus['armid identify']) / statistics.median(cpus['plain script']):.2f}x (median)")
 
 
 if __name__ == "__main__":
