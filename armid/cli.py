@@ -75,6 +75,10 @@ def main(argv: list[str] | None = None) -> int:
         with warnings.catch_warnings():
             warnings.showwarning = HELD_WARNINGS.show
             extras.require(args.command)  # one line naming the extra before anything starts
+            if args.command in extras.NEEDS:  # the commands that compute (the others need no extra)
+                from .kernels import announce_compilation
+
+                announce_compilation()
             code = int(args.run(args))
         HELD_WARNINGS.release()
         return code

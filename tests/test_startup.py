@@ -7,6 +7,7 @@ interpreter actually imported (``python -X importtime``), not on a clock:
 
 from __future__ import annotations
 
+import io
 import subprocess
 import sys
 from pathlib import Path
@@ -14,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from armid.cli import build_parser
+from armid.kernels import announce_compilation
 
 ROOT = Path(__file__).resolve().parent.parent
 HEAVY = {"numpy", "scipy", "pinocchio", "zenoh", "numba", "cvxpy", "clarabel", "matplotlib", "ray", "rich"}
@@ -47,3 +49,32 @@ def test_the_measure_sees_a_heavy_import() -> None:
                           timeout=120)
     names = {line.rsplit("|", 1)[1].strip().split(".")[0] for line in done.stderr.splitlines() if line.startswith("import time:")}
     assert "numpy" in names
+
+
+class _Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def _compiled_in(module: str) -> None:
+    import numba
+
+    def probe(x: float) -> float:
+        return x + 1.0
+
+    probe.__module__ = module
+    numba.njit(probe)(1.0)  # no cache: compiled here, the event raised
+
+
+def test_a_kernel_that_compiles_says_so_on_a_terminal_once() -> None:
+    """The first-run compilation is announced (a wait of up to a minute is not a hang), on a
+    terminal only, for armid's kernels only, once."""
+    terminal, pipe = _Terminal(), io.StringIO()
+    announce_compilation(terminal)
+    announce_compilation(pipe)
+    _compiled_in("someone_else.module")
+    assert terminal.getvalue() == ""
+    _compiled_in("armid.identify.kernels.probe")
+    _compiled_in("armid.identify.kernels.probe2")
+    assert terminal.getvalue().count("compiling the numerical kernels") == 1
+    assert pipe.getvalue() == ""
