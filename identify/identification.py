@@ -144,7 +144,6 @@ def _profile_gains(factors: JointFactors, joints: list[int], weighting: str) -> 
     ``W_j`` by ``s`` scales the columns of its R factor, so a try costs one small QR and
     never touches the data. Weights are the joints' noise levels of the fit without gains."""
     from scipy import optimize  # here: its import is a tenth of a whole identification's time
-
     p = factors.n_parameters
     weights = np.ones(len(factors.r))
     if weighting == "wls":
@@ -524,9 +523,7 @@ def _triangle(columns: Array) -> Array:
 def _factors(system: Array, columns: Array) -> JointFactors:
     """Per-joint R factors of the chosen regressor columns and the torque."""
     keep = np.append(columns, system.shape[1] - 1)
-    # one joint's columns at a time, through one buffer that its QR overwrites: a fresh copy
-    # per joint (40 MB for 100,000 samples) cost more in the memory's first touch than the QR
-    buffer = np.empty((keep.size, system.shape[2]))
+    buffer = np.empty((keep.size, system.shape[2]))  # one joint at a time, its QR in place: a fresh copy's first touch cost more
     return factor_columns(np.take(system[j], keep, axis=0, out=buffer, mode="clip") for j in range(system.shape[0]))
 
 
@@ -539,10 +536,8 @@ def _robust(system: Array, columns: Array, residual: Array, est: LeastSquares, f
     to the prior keeps the prior's uncertainty instead of none."""
     weights = 1.0 / np.maximum(est.joint_sigma, 1e-300) if weighting == "wls" else np.ones(system.shape[0])
     scores = np.zeros((residual.shape[0], columns.size))
-    rows, term = np.empty((columns.size, system.shape[2])), np.empty_like(scores)  # reused: see _factors
     for j in range(system.shape[0]):
-        np.take(system[j], columns, axis=0, out=rows, mode="clip")
-        scores += np.multiply(rows.T, (weights[j] ** 2 * residual[:, j])[:, None], out=term)
+        scores += system[j][columns].T * (weights[j] ** 2 * residual[:, j])[:, None]
     r = factors.combined(weights)[:-1, :-1]
     if penalty is None:
         rinv = np.linalg.pinv(r)
