@@ -65,7 +65,7 @@ def _start(ray: Any, workers: int | None, address: str | None) -> bool:
 def run_ray(jobs: Sequence[Job], on_result: Callable[[Result], None], workers: int | None = None, address: str | None = None) -> str:
     """Every job as a Ray task, at most ``workers`` at once (default: the cluster's CPUs); a
     task that dies (its worker lost) is a failed result too. Returns what ran them."""
-    from .task import Result, identify_recording, one_line
+    from .task import Job, Result, identify_recording, one_line
 
     ray = import_ray()
     started = _start(ray, workers, address)
