@@ -75,6 +75,10 @@ def main(argv: list[str] | None = None) -> int:
         with warnings.catch_warnings():
             warnings.showwarning = HELD_WARNINGS.show
             extras.require(args.command, [k for k, v in vars(args).items() if v not in (None, False)])  # one line naming the extra before anything starts
+            if args.command in extras.NEEDS:  # the commands that compute (the others need no extra)
+                from .kernels import announce_compilation
+
+                announce_compilation()
             code = int(args.run(args))
         HELD_WARNINGS.release()
         return code
@@ -99,7 +103,15 @@ def run() -> None:
     "FATAL: exception not rethrown": a stopped ``armid serve`` in 1 of 10 tries beside two
     busy loops, after its last line); so would a worker still inside compiled code. Outputs
     are closed by then; garbage still held in cycles is collected and the standard streams
-    flushed first."""
+    flushed first.
+
+    NumPy is told not to ask for transparent huge pages (``NUMPY_MADVISE_HUGEPAGE=0``, unless
+    the user set it): where the kernel compacts memory to find one at the first touch (its
+    default ``defrag=madvise``), the first touch of a long recording's equations cost 0.75 s of
+    system time more than with ordinary pages on the 2-core machine (1.4 s against 0.65 s of an
+    ``armid identify`` on 100,000 samples x 6 joints; benchmarks/bench_identify_process.py).
+    Set before NumPy is imported: the command line imports it only when a command runs."""
+    os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
     code = main()
     if "zenoh" not in sys.modules:
         raise SystemExit(code)

@@ -8,6 +8,12 @@ while the regressor does, and every later process (the simulated arm, ``armid se
 ``armid estimate live``) loads them from numba's cache instead of compiling them on the
 real-time process's clock or before the payload estimator can start. Each kernel is called
 as its users call it, so that the cached signature is theirs.
+
+``python -m armid.kernels`` (no rig) builds the cache of every kernel, the regressor's
+included, for the shipped simulated rig: the step after ``pip install`` that spares the first
+``armid identify`` its compilation (30 s measured on the 2-core machine beside other work). Without
+it, a command that starts compiling says so on a terminal (:func:`announce_compilation`), so that
+the wait is not taken for a hang.
 """
 
 from __future__ import annotations
@@ -18,6 +24,7 @@ import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TextIO
 
 
 @contextmanager
@@ -35,7 +42,35 @@ def compiled_ahead(rig_path: Path) -> Iterator[None]:
         proc.wait()
 
 
-def _compile(rig_path: Path) -> None:
+def announce_compilation(stream: TextIO | None = None) -> None:
+    """On a terminal, one line on ``stream`` (stderr) when the first of armid's kernels
+    starts compiling in this process (numba's ``numba:compile`` event, which a kernel loaded
+    from the cache does not raise); nothing when the cache is built, or where no one watches
+    (a pipe, a file, a test)."""
+    stream = sys.stderr if stream is None else stream
+    if not stream.isatty():
+        return
+    from numba.core import event
+
+    class _Once(event.Listener):
+        said = False
+
+        def on_start(self, ev: event.Event) -> None:
+            module = getattr(getattr(ev.data.get("dispatcher"), "py_func", None), "__module__", "") or ""
+            if not self.said and module.startswith("armid."):
+                self.said = True
+                print("armid: compiling the numerical kernels for this machine, once (up to a minute on a busy 2-core machine; later runs load them "
+                      "from numba's cache; `python -m armid.kernels` builds it ahead)", file=stream, flush=True)
+
+        def on_end(self, ev: event.Event) -> None:
+            pass
+
+    event.register("numba:compile", _Once())
+
+
+def _compile(rig_path: Path, regressor: bool = False) -> None:
+    """Each kernel called as its users call it (the regressor too with ``regressor``: the
+    demo leaves it to its first design)."""
     import numpy as np
 
     from armid.identify.filtering import lowpass
@@ -47,8 +82,18 @@ def _compile(rig_path: Path) -> None:
     ArmPhysics(rig.robot, simulation_config(rig.simulation, rig.robot.n_joints), rig.period_s)  # compiles its sub-step as it is made
     project_feasible(-0.01 * np.ones(10), np.eye(10))  # as PayloadRLS.warm
     lowpass(np.random.default_rng(0).normal(size=(500, rig.robot.n_joints)), rig.period_s, 10.0)
+    if regressor:
+        from armid.identify.dynamics import regressor as compute
+
+        q = np.random.default_rng(0).normal(size=(3, 300, rig.robot.n_joints))
+        compute(rig.robot, *q)
 
 
 if __name__ == "__main__":
-    os.nice(5)
-    _compile(Path(sys.argv[1]))
+    if len(sys.argv) > 1:  # the demo's, beside its first design
+        os.nice(5)
+        _compile(Path(sys.argv[1]))
+    else:
+        from armid.resources import config_file
+
+        _compile(config_file("rigs/sim.yaml"), regressor=True)

@@ -21,6 +21,9 @@ ROOT = HERE.parent
 
 # result name -> the command's arguments after ``python benchmarks/``
 RUNS = {
+    "startup": ["bench_startup.py"],
+    "identify_process": ["bench_identify_process.py"],
+    "diagnose_process": ["bench_diagnose_process.py"],
     "regressor": ["bench_regressor.py"],
     "identify": ["bench_identify.py"],
     "feasible": ["bench_feasible.py"],

@@ -67,23 +67,25 @@ def advanced(x: Array, t: Array, delay: Array | None) -> Array:
 
 
 def equations(robot: Robot, effects: list[LinearEffect], seg: Segment, scale: Array | None = None, delay: Array | None = None,
-              motion_delay: Array | None = None, rigid: bool = True) -> Array:
+              motion_delay: Array | None = None, rigid: bool = True, kept: slice | None = None, out: Array | None = None) -> Array:
     """(n, N, p+1): the regressor's columns and the torque of one segment, at its samples (at
     the kept ones only when it has no low-pass); :func:`_into_system` puts them through the
     segment's parallel filter (low-pass, edges, decimation): eq. (18) as least squares sees it.
     ``scale``/``delay`` (per joint) undo a found drive gain and sensor delay on the torque.
-    ``rigid=False`` leaves the rigid-body columns unset (their equations are reused)."""
+    ``rigid=False`` leaves the rigid-body columns unset (their equations are reused). Without
+    a low-pass, ``kept`` takes a part of the kept samples (each sample's equations are its own)
+    and ``out`` is where they go."""
     nj = robot.n_joints
     n_cols = column_count(robot, effects)
     filt = seg.parallel
     tau_all = seg.tau if scale is None and delay is None else _model_torque(seg.tau, seg.t, scale, delay)
     q, qd, qdd = (advanced(x, seg.t, motion_delay) for x in (seg.q, seg.qd, seg.qdd))
     if filt.cutoff_hz is None:  # no low-pass: the kept samples only, straight into place
-        idx = filt.kept(seg.n_samples)
+        idx = filt.kept(seg.n_samples)[kept or slice(None)]
         q, qd, qdd, tau = q[idx], qd[idx], qdd[idx], tau_all[idx]
     else:
         tau = tau_all
-    m = np.empty((q.shape[0], nj, n_cols + 1))
+    m = np.empty((q.shape[0], nj, n_cols + 1)) if out is None else out[: q.shape[0]]
     if rigid:
         regressor(robot, q, qd, qdd, out=m[:, :, : 10 * nj])
     if effects:
@@ -202,6 +204,8 @@ def _segment_into_system(system: Array, start: int, robot: Robot, effects: list[
     n = seg.n_samples
     n_cols = column_count(robot, effects)
     block = max(1, EQUATION_BYTES // (8 * robot.n_joints * (n_cols + 1)))
+    if filt.cutoff_hz is None and _REUSED.get() is None and scale is None and delay is None and motion_delay is None:
+        return _unfiltered_into_system(system, start, robot, effects, seg)
     if filt.cutoff_hz is None or n <= block + 2 * filt.settling:
         reused = _REUSED.get() if motion_delay is None else None  # a late report's equations: one delay's try each
         key = None if reused is None else reused.key(seg, _kinematics_key(robot))
@@ -226,6 +230,27 @@ def _segment_into_system(system: Array, start: int, robot: Robot, effects: list[
             system[j, :, start + written : start + written + mine.size] = _through(filt, m[:, j, :], keep=False)[mine].T
         written += mine.size
     return written
+
+
+UNFILTERED_BYTES = 16 * 2**20
+"""Equations without a low-pass go into the system through one buffer of this size, block by
+block of samples (each sample's equations are its own: the same numbers as all at once): a
+second copy of a long recording's equations (100,000 samples of a 6-joint arm: 350 MB) cost
+more in the memory's first touch than computing them."""
+
+
+def _unfiltered_into_system(system: Array, start: int, robot: Robot, effects: list[LinearEffect], seg: Segment) -> int:
+    """A segment without a low-pass: its kept samples' equations into ``system[j, :, start:]``
+    through one reused buffer of ``UNFILTERED_BYTES``. Returns the equations written."""
+    n_cols = column_count(robot, effects)
+    n = seg.parallel.kept(seg.n_samples).size
+    step = max(1, UNFILTERED_BYTES // (8 * robot.n_joints * (n_cols + 1)))
+    buffer = np.empty((min(step, n), robot.n_joints, n_cols + 1))
+    for a in range(0, n, step):
+        m = equations(robot, effects, seg, kept=slice(a, a + step), out=buffer)
+        for j in range(robot.n_joints):
+            _write_rows(system, j, start + a, 0, m[:, j, :])
+    return n
 
 
 def _reused_into_system(system: Array, start: int, robot: Robot, effects: list[LinearEffect], seg: Segment, scale: Array | None,

@@ -11,6 +11,7 @@ covariance come from one QR pass over the data, per joint (:class:`JointFactors`
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -120,7 +121,7 @@ def joint_factors(w: Array, y: Array, joint_of_row: Array, n_joints: int) -> Joi
     return factor_columns(columns)
 
 
-def factor_columns(columns: Array | list[Array]) -> JointFactors:
+def factor_columns(columns: Array | Iterable[Array]) -> JointFactors:
     """:class:`JointFactors` from each joint's ``[W_j | y_j]`` stored column by column.
 
     ``columns[j]`` is (p+1, n_j) in C order, i.e. the Fortran-ordered matrix LAPACK factors

@@ -122,9 +122,9 @@ def _butter_sos(order: int, wn: float) -> Array:
     """The Butterworth design (second-order sections), once per order and cut-off: the
     diagnosis filters thousands of candidate columns through the same filter, and designing it
     cost more than filtering a column. Read-only: every caller shares it."""
-    from scipy.signal import butter
+    from .butterworth import butter_lowpass_sos
 
-    sos = np.asarray(butter(order, wn, output="sos"), dtype=float)
+    sos = np.asarray(butter_lowpass_sos(order, wn), dtype=float)
     sos.flags.writeable = False
     return sos
 
@@ -132,9 +132,9 @@ def _butter_sos(order: int, wn: float) -> Array:
 @functools.lru_cache(maxsize=64)
 def _steady_state(order: int, wn: float) -> Array:
     """The cascade's steady-state delay line for a unit step (``sosfilt_zi``), once per design."""
-    from scipy.signal import sosfilt_zi
+    from .butterworth import sos_steady_state
 
-    zi = np.asarray(sosfilt_zi(_butter_sos(order, wn).copy()), dtype=float)
+    zi = np.asarray(sos_steady_state(_butter_sos(order, wn).copy()), dtype=float)
     zi.flags.writeable = False
     return zi
 

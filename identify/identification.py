@@ -14,7 +14,6 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-from scipy import optimize
 
 from .dynamics import regressor
 from .effects import LOAD_DEPENDENT, PROFILED, SETTINGS, LinearEffect, LoadFriction, effect_columns, linear_effect, load_friction
@@ -145,6 +144,7 @@ def _profile_gains(factors: JointFactors, joints: list[int], weighting: str) -> 
     the gains (variable projection: the linear parameters eliminated for each try). Scaling
     ``W_j`` by ``s`` scales the columns of its R factor, so a try costs one small QR and
     never touches the data. Weights are the joints' noise levels of the fit without gains."""
+    from scipy import optimize  # here: its import is a tenth of a whole identification's time
     p = factors.n_parameters
     weights = np.ones(len(factors.r))
     if weighting == "wls":
@@ -526,7 +526,8 @@ def _triangle(columns: Array) -> Array:
 def _factors(system: Array, columns: Array) -> JointFactors:
     """Per-joint R factors of the chosen regressor columns and the torque."""
     keep = np.append(columns, system.shape[1] - 1)
-    return factor_columns([system[j][keep] for j in range(system.shape[0])])
+    buffer = np.empty((keep.size, system.shape[2]))  # one joint at a time, its QR in place: a fresh copy's first touch cost more
+    return factor_columns(np.take(system[j], keep, axis=0, out=buffer, mode="clip") for j in range(system.shape[0]))
 
 
 def _robust(system: Array, columns: Array, residual: Array, est: LeastSquares, factors: JointFactors, weighting: str,

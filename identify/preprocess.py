@@ -343,8 +343,6 @@ def _choose_band(source: str, t: Array, q: Array, qd: Array | None, pieces: list
 
 def _uniform(source: str, t: Array, q: Array, tau: Array, qd: Array | None, qdd: Array | None, band: Band | None,
              options: PrepareOptions, notes: list[str]) -> Segment:
-    from scipy.interpolate import CubicSpline
-
     raw_t, raw_tau = t, tau
     t0 = float(t[0])
     t = t - t0  # epoch stamps (1.5e9 s) would cost the splines their last digits
@@ -353,6 +351,8 @@ def _uniform(source: str, t: Array, q: Array, tau: Array, qd: Array | None, qdd:
     jitter = float(np.max(np.abs(dt - period)) / period)
     resampled = jitter > options.jitter_tolerance
     if resampled:
+        from scipy.interpolate import CubicSpline  # here: its import costs more than a clean recording's preparation
+
         grid = t[0] + period * np.arange(int(np.floor((t[-1] - t[0]) / period + 1e-9)) + 1)
         notes.append(
             f"resampled {t.size} samples onto a uniform {period * 1e3:.4g} ms grid ({grid.size} samples; "
@@ -383,6 +383,8 @@ def _uniform(source: str, t: Array, q: Array, tau: Array, qd: Array | None, qdd:
     qdd = uniform_derivative(qd, period, 2 if from_positions else 1, q if from_positions else None) if qdd is None else filt.smooth(qdd)
     stamps = None
     if resampled:
+        from scipy.interpolate import CubicSpline
+
         rel = raw_t - t0
         inside = (rel >= t[0]) & (rel <= t[-1] + period)
         ts = rel[inside]

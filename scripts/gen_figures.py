@@ -65,6 +65,11 @@ SECTIONS = (
             "A tool (0.5-5 kg) on simulated arms, found by `armid check` against the identified model, and "
             "tool-free runs that must hold with nothing named.",
             ("check_cases",)),
+    Section("What a user waits for",
+            "Whole processes against a reference in the same run, interleaved, best and median: the command "
+            "line's start against `python -c \"import numpy\"`, `armid identify` against a plain Pinocchio and "
+            "`lstsq` script, `armid diagnose` against the plain pipeline (`../shared/tools/baseline.py`).",
+            ("startup", "identify_process", "diagnose_process")),
     Section("Speed",
             "The regressor, identification, diagnosis and the trajectory design against their references, "
             "in the same process.",

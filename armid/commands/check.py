@@ -8,11 +8,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from armid.schema.errors import RecordingError
 
-from ..check_report import verdict_lines
 from .arguments import RECORDINGS, ROBOT_HELP, add_topic_argument, load_robot_argument
 from .identify import preparation_arguments, recipe_from_arguments
 from .output import check_writable, inputs_read, show_warnings, write_json_and_predictions
@@ -22,6 +19,8 @@ def fixed_model(robot: Any, doc: dict[str, Any], path: str) -> tuple[Any, Any]:
     """The identification document's model (:class:`~armid.identify.diagnosis.check.FixedModel`) and what
     it showed on its own data (:class:`~armid.identify.diagnosis.check.Reference`: its validation error
     where it was validated, else its held-out error, else its fit error)."""
+    import numpy as np
+
     from armid.identify.diagnosis.check import FixedModel, Reference
     from armid.identify.payload.arm import arm_model_from_identification
 
@@ -45,6 +44,8 @@ def _with_load(effect: Any, doc: dict[str, Any], path: str) -> Any:
     in the document: the rigid body whose torque it carries)."""
     from dataclasses import replace
 
+    import numpy as np
+
     from armid.identify.effects import LoadFriction
 
     if not isinstance(effect, LoadFriction):
@@ -60,9 +61,12 @@ def _with_load(effect: Any, doc: dict[str, Any], path: str) -> Any:
 
 
 def _check(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from armid.identify.diagnosis.check import beyond_motion, check
 
     from .. import pipeline
+    from ..check_report import verdict_lines
     from .estimate import identification_document
 
     check_writable(args.urdf, args.mjcf)
@@ -105,6 +109,8 @@ def _model_to_write(args: argparse.Namespace, robot: Any, doc: dict[str, Any], e
     the effects' (in the order of ``effects``), read before the data; None without either option."""
     if not (args.urdf or args.mjcf):
         return None
+    import numpy as np
+
     feasible = doc.get("feasible")
     entries = feasible.get("parameters") if isinstance(feasible, dict) else None
     if not isinstance(feasible, dict) or not isinstance(entries, list) or len(entries) != robot.n_parameters:
@@ -125,6 +131,8 @@ def _write_model_files(args: argparse.Namespace, robot: Any, model: tuple[Any, A
     """Write the model checked (:func:`_model_to_write`) with a load found on the last link
     (its mass, centre and inertia, where these data determine them) added to that link: the
     arm as these data show it. Other changes are named, not written."""
+    import numpy as np
+
     from armid.identify.robot import Inertial, link_parameters
 
     from ..urdf_export import write_urdf

@@ -7,22 +7,24 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from armid.schema.errors import RecordingError, UsageError
-from armid.schema.joint_states import JointStates
 
 from .arguments import RECORDINGS, add_topic_argument, load_robot_argument
 from .output import show_warnings
 from .ros2 import add_ros2_arguments, ros2_bridge
 from .session import add_zenoh_arguments, open_zenoh
 
+if TYPE_CHECKING:
+    from armid.schema.joint_states import JointStates
+
 
 def _replay_records(path: Path, robot: Any, period_s: float | None, topic: str | None = None) -> tuple[JointStates, list[str]]:
     """The replay's records by :func:`armid.pipeline.replay_records` (identify's checks: ms stamps,
     degrees refused; their warnings held), and ``--period`` against their stamps."""
+    import numpy as np
+
     from ..pipeline import replay_records
 
     records, notes, found = replay_records(path, robot, topic)
@@ -38,6 +40,8 @@ def _replay_records(path: Path, robot: Any, period_s: float | None, topic: str |
 
 def identification_document(path: str, robot: Any) -> dict[str, Any]:
     """The ``armid identify --json`` document, checked for what the estimator reads."""
+    import numpy as np
+
     try:
         doc = json.loads(Path(path).read_text())
     except json.JSONDecodeError as err:
@@ -104,6 +108,8 @@ def _replay_problem(n_records: int, docs: list[dict[str, Any]], stream: Any) -> 
 def _estimate(args: argparse.Namespace) -> int:
     """On-line payload estimation, live or on a recording; always on the records' time stamps."""
     import time
+
+    import numpy as np
 
     from armid.daq.payload_service import EstimateStream
     from armid.identify.payload.rls import PayloadRLS, ReferenceRun, arm_model_from_identification

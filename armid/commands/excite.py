@@ -9,8 +9,6 @@ import math
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from armid.schema.errors import BusOpenError, InputFileError, OptionError, UsageError
 
 from ..schema.json_text import write_json
@@ -24,6 +22,7 @@ from .session import add_zenoh_arguments, open_zenoh
 def _excite(args: argparse.Namespace) -> int:
     import time
 
+    import numpy as np
     from rich.console import Console
 
     rig = rig_from_arguments(args)
@@ -77,6 +76,8 @@ def _excite(args: argparse.Namespace) -> int:
 
 def _excite_run(args: argparse.Namespace, rig: Any, robot: Any, n: int, simulate: bool, links: list[int], trajectory: Any, out: Path,
                 start: Any, console: Any, stream: Any, holder: dict[str, Any]) -> int:
+    import numpy as np
+
     from armid.daq.excite import ExcitationSession
     from armid.identify import excitation as ex
 
@@ -149,6 +150,8 @@ def load_trajectory(path: str | Path, n_joints: int, period_s: float) -> tuple[A
     """A trajectory JSON for ``armid excite --trajectory``: a ``designs.json`` entry (or a file
     holding exactly one), ``{"fourier": {...}}``, or the Fourier block itself. Returns the
     trajectory and the moving joints (0-based); every problem names the file and the field."""
+    import numpy as np
+
     from armid.identify.trajectories import FourierTrajectory
 
     src = str(path)

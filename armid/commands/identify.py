@@ -9,8 +9,6 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from armid.schema.errors import IdentificationError, RecordingError, UsageError
 
 from .arguments import RECORDINGS, ROBOT_HELP, add_topic_argument, gap_factor, load_robot_argument, lowpass_setting
@@ -98,6 +96,8 @@ def _identify_single_link(args: argparse.Namespace, robot: Any, recipe: Any) -> 
     """``armid identify --single-link``: Khosla's off-line sequence on the user's recordings,
     each moving one joint (property 4), identified last link first; each validation recording
     (one joint moving too) predicted and scored on the joint that moved."""
+    import numpy as np
+
     from armid.identify.preprocess import prepare
     from armid.identify.single_link import single_link_sequence
     from armid.io.recordings import write_csv
@@ -150,6 +150,8 @@ def _identify_single_link(args: argparse.Namespace, robot: Any, recipe: Any) -> 
 def not_identified(std: float, physical_range: float | None) -> str:
     """What a table prints instead of a value the data do not identify (its three sigmas
     beyond its physical range: :func:`armid.identify.identifiability.identified_by_data`)."""
+    import numpy as np
+
     from armid.identify.identifiability import IDENTIFIED_SIGMAS
 
     bound = "an unbounded range" if physical_range is None or not np.isfinite(physical_range) else f"a physical range of {physical_range:.3g}"
@@ -159,6 +161,8 @@ def not_identified(std: float, physical_range: float | None) -> str:
 def _single_joint_run(path: str, robot: Any, topic: str | None = None) -> tuple[Any, int]:
     """The recording, cut to its excitation window where ``armid excite``'s ``runs.json`` gives
     it, and the one joint (0-based) that moved in it."""
+    import numpy as np
+
     from armid.identify.plausibility import MOVING_RAD, moving_joints
 
     from ..pipeline import read
@@ -178,6 +182,8 @@ def _excitation_window(path: Path, rec: Any) -> Any:
     """The part of an ``armid excite`` recording inside its plan's excitation window (whole
     periods of the design, as the demo and the service identify it), when a ``runs.json`` of
     that run lies in one of the three folders above it; else the whole recording."""
+    import numpy as np
+
     from ..pipeline import Window, cut_to_window
 
     for folder in list(path.resolve().parents)[:3]:
@@ -234,6 +240,8 @@ def feasible_report(args: argparse.Namespace, robot: Any, result: Any, validatio
 def model_files_line(args: argparse.Namespace, robot: Any, phi: Any, effects: list[Any], names: list[str]) -> str:
     """Write ``--mjcf OUT`` (the ``names`` of ``phi``'s entries place each effect's value) and
     say, for the command's last line, which files were written and what MuJoCo's model leaves out."""
+    import numpy as np
+
     text = f"; URDF written to {args.urdf}" if args.urdf else ""
     if args.mjcf:
         from ..mjcf_export import write_mjcf

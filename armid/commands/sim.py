@@ -8,8 +8,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from .arguments import positive_number, seed_number
 from .output import inputs_read
 from .rig import rig_from_arguments, run_until, stopped_by_signals
@@ -99,6 +97,8 @@ def _sim_chain(rig: Any, args: argparse.Namespace, stop: Any) -> int:
 
 
 def _write_sim_log(arm: object, path: Path) -> None:
+    import numpy as np
+
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez(path, **arm.log.arrays())  # type: ignore[attr-defined]
 

@@ -9,14 +9,13 @@ import argparse
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..commands.arguments import add_topic_argument, whole_count
 from . import engine
-from .discover import find_arms, jobs_of
-from .outputs import detect, in_order, write_changes, write_parameters
-from .report import load_sentence, scatter_sentence, significance, when, write_report
-from .task import Result
+
+if TYPE_CHECKING:
+    from .task import Result
 
 
 def add_parser(sub: Any) -> argparse.ArgumentParser:
@@ -69,6 +68,10 @@ def _identify_all(args: argparse.Namespace, jobs: list[Any]) -> tuple[list[Resul
 
 def run(args: argparse.Namespace) -> int:
     """``armid fleet``: discover, identify (streamed), write the tables, find the changes, report."""
+    from .discover import find_arms, jobs_of
+    from .outputs import detect, in_order, write_changes, write_parameters
+    from .report import load_sentence, scatter_sentence, significance, when, write_report
+
     root, out = Path(args.root), Path(args.out)
     engine.check(args.engine, args.workers, args.address)  # one line before anything starts (a missing extra included)
     arms, notes = find_arms(root, skip=out)

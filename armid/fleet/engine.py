@@ -14,12 +14,13 @@ import logging
 import os
 from collections import deque
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from armid.extras import EXTRAS, install_command
 from armid.schema.errors import MissingExtraError, OptionError, UsageError
 
-from .task import Job, Result, identify_recording, one_line
+if TYPE_CHECKING:
+    from .task import Job, Result
 
 ENGINES = ("ray", "local")
 
@@ -41,6 +42,8 @@ def import_ray() -> Any:
 
 def run_local(jobs: Sequence[Job], on_result: Callable[[Result], None]) -> str:
     """Every job in this process, one after the other."""
+    from .task import identify_recording
+
     for job in jobs:
         on_result(identify_recording(job))
     return "this process (--engine local)"
@@ -62,6 +65,8 @@ def _start(ray: Any, workers: int | None, address: str | None) -> bool:
 def run_ray(jobs: Sequence[Job], on_result: Callable[[Result], None], workers: int | None = None, address: str | None = None) -> str:
     """Every job as a Ray task, at most ``workers`` at once (default: the cluster's CPUs); a
     task that dies (its worker lost) is a failed result too. Returns what ran them."""
+    from .task import Job, Result, identify_recording, one_line
+
     ray = import_ray()
     started = _start(ray, workers, address)
     try:

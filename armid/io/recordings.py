@@ -117,18 +117,37 @@ def run_period(metadata: dict[str, str]) -> float | None:
     return value if np.isfinite(value) and value > 0 else None
 
 
+def _plain_numbers(text: str, n_columns: int) -> Array | None:
+    """The rows after the header line as one array, parsed in C (``numpy.loadtxt``, the same
+    correctly rounded conversion as ``float``): a tenth of the time of a cell at a time. None
+    where the text is anything but one number in each of ``n_columns`` fields on every line
+    (a blank line, a quote, a field that is not a number, a row of another length, a lone CR):
+    those files take the cell-by-cell reading, which keeps such rows as garbage to report."""
+    body = text[text.find("\n") + 1 :] if "\n" in text else ""
+    n_lines = body.count("\n") + (not body.endswith("\n"))
+    if not body or '"' in body or "\n\n" in body or body.count("\r") != body.count("\r\n"):
+        return None
+    try:
+        data = np.loadtxt(io.StringIO(body), delimiter=",", comments=None, ndmin=2, dtype=float)
+    except ValueError:
+        return None
+    return data if data.shape == (n_lines, n_columns) else None
+
+
 def _read_csv(path: Path, robot: Robot) -> Recording:
     n = robot.n_joints
     try:
         with path.open(newline="") as handle:
-            reader = csv.reader(handle)
-            header = next(reader, None)
-            if header is None:
-                raise RecordingError(str(path), "empty file (no header line)")
-            header = [h.strip() for h in header]
-            rows = list(reader)
+            text = handle.read()
     except UnicodeDecodeError as err:
         raise RecordingError(str(path), f"not a text CSV file ({err.reason})") from err
+    reader = csv.reader(io.StringIO(text, newline=""))
+    header = next(reader, None)
+    if header is None:
+        raise RecordingError(str(path), "empty file (no header line)")
+    header = [h.strip() for h in header]
+    plain = _plain_numbers(text, len(header))
+    rows = list(reader) if plain is None else []
     columns = {name: k for k, name in enumerate(header)}
     if len(columns) != len(header):
         dup = sorted({h for h in header if header.count(h) > 1})
@@ -159,8 +178,9 @@ def _read_csv(path: Path, robot: Robot) -> Recording:
     wanted = ["t"] + names("q") + (names("qd") if has_all("qd") else []) + (names("qdd") if has_all("qdd") else [])
     wanted += names("tau") if use_tau else names("i")
     index = [columns[c] for c in wanted]
-    data = np.full((len(rows), len(wanted)), np.nan)
-    lines = np.arange(2, len(rows) + 2)
+    n_rows = len(rows) if plain is None else plain.shape[0]
+    data = np.full((n_rows, len(wanted)), np.nan) if plain is None else plain[:, index]
+    lines = np.arange(2, n_rows + 2)
     bad_lines: list[int] = []
     for r, row in enumerate(rows):
         if len(row) != len(header):
@@ -173,7 +193,7 @@ def _read_csv(path: Path, robot: Robot) -> Recording:
                 data[r, c] = float(row[k])
             except ValueError:
                 pass  # left NaN: reported as a garbage row by preprocessing
-    if len(rows) == 0:
+    if n_rows == 0:
         raise RecordingError(str(path), "no data rows after the header")
     notes = []
     if bad_lines:

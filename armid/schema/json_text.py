@@ -8,17 +8,27 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 
 def finite_or_none(value: Any) -> Any:
     """``value`` with every non-finite float (NaN, inf) replaced by None and numpy scalars and
-    arrays made plain Python, recursively."""
+    arrays made plain Python, recursively. NumPy is not imported for it: before anything else
+    imported it, no value can be one of its types (a command's ``--help`` stays cheap)."""
+    return _plain(value, sys.modules.get("numpy"))
+
+
+def _plain(value: Any, np: Any) -> Any:
     if isinstance(value, float):
         return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _plain(v, np) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v, np) for v in value]
+    if np is None:
+        return value
     if isinstance(value, np.floating):
         return float(value) if np.isfinite(value) else None
     if isinstance(value, np.integer):
@@ -26,11 +36,7 @@ def finite_or_none(value: Any) -> Any:
     if isinstance(value, np.bool_):
         return bool(value)
     if isinstance(value, np.ndarray):
-        return finite_or_none(value.tolist())
-    if isinstance(value, dict):
-        return {k: finite_or_none(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [finite_or_none(v) for v in value]
+        return _plain(value.tolist(), np)
     return value
 
 
