@@ -364,6 +364,34 @@ def test_record_with_ros2_is_a_ros2_publisher_the_sdk_receives_and_discovers(rou
     assert any(f"/MP/%/%/armid_puma560/%armid%puma560%joint_states/sensor_msgs::msg::dds_::JointState_/{hash_}/" in t for t in ours), ours
 
 
+def test_excite_with_ros2_streams_its_run_to_the_ros2_node(router: Any, sdk: Any, tmp_path: Path) -> None:
+    """`armid excite --ros2`: the excitation's records reach the ROS 2 node as JointState, as
+    `record --ros2`'s do (the same bridge), with the robot file's joint names, and the run completes."""
+    from armid.io.robot_file import load_robot
+
+    endpoint, port = router
+    names = [j.name for j in load_robot(ROOT / "config" / "robots" / "puma560.yaml").joints]
+    got: list[Any] = []
+    sub = sdk.ROS2Subscriber(topic="/armid/puma560/joint_states", msg_type="sensor_msgs/msg/JointState", callback=got.append,
+                             router_ip="127.0.0.1", router_port=port)
+    proc = subprocess.Popen([sys.executable, "-m", "armid.cli", "excite", "--rig", str(ROOT / "config" / "rigs" / "sim.yaml"), "--link", "6",
+                             "--periods", "1", "--ros2", "--ros2-router", endpoint, "--out", str(tmp_path / "runs"),
+                             "--zenoh-listen", f"tcp/127.0.0.1:{_free_port()}"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ, "ARMID_REALTIME": "off"})
+    try:
+        out, err = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        sub.close()
+    assert proc.returncode == 0, (out + err)[-2000:]
+    time.sleep(0.5)
+    print(f"\nexcite --ros2: the ROS 2 node received {len(got)} JointState messages")
+    assert len(got) >= 1000 and all(list(m.name) == names for m in got)
+    moved = np.array([m.position[5] for m in got])
+    assert np.ptp(moved) > 0.05, "joint 6 moved in the run the node saw"
+
+
 def test_payload_and_an_identified_link_reach_the_ros2_node_as_inertia_stamped(router: Any, sdk: Any) -> None:
     """What `serve --ros2` and `estimate --ros2` hear on armid's keys (estimate/parameters,
     estimate/payload: documents of their shape) reaches the ROS 2 node; a link's inertial is the
