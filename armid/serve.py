@@ -347,6 +347,9 @@ class EstimatorService:
             return
         link = exp.description.get("link")
         rec = self.recording(records, meta, path)
+        for note in rec.notes:  # what identification left out, said as `armid identify` says it
+            if note.startswith(("left out", "time goes backwards")):
+                self.log(f"{exp.name}: {note}")
         if kind == "recording":
             kind, moving = self._kind_from_motion(rec)
             info["kind_from_motion"] = kind

@@ -108,20 +108,22 @@ class EstimateStream:
         return {"skipped": self.skipped, "lost": self.lost, "invalid": self.invalid, "time_faults": self.time_faults,
                 "dropped": dict(self.dropped), "last_drop": self.last_drop}
 
-    def _screen(self, seq: NDArray[np.int64], t: Array, valid: NDArray[np.bool_], q: Array, torque: Array) -> tuple[NDArray[np.bool_], NDArray[np.bool_], list[dict[str, Any]], Array]:
+    def _screen(self, records: JointStates) -> tuple[NDArray[np.bool_], NDArray[np.bool_], list[dict[str, Any]], Array]:
         """Which records the estimator takes, before which the derivatives restart (a gap in
         the sequence numbers, a dropped record, a stepped clock), the counts after each, and
         each record's time on the estimator's clock (a stepped clock's step taken out: the
         estimator's time never goes back).
         Sequential: each record is judged against the last *accepted* one, so one bad stamp
         costs one record, not the stream."""
+        seq, t, q, torque = records.sequence, records.time, records.position, records.torque
         n = t.size
         take = np.zeros(n, bool)
         restart = np.zeros(n, bool)
         after: list[dict[str, Any]] = []
         counts = self.counts()
-        finite = np.isfinite(t) & np.isfinite(q).all(axis=1) & np.isfinite(torque).all(axis=1)
-        flagged = np.all(valid, axis=1)
+        unusable = records.unusable(velocity=False)  # the one judgement identification makes too; the velocity is not read here
+        flagged = ~unusable.pop("flagged invalid")
+        finite = ~np.logical_or.reduce(list(unusable.values()))
         shifted = np.empty(n)
         for k, (sk, tk) in enumerate(zip(seq.tolist(), t.tolist())):
             take[k], restart[k] = self._judge(sk, tk, bool(finite[k]), bool(flagged[k]), q[k], torque[k])
@@ -196,8 +198,8 @@ class EstimateStream:
         n = len(records)
         if n == 0:
             return out
-        seq, t, valid, q, torque = records.sequence, records.time, records.valid, records.position, records.torque
-        take, restart, counts, clock = self._screen(seq, t, valid, q, torque)
+        seq, t, q, torque = records.sequence, records.time, records.position, records.torque
+        take, restart, counts, clock = self._screen(records)
 
         def flush(a: int, b: int) -> None:
             if b <= a:

@@ -125,7 +125,11 @@ def _estimate(args: argparse.Namespace) -> int:
         ref_records, ref_notes = _replay_records(Path(args.reference), robot, args.period)
         for note in ref_notes:
             print(f"{args.reference}: {note}", file=sys.stderr)
-        kept = ref_records[np.flatnonzero(ref_records.valid.all(axis=1))]
+        unusable = ref_records.unusable(velocity=False)  # the records the estimator would drop
+        kept = ref_records[~np.logical_or.reduce(list(unusable.values()))]
+        if len(kept) < 2:
+            why = ", ".join(f"{int(m.sum())} {reason}" for reason, m in unusable.items() if m.any())
+            raise RecordingError(args.reference, f"only {len(kept)} usable records of {len(ref_records)} ({why}): no reference run")
         try:
             reference = ReferenceRun(arm, kept.time, kept.position, kept.torque)
         except ValueError as err:

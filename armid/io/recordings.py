@@ -110,6 +110,8 @@ def _read_csv(path: Path, robot: Robot) -> Recording:
             rows = list(reader)
     except UnicodeDecodeError as err:
         raise RecordingError(str(path), f"not a text CSV file ({err.reason})") from err
+    except csv.Error as err:  # a field beyond the reader's limit (a line of megabytes), a NUL byte
+        raise RecordingError(str(path), f"line {reader.line_num}: not a CSV row ({err})") from None
     columns = {name: k for k, name in enumerate(header)}
     if len(columns) != len(header):
         dup = sorted({h for h in header if header.count(h) > 1})
@@ -292,6 +294,7 @@ class _McapScan:
         self.summary = False
         self.orphans: dict[int, list[McapMessage]] = {}  # messages of a channel whose record was not read
         self.adopted: int | None = None
+        self.unchecked: list[int] = []  # offsets of chunks whose CRC is 0 ("not computed"): read, but not verified
         self._read_summary()
         self._read_data()
         self._adopt_orphans()
@@ -432,6 +435,8 @@ class _McapScan:
         if records is None:
             self.losses.append(_Loss(pos, body + length, why, chunk.message_start_time, chunk.message_end_time))
             return
+        if chunk.uncompressed_crc == 0:  # MCAP's "not computed": nothing says its bytes are the ones written
+            self.unchecked.append(pos)
         for op, content in records:
             if op == Opcode.CHANNEL:
                 self._channel(Channel.read(ReadDataStream(BytesIO(content))))
@@ -542,7 +547,7 @@ def read_mcap_arrays(path: str | Path) -> tuple[dict[str, Array], dict[str, str]
     pairs = [(scan.cdr[JOINT_STATES_TOPIC][states[key]], scan.cdr[EXTRA_TOPIC][k]) for key, k in extras.items() if key in states]
     if not pairs:
         notes = _loss_notes(scan, [], [], [], len(data))
-        return {}, scan.run_metadata(), notes or [f"no {JOINT_STATES_TOPIC} record in the file"]
+        return {}, scan.run_metadata(), notes or [_unpaired(states, extras)]
     s_msgs, e_msgs = [s[3] for s, _ in pairs], [e[3] for _, e in pairs]
     offsets = np.array([e[0] for _, e in pairs], np.int64)
     cols = same_length(ros2_columns(s_msgs, JOINT_STATE_TYPE), ros2_columns(e_msgs, EXTRA_TYPE))
@@ -550,6 +555,10 @@ def read_mcap_arrays(path: str | Path) -> tuple[dict[str, Array], dict[str, str]
         cols = decoded_columns([(s[0], s[3]) for s, _ in pairs], [(e[0], e[3]) for _, e in pairs], src)
     t = cols["sec"][:, 0] + 1e-9 * cols["nanosec"][:, 0]
     notes = _loss_notes(scan, cols["sequence"][:, 0].astype(np.int64), t, offsets, len(data))
+    if scan.unchecked:
+        more = len(scan.unchecked) - 1
+        notes.append(f"chunk at offset {scan.unchecked[0]} has no CRC: not verified"
+                     + (f" (nor {more} more chunk{'s' if more > 1 else ''} without one)" if more else ""))
     if scan.adopted is not None:
         notes.append(f"the channel record was lost for both {JOINT_STATES_TOPIC} and {EXTRA_TOPIC}: the {len(t)} cycles of "
                      "the two channels left were read by the message types they decode as")
@@ -567,6 +576,17 @@ def read_mcap_arrays(path: str | Path) -> tuple[dict[str, Array], dict[str, str]
         "torque": cols["effort"].astype(float),
     }
     return arrays, scan.run_metadata(), notes
+
+
+def _unpaired(states: dict[tuple[int, int], int], extras: dict[tuple[int, int], int]) -> str:
+    """Why no cycle could be read from the two channels' messages (none lost to corruption)."""
+    if not states:
+        return f"no {JOINT_STATES_TOPIC} record in the file" + (f" ({len(extras)} {EXTRA_TOPIC} messages alone)" if extras else "")
+    if not extras:
+        return (f"{len(states)} {JOINT_STATES_TOPIC} messages but no {EXTRA_TOPIC} channel: armid reads a cycle from the two "
+                "together, as armid record writes them")
+    return (f"none of the {len(states)} {JOINT_STATES_TOPIC} messages has its {EXTRA_TOPIC} message (the same log time and "
+            "sequence number)")
 
 
 def _loss_notes(scan: _McapScan, seq: Any, t: Any, offsets: Any, size: int) -> list[str]:
