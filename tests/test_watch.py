@@ -149,7 +149,7 @@ def test_watch_shows_every_published_parameter_set_the_payload_and_faults_in_wor
     assert re.search(r"#3 \S+ run 'whole@7000' \(whole-arm, \d+ records\): \d+ base parameters from whole-arm run 'whole@7000'", frame), frame
     # the newest set's every base parameter, value +- std, and the run that gave it
     newest = docs[-1]
-    assert f"parameters from whole-arm run 'whole@7000' (set 3)" in frame, frame
+    assert "parameters from whole-arm run 'whole@7000' (set 3)" in frame, frame
     for b in newest["base_parameters"]:
         shown = f"{b['expression']} = {b['value']:.4g} +- {b['std']:.4g}"
         assert shown in frame, shown

@@ -611,16 +611,24 @@ def _loss_notes(scan: _McapScan, seq: Any, t: Any, offsets: Any, size: int) -> l
                     continue
                 seconds = float(t[after] - t[before]) - (period if np.isfinite(period) else 0.0)
                 span = f"sequence {seq[before] + 1}..{seq[after] - 1}, between t {t[before]:.4f} and {t[after]:.4f} s"
-            else:
-                lost = int(seq[after] - 0)
+            else:  # before the first record read: the recording need not start at sequence 0
+                count = _lost_before(scan, loss, seq, period)
+                if count is None:
+                    notes.append(f"{loss.why} ({where}): an unknown number of records before sequence {seq[after]} (t {t[after]:.4f} s) "
+                                 "lost (neither the chunk's time span nor the file's counts could be read); reading resumed after it")
+                    continue
+                if count == 0:
+                    notes.append(f"{loss.why} ({where}): no record lost")
+                    continue
+                lost = count
                 seconds = lost * period if np.isfinite(period) else float("nan")
-                span = f"sequence 0..{seq[after] - 1}, before t {t[after]:.4f} s"
+                span = f"sequence {seq[after] - lost}..{seq[after] - 1}, before t {t[after]:.4f} s"
             notes.append(f"{loss.why} ({where}): {lost} records ({seconds:.3f} s; {span}) lost; reading resumed after it")
         else:
             tail = f"after sequence {seq[-1]} (t {t[-1]:.4f} s)" if seq.size else "from the start"
-            expected = scan.expected_cycles()
-            if expected is not None:
-                lost = expected - seq.size - sum(int(seq[i + 1] - seq[i] - 1) for i in range(seq.size - 1))
+            lost_or_none = _unaccounted(scan, seq)
+            if lost_or_none is not None:
+                lost = lost_or_none
                 amount = f"{lost} records ({lost * period:.3f} s)" if np.isfinite(period) else f"{lost} records"
             elif loss.start_time_ns is not None and np.isfinite(period):
                 seconds = max(0.0, (loss.end_time_ns - loss.start_time_ns) * 1e-9) + period  # type: ignore[operator]
@@ -633,10 +641,42 @@ def _loss_notes(scan: _McapScan, seq: Any, t: Any, offsets: Any, size: int) -> l
                      f"records after sequence {seq[-1] if seq.size else '-'} may never have been written; the rest of the run is lost")
     if seq.size > 1:
         d = np.diff(seq)
-        gaps = [i for i in np.flatnonzero(d != 1) if i not in explained]
+        gaps = [i for i in np.flatnonzero(d > 1) if i not in explained]
         if gaps:
             missing = int(sum(d[i] - 1 for i in gaps))
             i = gaps[0]
             notes.append(f"{missing} records missing in {len(gaps)} gap(s) of the sequence numbers "
                          f"(first after sequence {seq[i]}, t {t[i]:.4f} s)")
+        back = np.flatnonzero(d < 1)  # a number repeated or going back: not a gap, and no record missing
+        if back.size:
+            i = int(back[0])
+            notes.append(f"{back.size} record(s) numbered no higher than the record before (first: sequence {seq[i + 1]} after "
+                         f"{seq[i]}): put in sequence order")
     return notes
+
+
+def _unaccounted(scan: _McapScan, seq: Any) -> int | None:
+    """Records the file says were written (its summary's count of cycles, else the recorder's
+    ``armid.run_end`` count) less those read and those in the gaps between them: the records
+    lost outside the records read. None when the file does not say, or says fewer than were read."""
+    expected = scan.expected_cycles()
+    if expected is None:
+        try:
+            expected = int(scan.end["records"])
+        except (KeyError, ValueError):
+            return None
+    unique = np.unique(np.asarray(seq, np.int64))
+    inside = int(unique[-1] - unique[0] + 1) if unique.size else 0  # the records read and the gaps between them
+    lost = expected - inside
+    return lost if lost >= 0 else None
+
+
+def _lost_before(scan: _McapScan, loss: _Loss, seq: Any, period: float) -> int | None:
+    """How many records a stretch before the first record read held: by the lost chunk's own
+    time span where its header could be read, else what the file's counts leave unaccounted
+    (a recording that starts at sequence 47 lost nothing before it started)."""
+    if loss.start_time_ns is not None and loss.end_time_ns is not None and np.isfinite(period) and period > 0:
+        span = (loss.end_time_ns - loss.start_time_ns) * 1e-9
+        if 0 <= span < 1e6:
+            return int(round(span / period)) + 1
+    return _unaccounted(scan, seq)
