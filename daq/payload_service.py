@@ -228,6 +228,15 @@ class EstimateStream:
         return out
 
 
+def drops_line(counts: dict[str, Any]) -> str:
+    """What a stream did not use, in words (:meth:`EstimateStream.counts`): empty when nothing."""
+    parts = [f"{counts[k]} {k.replace('_', ' ')}" for k in ("skipped", "lost", "invalid", "time_faults") if counts.get(k)]
+    dropped = counts.get("dropped") or {}
+    if dropped:
+        parts.append("dropped " + ", ".join(f"{v} {k}" for k, v in dropped.items()) + f" (last: {counts.get('last_drop')})")
+    return "; ".join(parts)
+
+
 class PayloadService:
     """Run an :class:`EstimateStream` on a Zenoh session until :meth:`close`."""
 
@@ -260,6 +269,10 @@ class PayloadService:
         self.published = 0
         self.errors: list[str] = []
         self.last: dict[str, Any] | None = None
+        self.wrong_encoding = 0  # puts refused for their encoding (the callback counts, the worker files them as drops)
+        self._wrong_encoding_said: str | None = None
+        self._wrong_encoding_filed = 0
+        self._said: set[str] = set()  # the kinds of drop said so far (each said once, then counted)
         self._pub = session.declare_publisher(key(robot, "estimate/payload"), encoding=zenoh.Encoding.APPLICATION_JSON)
         self._token = session.liveliness().declare_token(key(robot, "alive/payload_estimator"))
         self._queryable = session.declare_queryable(key(robot, "status"), self._on_query)
@@ -270,11 +283,39 @@ class PayloadService:
     def _on_sample(self, sample: Any) -> None:
         try:
             check_encoding(str(sample.encoding))
+        except Exception as err:  # another schema's copy: refused, counted (a callback never kills the receive thread)
+            self._wrong_encoding_said = str(err)
+            self.wrong_encoding += 1
+            self._wake.set()
+            return
+        try:
             self._pending.append((time.monotonic(), sample.payload.to_bytes()))
             self._wake.set()
         except Exception as err:  # a callback never kills the receive thread
             if len(self.errors) < 100:
                 self.errors.append(f"{type(err).__name__}: {err}")
+
+    def _file_refused(self) -> None:
+        """The puts the callback refused for their encoding, counted among the stream's drops."""
+        n = self.wrong_encoding - self._wrong_encoding_filed
+        if n > 0:
+            self._wrong_encoding_filed += n
+            self.stream.dropped["encoding"] = self.stream.dropped.get("encoding", 0) + n
+            self.stream.last_drop = f"a put refused: {self._wrong_encoding_said}"
+
+    def _say_drops(self) -> None:
+        """Each kind of record not used, said once as it first happens (then counted: the
+        status, every document and the summary carry the counts)."""
+        if self.log is None:
+            return
+        st = self.stream
+        for reason in st.dropped:
+            if reason not in self._said:
+                self._said.add(reason)
+                self.log(f"dropped a record ({reason}): {st.last_drop}; further ones counted")
+        if st.invalid and "invalid" not in self._said:
+            self._said.add("invalid")
+            self.log("a record flagged invalid by its driver is not used; further ones counted")
 
     @property
     def running(self) -> bool:
@@ -297,6 +338,8 @@ class PayloadService:
         while not self._stop.is_set():
             self._wake.wait(0.1)
             self._wake.clear()
+            self._file_refused()
+            self._say_drops()
             batch = []
             while self._pending:
                 batch.append(self._pending.popleft())
@@ -316,6 +359,7 @@ class PayloadService:
                     if self.on_estimate:
                         self.on_estimate(doc)
                 self._clock.stop(len(records))
+                self._say_drops()
             except Exception as err:
                 if len(self.errors) < 100:
                     self.errors.append(f"{type(err).__name__}: {err}")

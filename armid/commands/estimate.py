@@ -156,7 +156,7 @@ def _estimate(args: argparse.Namespace) -> int:
             if problem is not None:  # the estimates made are written; the input is named
                 raise RecordingError(str(args.replay), problem)
             return 0
-        from armid.daq.payload_service import PayloadService
+        from armid.daq.payload_service import PayloadService, drops_line
         from armid.drivers.realtime import ordinary_priority
 
         ordinary_priority()  # the arithmetic never at a real-time policy inherited from what started it
@@ -179,6 +179,8 @@ def _estimate(args: argparse.Namespace) -> int:
         finally:
             service.close()
             session.close()
+        drops = drops_line(stream.counts())
+        print(f"armid estimate: {service.published} estimates published" + (f"; not used: {drops}" if drops else ""), file=sys.stderr, flush=True)
         if service.running:  # the executable ends without finalization (armid.cli.run), which would abort it
             print("armid estimate: the estimator was still inside a batch at the stop: not waited for", file=sys.stderr, flush=True)
         return 0
