@@ -139,7 +139,7 @@ def event_line(doc: dict[str, Any]) -> str:
     by its name and its plain fields (never a list or a mapping: a trajectory's coefficients)."""
     when, kind = _clock(doc.get("time")), doc.get("event")
     run = doc.get("run") or "?"
-    exp = doc.get("experiment") if isinstance(doc.get("experiment"), dict) else {}
+    exp: dict[str, Any] = doc["experiment"] if isinstance(doc.get("experiment"), dict) else {}
     if kind == "start":
         what = exp.get("kind") or "recording"
         link = f" of link {exp['link']}" if exp.get("link") is not None else ""

@@ -649,9 +649,9 @@ def _loss_notes(scan: _McapScan, seq: Any, t: Any, offsets: Any, size: int) -> l
                          f"(first after sequence {seq[i]}, t {t[i]:.4f} s)")
         back = np.flatnonzero(d < 1)  # a number repeated or going back: not a gap, and no record missing
         if back.size:
-            i = int(back[0])
-            notes.append(f"{back.size} record(s) numbered no higher than the record before (first: sequence {seq[i + 1]} after "
-                         f"{seq[i]}): put in sequence order")
+            k = int(back[0])
+            notes.append(f"{back.size} record(s) numbered no higher than the record before (first: sequence {seq[k + 1]} after "
+                         f"{seq[k]}): put in sequence order")
     return notes
 
 

@@ -131,11 +131,12 @@ class JointStates:
         finite, and (``velocity``: for a consumer that reads the drives' velocity) a velocity
         that is not finite on a cycle that says it is fresh. ``torque`` NaN throughout (a
         source of currents only) is for the caller to replace first."""
-        why = {"flagged invalid": ~self.valid.all(axis=1), "time not finite": ~np.isfinite(self.time),
-               "position not finite": ~np.isfinite(self.position).all(axis=1),
-               "torque not finite": ~np.isfinite(self.torque).all(axis=1)}
+        why: dict[str, NDArray[np.bool_]] = {
+            "flagged invalid": ~np.all(self.valid, axis=1), "time not finite": ~np.isfinite(self.time),
+            "position not finite": ~np.all(np.isfinite(self.position), axis=1),
+            "torque not finite": ~np.all(np.isfinite(self.torque), axis=1)}
         if velocity:
-            why["velocity not finite"] = ~(np.isfinite(self.velocity) | ~self.velocity_fresh).all(axis=1)
+            why["velocity not finite"] = ~np.all(np.isfinite(self.velocity) | ~self.velocity_fresh, axis=1)
         return why
 
     def recorded(self) -> JointStates:
