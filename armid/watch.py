@@ -18,7 +18,7 @@ import time
 from collections import deque
 from typing import Any
 
-from armid.daq.stream import key
+from armid.daq.stream import drops_line, key
 from armid.schema.joint_state import check_encoding
 from armid.schema.joint_states import JointStates
 
@@ -243,6 +243,9 @@ def render(state: WatchState, robot: str) -> Any:
         parts.append(Text("parameter sets published:\n" + "\n".join(state.parameter_sets)))
     if state.payload:
         parts.append(Text(payload_line(state.payload)))
+        unused = drops_line(state.payload)
+        if unused:
+            parts.append(Text(f"the payload estimator did not use: {unused}"))
     if state.findings:
         parts.append(Text("findings:\n" + "\n".join(state.findings), style="yellow"))
     if state.events:

@@ -228,15 +228,6 @@ class EstimateStream:
         return out
 
 
-def drops_line(counts: dict[str, Any]) -> str:
-    """What a stream did not use, in words (:meth:`EstimateStream.counts`): empty when nothing."""
-    parts = [f"{counts[k]} {k.replace('_', ' ')}" for k in ("skipped", "lost", "invalid", "time_faults") if counts.get(k)]
-    dropped = counts.get("dropped") or {}
-    if dropped:
-        parts.append("dropped " + ", ".join(f"{v} {k}" for k, v in dropped.items()) + f" (last: {counts.get('last_drop')})")
-    return "; ".join(parts)
-
-
 class PayloadService:
     """Run an :class:`EstimateStream` on a Zenoh session until :meth:`close`."""
 

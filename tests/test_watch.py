@@ -125,6 +125,7 @@ def test_watch_shows_every_published_parameter_set_the_payload_and_faults_in_wor
         assert screen.wait(lambda: len(docs) == 3, 240), service.errors
         assert service.payload_service is not None  # started on the first whole-arm fit
         live, _ = _records("puma560_excitation.csv", 20000)
+        live.position[500, 1] = np.nan  # one record the estimator cannot use: counted, and the view says so
         for k in range(0, len(live), 10):  # the arm goes on: records on the live stream, ten a put
             stream.publish(live[k : k + 10])
             time.sleep(0.004)
@@ -156,6 +157,7 @@ def test_watch_shows_every_published_parameter_set_the_payload_and_faults_in_wor
     # the payload in words: its band and its verdict, as the last estimate published says
     assert payload_line(payloads[-1]) in frame, (payload_line(payloads[-1]), frame[-2000:])
     assert re.search(r"payload: -?\d+\.\d{3} \+- [\d.e+-]+ kg \(1 sigma: data [\d.e+-]+, torque constants [\d.e+-]+\)", frame), frame
+    assert "the payload estimator did not use: dropped 1 not finite (last: record 20500: position not finite (NaN or infinite))" in frame, frame
     # findings and events in words; no raw document
     assert "FAULT joint 3 (node 4): over-current [0x2310]" in frame and "run 'still': not excited" in frame, frame
     assert "started run 'whole': whole-arm, 10.0 s" in frame, frame

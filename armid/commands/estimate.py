@@ -156,7 +156,8 @@ def _estimate(args: argparse.Namespace) -> int:
             if problem is not None:  # the estimates made are written; the input is named
                 raise RecordingError(str(args.replay), problem)
             return 0
-        from armid.daq.payload_service import PayloadService, drops_line
+        from armid.daq.payload_service import PayloadService
+        from armid.daq.stream import drops_line
         from armid.drivers.realtime import ordinary_priority
 
         ordinary_priority()  # the arithmetic never at a real-time policy inherited from what started it

@@ -20,7 +20,7 @@ def _serve(args: argparse.Namespace) -> int:
     import threading
     import time
 
-    from armid.daq.payload_service import drops_line
+    from armid.daq.stream import drops_line
 
     from ..serve import EstimatorService, ServiceOptions
 
