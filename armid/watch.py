@@ -234,7 +234,8 @@ def render(state: WatchState, robot: str) -> Any:
     doc = state.parameters
     if doc is not None and doc.get("base_parameters"):
         parts.append(Text(f"parameters from {_source(doc)} (set {state.published}){_fit_line(doc)}:", style="bold"))
-        cells = [Text(f"{b.get('expression', '?')} = {_number(b.get('value'))} +- {_number(b.get('std'))}")
+        cells = [Text(f"{b.get('expression', '?')} = {_number(b.get('value'))} +- {_number(b.get('std'))}"
+                      + (f" (link {b['link']})" if b.get("link") is not None else ""))  # a single-link table's row: its link's run
                  for b in doc["base_parameters"] if isinstance(b, dict)]
         parts.append(Columns(cells, padding=(0, 3)))
     else:
