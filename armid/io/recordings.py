@@ -677,6 +677,6 @@ def _lost_before(scan: _McapScan, loss: _Loss, seq: Any, period: float) -> int |
     (a recording that starts at sequence 47 lost nothing before it started)."""
     if loss.start_time_ns is not None and loss.end_time_ns is not None and np.isfinite(period) and period > 0:
         span = (loss.end_time_ns - loss.start_time_ns) * 1e-9
-        if 0 <= span < 1e6:
-            return int(round(span / period)) + 1
+        if 0 <= span < 1e6:  # no more than the sequence numbers leave room for (a header's times may be garbled too)
+            return min(int(round(span / period)) + 1, int(np.min(seq)))
     return _unaccounted(scan, seq)
