@@ -163,3 +163,19 @@ def test_watch_shows_every_published_parameter_set_the_payload_and_faults_in_wor
     assert "started run 'whole': whole-arm, 10.0 s" in frame, frame
     assert "0.123456" not in screen.text() and "{'" not in screen.text()
     assert "3 parameter sets" in log and "payload estimates" in log, log
+
+
+def test_raw_shows_the_events_documents_and_words_leave_out_what_is_not_words() -> None:
+    """``--raw``: every field as it came; without it an event of another kind keeps its plain
+    fields only (a trajectory's coefficients, drive settings are not words)."""
+    from armid.watch import WatchState
+
+    doc = {"time": 0.0, "event": "start", "run": "whole", "experiment": {"kind": "whole_arm", "trajectory": {"a": [[0.123456]]}}}
+    other = {"time": 0.0, "event": "calibrated", "joint": 2, "settings": {"gain": 0.987654}}
+    words, raw = WatchState(), WatchState(raw=True)
+    for state in (words, raw):
+        for d in (doc, other):
+            state.on_event(json.dumps(d).encode())
+    assert [line.split(" ", 1)[1] for line in words.events] == ["started run 'whole': whole-arm", "calibrated joint=2"]
+    assert all("0.123456" not in line and "0.987654" not in line for line in words.events)
+    assert "0.123456" in raw.events[0] and "0.987654" in raw.events[1]
