@@ -389,3 +389,10 @@ def test_the_payload_estimator_says_its_drops_and_counts_another_encoding(ident:
     [summary] = [line for line in err.splitlines() if re.match(r"armid estimate: \d+ estimates published; not used: ", line)]
     assert re.search(r"dropped (1 not finite, 3 encoding|3 encoding, 1 not finite) \(last: ", summary), summary
     assert re.search(r"armid serve: 200 records received, 0 skipped, 0 lost, 3 unreadable \(last: .*JointState/1", err), err
+
+
+def test_robot_dev_zero_end_to_end_in_a_process_of_its_own() -> None:
+    """As a user runs it: one line, exit 2, at once (it read 2-4 GB before)."""
+    proc = subprocess.run([sys.executable, "-m", "armid.cli", "identify", str(EXAMPLE), "--robot", "/dev/zero"], capture_output=True,
+                          text=True, timeout=60, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert_clean_error(proc.returncode, proc.stderr, r"/dev/zero: a device, not a regular file")
