@@ -33,7 +33,7 @@ from armid.identify.identification import IdentificationResult, IdentifyOptions,
 from armid.identify.identification import identify as _identify
 from armid.identify.plausibility import check_against_model, check_positions, check_recording, moving_joints
 from armid.identify.preprocess import Prepared, PrepareOptions, prepare
-from armid.identify.recordings import Recording, with_torque
+from armid.identify.recordings import Recording, recording_of, with_torque
 from armid.identify.robot import Robot
 from armid.io.recordings import read_mcap_arrays, read_recording, recording_kind, stop_line
 from armid.schema.errors import OptionError, PoorExcitationWarning, RecordingError
@@ -237,9 +237,9 @@ def replay_records(path: str | Path, robot: Robot, topic: str | None = None) -> 
     if a["position"].shape[1] != robot.n_joints:
         raise RecordingError(str(path), f"{a['position'].shape[1]} joints recorded, robot {robot.name} has {robot.n_joints}")
     states, _ = with_torque(JointStates.from_columns(a), robot)
-    stopped = stop_line(metadata)
-    found = [stop_warning(str(path), stopped)] if stopped else []
-    found += plausibility(str(path), robot, states.time, states.position, None, states.torque, need_motion=False)
+    # identify's checks on identify's reading of it (its usable records, the drives' velocity:
+    # what names stamps in milliseconds), the estimator's records as they are
+    _, found = checked(recording_of(states, robot, str(path), [], None, stop_line(metadata)), robot, need_motion=False)
     return states, notes, found
 
 

@@ -110,6 +110,7 @@ class EstimatorService:
         self.skipped = 0
         self.lost = 0
         self.bad = 0
+        self.last_bad: str | None = None
         self._last_seq: int | None = None
         self.published = 0
         self.errors: list[str] = []
@@ -145,8 +146,16 @@ class EstimatorService:
             self._inbox.append(sample.payload.to_bytes())
             self._wake.set()
         except Exception as err:
-            self.bad += 1
-            self._error(err)
+            self._bad(err)
+
+    def _bad(self, err: BaseException) -> None:
+        """A put that is not a record this service reads (another encoding, malformed bytes):
+        counted, the first said."""
+        self.bad += 1
+        self.last_bad = f"{type(err).__name__}: {err}"
+        self._error(err)
+        if self.bad == 1:
+            self.log(f"a put on joint_state refused ({self.last_bad}); further ones counted")
 
     def _on_event(self, sample: Any) -> None:
         try:
@@ -181,8 +190,7 @@ class EstimatorService:
                     try:
                         states = JointStates.unpack(data)
                     except ValueError as err:
-                        self.bad += 1
-                        self._error(err)
+                        self._bad(err)
                         continue
                     first = int(states.sequence[0])
                     if self._last_seq is not None and first > self._last_seq + 1:
@@ -347,6 +355,9 @@ class EstimatorService:
             return
         link = exp.description.get("link")
         rec = self.recording(records, meta, path)
+        for note in rec.notes:  # what identification left out, said as `armid identify` says it
+            if note.startswith(("left out", "time goes backwards")):
+                self.log(f"{exp.name}: {note}")
         if kind == "recording":
             kind, moving = self._kind_from_motion(rec)
             info["kind_from_motion"] = kind

@@ -83,6 +83,8 @@ class Sink:
 class Acquisition:
     """Read ``driver`` on a thread; ``on_fault`` hears of drive faults (acquisition goes on);
     ``on_sample`` runs inline on every sample the driver yields (a control law: it must be fast).
+    A joint whose drive faulted (or was lost) is marked invalid in every record after the fault,
+    until :meth:`clear_faults`.
     ``error`` says why acquisition stopped on its own (the driver, the control law, a sink)."""
 
     def __init__(self, driver: Driver, sinks: list[Sink], on_fault: Callable[[DriveFault], None] | None = None,
@@ -102,6 +104,11 @@ class Acquisition:
         self.error: str | None = None
         self.failed: Sink | None = None  # the sink whose failure stopped the run
         self.last: JointStates | None = None
+        self.faulted: set[int] = set()  # 0-based joints whose drive faulted or was lost: invalid in every record after it
+
+    def clear_faults(self) -> None:
+        """The drives were enabled again: their records are valid again from here on."""
+        self.faulted.clear()
 
     def start(self) -> None:
         for s in self.sinks:
@@ -113,12 +120,15 @@ class Acquisition:
             try:
                 sample = self.driver.read(timeout=1.0)
             except DriveFault as fault:
+                self.faulted.add(fault.joint)
                 if self.on_fault:
                     self.on_fault(fault)
                 continue
             except DriverError as err:
                 self.error = str(err)
                 break
+            if self.faulted:  # the verdict says a faulted drive's records after its fault are not valid: they are marked so
+                sample.valid[sorted(self.faulted)] = False
             self.invalid += np.logical_not(sample.valid)
             if self._last_position is not None:
                 same = (sample.position == self._last_position) & (sample.commanded_current != 0) & sample.valid

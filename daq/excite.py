@@ -358,6 +358,7 @@ class ExcitationSession:
                 # enable first, holding the pose: the plan's clock starts once the drives follow
                 self._invalid_run_reset()
                 self.driver.enable()
+                self.acquisition.clear_faults()  # every drive in operation again
                 self.enabled = True
             active = self.control.start(plan)
             if self.stream is not None:

@@ -108,20 +108,22 @@ class EstimateStream:
         return {"skipped": self.skipped, "lost": self.lost, "invalid": self.invalid, "time_faults": self.time_faults,
                 "dropped": dict(self.dropped), "last_drop": self.last_drop}
 
-    def _screen(self, seq: NDArray[np.int64], t: Array, valid: NDArray[np.bool_], q: Array, torque: Array) -> tuple[NDArray[np.bool_], NDArray[np.bool_], list[dict[str, Any]], Array]:
+    def _screen(self, records: JointStates) -> tuple[NDArray[np.bool_], NDArray[np.bool_], list[dict[str, Any]], Array]:
         """Which records the estimator takes, before which the derivatives restart (a gap in
         the sequence numbers, a dropped record, a stepped clock), the counts after each, and
         each record's time on the estimator's clock (a stepped clock's step taken out: the
         estimator's time never goes back).
         Sequential: each record is judged against the last *accepted* one, so one bad stamp
         costs one record, not the stream."""
+        seq, t, q, torque = records.sequence, records.time, records.position, records.torque
         n = t.size
         take = np.zeros(n, bool)
         restart = np.zeros(n, bool)
         after: list[dict[str, Any]] = []
         counts = self.counts()
-        finite = np.isfinite(t) & np.isfinite(q).all(axis=1) & np.isfinite(torque).all(axis=1)
-        flagged = np.all(valid, axis=1)
+        unusable = records.unusable(velocity=False)  # the one judgement identification makes too; the velocity is not read here
+        flagged = ~unusable.pop("flagged invalid")
+        finite = ~np.logical_or.reduce(list(unusable.values()))
         shifted = np.empty(n)
         for k, (sk, tk) in enumerate(zip(seq.tolist(), t.tolist())):
             take[k], restart[k] = self._judge(sk, tk, bool(finite[k]), bool(flagged[k]), q[k], torque[k])
@@ -196,8 +198,8 @@ class EstimateStream:
         n = len(records)
         if n == 0:
             return out
-        seq, t, valid, q, torque = records.sequence, records.time, records.valid, records.position, records.torque
-        take, restart, counts, clock = self._screen(seq, t, valid, q, torque)
+        seq, t, q, torque = records.sequence, records.time, records.position, records.torque
+        take, restart, counts, clock = self._screen(records)
 
         def flush(a: int, b: int) -> None:
             if b <= a:
@@ -258,6 +260,10 @@ class PayloadService:
         self.published = 0
         self.errors: list[str] = []
         self.last: dict[str, Any] | None = None
+        self.wrong_encoding = 0  # puts refused for their encoding (the callback counts, the worker files them as drops)
+        self._wrong_encoding_said: str | None = None
+        self._wrong_encoding_filed = 0
+        self._said: set[str] = set()  # the kinds of drop said so far (each said once, then counted)
         self._pub = session.declare_publisher(key(robot, "estimate/payload"), encoding=zenoh.Encoding.APPLICATION_JSON)
         self._token = session.liveliness().declare_token(key(robot, "alive/payload_estimator"))
         self._queryable = session.declare_queryable(key(robot, "status"), self._on_query)
@@ -268,11 +274,39 @@ class PayloadService:
     def _on_sample(self, sample: Any) -> None:
         try:
             check_encoding(str(sample.encoding))
+        except Exception as err:  # another schema's copy: refused, counted (a callback never kills the receive thread)
+            self._wrong_encoding_said = str(err)
+            self.wrong_encoding += 1
+            self._wake.set()
+            return
+        try:
             self._pending.append((time.monotonic(), sample.payload.to_bytes()))
             self._wake.set()
         except Exception as err:  # a callback never kills the receive thread
             if len(self.errors) < 100:
                 self.errors.append(f"{type(err).__name__}: {err}")
+
+    def _file_refused(self) -> None:
+        """The puts the callback refused for their encoding, counted among the stream's drops."""
+        n = self.wrong_encoding - self._wrong_encoding_filed
+        if n > 0:
+            self._wrong_encoding_filed += n
+            self.stream.dropped["encoding"] = self.stream.dropped.get("encoding", 0) + n
+            self.stream.last_drop = f"a put refused: {self._wrong_encoding_said}"
+
+    def _say_drops(self) -> None:
+        """Each kind of record not used, said once as it first happens (then counted: the
+        status, every document and the summary carry the counts)."""
+        if self.log is None:
+            return
+        st = self.stream
+        for reason in st.dropped:
+            if reason not in self._said:
+                self._said.add(reason)
+                self.log(f"dropped a record ({reason}): {st.last_drop}; further ones counted")
+        if st.invalid and "invalid" not in self._said:
+            self._said.add("invalid")
+            self.log("a record flagged invalid by its driver is not used; further ones counted")
 
     @property
     def running(self) -> bool:
@@ -295,6 +329,8 @@ class PayloadService:
         while not self._stop.is_set():
             self._wake.wait(0.1)
             self._wake.clear()
+            self._file_refused()
+            self._say_drops()
             batch = []
             while self._pending:
                 batch.append(self._pending.popleft())
@@ -314,6 +350,7 @@ class PayloadService:
                     if self.on_estimate:
                         self.on_estimate(doc)
                 self._clock.stop(len(records))
+                self._say_drops()
             except Exception as err:
                 if len(self.errors) < 100:
                     self.errors.append(f"{type(err).__name__}: {err}")

@@ -110,3 +110,14 @@ class Stream:
                 entity.undeclare()
             except Exception:  # already gone with the session
                 pass
+
+
+def drops_line(counts: dict[str, Any]) -> str:
+    """What a payload estimator's stream did not use, in words, from the counts its documents
+    and status carry (``skipped``, ``lost``, ``invalid``, ``time_faults``, ``dropped``,
+    ``last_drop``: :meth:`daq.payload_service.EstimateStream.counts`); empty when nothing."""
+    parts = [f"{counts[k]} {k.replace('_', ' ')}" for k in ("skipped", "lost", "invalid", "time_faults") if counts.get(k)]
+    dropped = counts.get("dropped") or {}
+    if dropped:
+        parts.append("dropped " + ", ".join(f"{v} {k}" for k, v in dropped.items()) + f" (last: {counts.get('last_drop')})")
+    return "; ".join(parts)

@@ -76,4 +76,4 @@ class Supervision:
     def verdict(self) -> str:
         joints = ", ".join(str(j + 1) for j in sorted(self.lost | self.faulted))
         what = "lost" if self.lost and not self.faulted else "faulted" if not self.lost else "lost or faulted"
-        return f"the run {what} joint{'s' if len(self.lost | self.faulted) > 1 else ''} {joints}: their records after that are not valid"
+        return f"the run {what} joint{'s' if len(self.lost | self.faulted) > 1 else ''} {joints}: their records after that are marked invalid"

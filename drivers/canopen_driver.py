@@ -123,6 +123,9 @@ class CanopenDriver(Driver):
         self.late_frames = np.zeros(self.n_joints, np.int64)
         self._taken_late: dict[tuple[int, int], float] = {}  # (joint, TPDO): bus time of its last frame, given to a cycle with a later one waiting
         self.error_frames = 0
+        self.foreign_syncs = 0  # SYNC frames seen that this master did not send (a second SYNC producer)
+        self._foreign_sync_last = 0.0
+        self._sync_producer = False  # this master sends SYNC (not a listener)
         self._clock = CycleClock(rig.period_s)
         self._node_ids = {d.node_id: d.joint for d in rig.drives}
         # called under the decoding lock with each SYNC as its cycle opens (stamped with the
@@ -205,6 +208,7 @@ class CanopenDriver(Driver):
         self._nmt[:] = -1
         self._nmt_supervised = True
         self.network.send_message(0, bytes([0x01, 0]))  # NMT start all
+        self._sync_producer = True
         if r.bus.interface == "socketcan":
             # the kernel's broadcast manager cycles 240 SYNC frames with counters 1..240; the
             # bus echoes each one back (receive_own_messages), and the echo opens its cycle
@@ -559,7 +563,7 @@ class CanopenDriver(Driver):
             silent = age if age > limit else now - self._last_read
             why = (f"no heartbeat for {age:.3f} s of bus time (3 periods: {limit:.3f} s)" if age > limit
                    else f"nothing read from the bus for {silent:.3f} s")
-            self._declare_lost(j, HeartbeatLost(j, d.node_id, 0x8130, f"{why}; the other drives were quick-stopped", silent_s=silent),
+            self._declare_lost(j, HeartbeatLost(j, d.node_id, 0x8130, f"{why}; the other drives were quick-stopped{self._second_sync()}", silent_s=silent),
                                "heartbeat_lost")
 
     def _on_frame_read(self, stamp: float) -> None:
@@ -612,8 +616,26 @@ class CanopenDriver(Driver):
         if err.code == 0:
             self._event("emcy_reset", f"joint {joint + 1} (node {node_id}): error reset", joint)
             return
-        meaning = emcy_meaning(err.code, bytes(err.data)) + self._own_stall(err.code)
+        meaning = emcy_meaning(err.code, bytes(err.data)) + self._own_stall(err.code) + self._second_sync()
         self._fault(DriveFault(joint, node_id, err.code, meaning), "emcy")
+
+    def _on_foreign_sync(self, msg: can.Message) -> None:
+        """A SYNC this master did not send: another device produces SYNC on the bus (every
+        drive steps on each SYNC it sees, so their timing and the arm's are not this master's).
+        Said once as an event; every fault after it names it (:meth:`_second_sync`)."""
+        self.foreign_syncs += 1
+        self._foreign_sync_last = time.monotonic()
+        if self.foreign_syncs == 1:
+            counter = f", counter {msg.data[0]}" if len(msg.data) else ""
+            self._event("foreign_sync", f"a second SYNC producer on the bus: a SYNC frame (COB-ID 0x{SYNC_COB_ID:03X}{counter}) that this "
+                                        f"master did not send (it sends one every {1000 * self.period_s:g} ms)")
+
+    def _second_sync(self) -> str:
+        """What a fault line adds when SYNC frames this master did not send came within the last 2 s."""
+        if not self.foreign_syncs or time.monotonic() - self._foreign_sync_last > 2.0:
+            return ""
+        return (f"; a second SYNC producer on the bus ({self.foreign_syncs:,} SYNC frames this master did not send, the last "
+                f"{time.monotonic() - self._foreign_sync_last:.2f} s ago)")
 
     def _own_stall(self, code: int) -> str:
         """Why a drive timed out on this master, where this process is the cause: its SYNC thread
@@ -741,6 +763,10 @@ class _Watcher(can.Listener):
                 d._event("error_frames", f"{len(self._errors)} CAN error frames within 100 ms (total {d.error_frames}): check wiring and termination")
             return
         cob = msg.arbitration_id
+        if cob == SYNC_COB_ID:  # this master's own never reach it (a SYNC thread's are not echoed; SocketCAN's echo is not rx)
+            if d._sync_producer and (d._thread is not None or msg.is_rx):
+                d._on_foreign_sync(msg)
+            return
         func, node = cob & 0x780, cob & 0x7F
         if func in (0x080, 0x180, 0x280, 0x380, 0x480, 0x580, 0x700) and node and cob != SYNC_COB_ID:
             if node not in d._node_ids and node != d.rig.master_node_id and node not in self._unknown:

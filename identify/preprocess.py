@@ -341,6 +341,11 @@ def _choose_band(source: str, t: Array, q: Array, qd: Array | None, pieces: list
                 f"the regressor and the torque alike; decimated {decimation}:1")
 
 
+NOISE_FLOOR = 1e-9
+"""A noise level (relative to the signal) below this is no noise: a ratio over it says nothing
+(over a denormal one it said "3.85e+298x noisier"), and a recorded velocity that clean is kept."""
+
+
 def _uniform(source: str, t: Array, q: Array, tau: Array, qd: Array | None, qdd: Array | None, band: Band | None,
              options: PrepareOptions, notes: list[str]) -> Segment:
     raw_t, raw_tau = t, tau
@@ -373,10 +378,12 @@ def _uniform(source: str, t: Array, q: Array, tau: Array, qd: Array | None, qdd:
         from_q = uniform_derivative(q, period)
         noise_qd = float(np.median(noise_level(qd, filt) / np.maximum(np.std(qd, axis=0), 1e-12)))
         noise_q = float(np.median(noise_level(from_q, filt) / np.maximum(np.std(qd, axis=0), 1e-12)))
-        if noise_q < 0.5 * noise_qd:
+        if noise_q < 0.5 * noise_qd and noise_qd > NOISE_FLOOR:
             qd = None
             if not any(n.startswith("velocity from positions") for n in notes):
-                notes.append(f"velocity from positions: the recorded velocity is {noise_qd / max(noise_q, 1e-300):.3g}x noisier above the cut-off")
+                how = (f"{noise_qd / noise_q:.3g}x noisier above the cut-off" if noise_q > NOISE_FLOOR else
+                       f"noisier above the cut-off, where the positions' derivative carries no noise (below {NOISE_FLOOR:g} of the signal)")
+                notes.append(f"velocity from positions: the recorded velocity is {how}")
     q = filt.smooth(q)
     from_positions = qd is None
     qd = uniform_derivative(q, period) if qd is None else filt.smooth(qd)

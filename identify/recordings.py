@@ -68,7 +68,7 @@ def with_torque(states: JointStates, robot: Robot) -> tuple[JointStates, str]:
 def recording_of(states: JointStates, robot: Robot, source: str, notes: list[str] | None = None, period_s: float | None = None,
                  stopped: str | None = None) -> Recording:
     """A drive recording's records as identification takes them: in sequence order, those stamped
-    no later than an earlier one and the cycles with a joint marked invalid left out (said in
+    no later than an earlier one and the unusable ones (:meth:`JointStates.unusable`) left out (said in
     the notes), the drives' velocity (:func:`drive_velocity`), the torque by :func:`with_torque`.
     ``notes`` (what reading said so far, extended here), ``period_s`` and ``stopped`` are the
     recording's (its metadata's)."""
@@ -79,19 +79,23 @@ def recording_of(states: JointStates, robot: Robot, source: str, notes: list[str
     if np.any(order != np.arange(order.size)):
         states = states[order]
         notes.append("records stored out of sequence order: put back in order by their sequence numbers")
-    t_all = states.time
-    ahead = np.concatenate([[True], t_all[1:] > np.maximum.accumulate(t_all)[:-1]])
+    states, how = with_torque(states, robot)
+    unusable = states.unusable()
+    bad = np.logical_or.reduce(list(unusable.values()))
+    if bad.any():
+        why = ", ".join(f"{int(m.sum())} {reason}" for reason, m in unusable.items() if m.any())
+        notes.append(f"left out {int(bad.sum())} unusable records ({why})")
+    t_all = np.where(bad, -np.inf, states.time)  # an unusable record neither leads nor lags
+    ahead = np.concatenate([[True], t_all[1:] > np.maximum.accumulate(t_all)[:-1]]) | bad
     if not ahead.all():
         first = int(np.flatnonzero(~ahead)[0])
-        notes.append(f"time goes backwards at sequence {int(states.sequence[first])} (t {t_all[first - 1]:.6f} -> "
+        before = float(np.max(t_all[:first]))
+        notes.append(f"time goes backwards at sequence {int(states.sequence[first])} (t {before:.6f} -> "
                      f"{t_all[first]:.6f} s): left out {int((~ahead).sum())} records stamped no later than an earlier one")
-    valid = states.valid.all(axis=1)
-    if not valid.all():
-        notes.append(f"left out {int((~valid).sum())} cycles with a joint marked invalid")
-    keep = valid & ahead
+    keep = ~bad & ahead
     if keep.sum() < 2:
         raise RecordingError(source, f"only {int(keep.sum())} usable records of {keep.size} (" + "; ".join(notes) + ")")
-    kept, how = with_torque(states[keep], robot)
+    kept = states[keep]
     velocity = drive_velocity(kept.time, kept.velocity, kept.velocity_fresh, notes)
     return Recording(source, kept.time, kept.position, kept.torque, velocity, None, None, notes + [how], torque_held=True,
                      cycle=kept.cycle, period_s=period_s, torque_from_current=True, stopped=stopped)

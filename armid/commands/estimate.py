@@ -132,7 +132,11 @@ def _estimate(args: argparse.Namespace) -> int:
         ref_records, ref_notes = _replay_records(Path(args.reference), robot, args.period, args.topic)
         for note in ref_notes:
             print(f"{args.reference}: {note}", file=sys.stderr)
-        kept = ref_records[np.flatnonzero(ref_records.valid.all(axis=1))]
+        unusable = ref_records.unusable(velocity=False)  # the records the estimator would drop
+        kept = ref_records[~np.logical_or.reduce(list(unusable.values()))]
+        if len(kept) < 2:
+            why = ", ".join(f"{int(m.sum())} {reason}" for reason, m in unusable.items() if m.any())
+            raise RecordingError(args.reference, f"only {len(kept)} usable records of {len(ref_records)} ({why}): no reference run")
         try:
             reference = ReferenceRun(arm, kept.time, kept.position, kept.torque)
         except ValueError as err:
@@ -160,6 +164,7 @@ def _estimate(args: argparse.Namespace) -> int:
                 raise RecordingError(str(args.replay), problem)
             return 0
         from armid.daq.payload_service import PayloadService
+        from armid.daq.stream import drops_line
         from armid.drivers.realtime import ordinary_priority
 
         ordinary_priority()  # the arithmetic never at a real-time policy inherited from what started it
@@ -182,6 +187,8 @@ def _estimate(args: argparse.Namespace) -> int:
         finally:
             service.close()
             session.close()
+        drops = drops_line(stream.counts())
+        print(f"armid estimate: {service.published} estimates published" + (f"; not used: {drops}" if drops else ""), file=sys.stderr, flush=True)
         if service.running:  # the executable ends without finalization (armid.cli.run), which would abort it
             print("armid estimate: the estimator was still inside a batch at the stop: not waited for", file=sys.stderr, flush=True)
         return 0

@@ -21,6 +21,8 @@ def _serve(args: argparse.Namespace) -> int:
     import threading
     import time
 
+    from armid.daq.stream import drops_line
+
     from ..serve import EstimatorService, ServiceOptions
 
     robot = load_robot_argument(args.robot)
@@ -66,8 +68,11 @@ def _serve(args: argparse.Namespace) -> int:
                         break
             finally:
                 service.close()
-        print(f"armid serve: {service.received} records received, {service.skipped} skipped, {service.lost} lost; "
-              f"{service.published} estimates published", file=sys.stderr)
+        bad = f", {service.bad} unreadable" + (f" (last: {service.last_bad})" if service.last_bad else "")
+        payload = service.payload_service
+        drops = "" if payload is None else drops_line(payload.stream.counts())
+        print(f"armid serve: {service.received} records received, {service.skipped} skipped, {service.lost} lost{bad}; "
+              f"{service.published} estimates published" + (f"; the payload estimator did not use: {drops}" if drops else ""), file=sys.stderr)
     finally:
         if out_json is not None:
             out_json.close()

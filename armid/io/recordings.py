@@ -142,12 +142,15 @@ def _read_csv(path: Path, robot: Robot) -> Recording:
     except UnicodeDecodeError as err:
         raise RecordingError(str(path), f"not a text CSV file ({err.reason})") from err
     reader = csv.reader(io.StringIO(text, newline=""))
-    header = next(reader, None)
-    if header is None:
-        raise RecordingError(str(path), "empty file (no header line)")
-    header = [h.strip() for h in header]
-    plain = _plain_numbers(text, len(header))
-    rows = list(reader) if plain is None else []
+    try:
+        header = next(reader, None)
+        if header is None:
+            raise RecordingError(str(path), "empty file (no header line)")
+        header = [h.strip() for h in header]
+        plain = _plain_numbers(text, len(header))
+        rows = list(reader) if plain is None else []
+    except csv.Error as err:  # a field beyond the reader's limit (a line of megabytes), a NUL byte
+        raise RecordingError(str(path), f"line {reader.line_num}: not a CSV row ({err})") from None
     columns = {name: k for k, name in enumerate(header)}
     if len(columns) != len(header):
         dup = sorted({h for h in header if header.count(h) > 1})
@@ -331,6 +334,7 @@ class _McapScan:
         self.summary = False
         self.orphans: dict[int, list[McapMessage]] = {}  # messages of a channel whose record was not read
         self.adopted: int | None = None
+        self.unchecked: list[int] = []  # offsets of chunks whose CRC is 0 ("not computed"): read, but not verified
         self._read_summary()
         self._read_data()
         self._adopt_orphans()
@@ -471,6 +475,8 @@ class _McapScan:
         if records is None:
             self.losses.append(_Loss(pos, body + length, why, chunk.message_start_time, chunk.message_end_time))
             return
+        if chunk.uncompressed_crc == 0:  # MCAP's "not computed": nothing says its bytes are the ones written
+            self.unchecked.append(pos)
         for op, content in records:
             if op == Opcode.CHANNEL:
                 self._channel(Channel.read(ReadDataStream(BytesIO(content))))
@@ -581,7 +587,7 @@ def read_mcap_arrays(path: str | Path) -> tuple[dict[str, Array], dict[str, str]
     pairs = [(scan.cdr[JOINT_STATES_TOPIC][states[key]], scan.cdr[EXTRA_TOPIC][k]) for key, k in extras.items() if key in states]
     if not pairs:
         notes = _loss_notes(scan, [], [], [], len(data))
-        return {}, scan.run_metadata(), notes or [f"no {JOINT_STATES_TOPIC} record in the file"]
+        return {}, scan.run_metadata(), notes or [_unpaired(states, extras)]
     s_msgs, e_msgs = [s[3] for s, _ in pairs], [e[3] for _, e in pairs]
     offsets = np.array([e[0] for _, e in pairs], np.int64)
     cols = same_length(ros2_columns(s_msgs, JOINT_STATE_TYPE), ros2_columns(e_msgs, EXTRA_TYPE))
@@ -589,6 +595,10 @@ def read_mcap_arrays(path: str | Path) -> tuple[dict[str, Array], dict[str, str]
         cols = decoded_columns([(s[0], s[3]) for s, _ in pairs], [(e[0], e[3]) for _, e in pairs], src)
     t = cols["sec"][:, 0] + 1e-9 * cols["nanosec"][:, 0]
     notes = _loss_notes(scan, cols["sequence"][:, 0].astype(np.int64), t, offsets, len(data))
+    if scan.unchecked:
+        more = len(scan.unchecked) - 1
+        notes.append(f"chunk at offset {scan.unchecked[0]} has no CRC: not verified"
+                     + (f" (nor {more} more chunk{'s' if more > 1 else ''} without one)" if more else ""))
     if scan.adopted is not None:
         notes.append(f"the channel record was lost for both {JOINT_STATES_TOPIC} and {EXTRA_TOPIC}: the {len(t)} cycles of "
                      "the two channels left were read by the message types they decode as")
@@ -606,6 +616,17 @@ def read_mcap_arrays(path: str | Path) -> tuple[dict[str, Array], dict[str, str]
         "torque": cols["effort"].astype(float),
     }
     return arrays, scan.run_metadata(), notes
+
+
+def _unpaired(states: dict[tuple[int, int], int], extras: dict[tuple[int, int], int]) -> str:
+    """Why no cycle could be read from the two channels' messages (none lost to corruption)."""
+    if not states:
+        return f"no {JOINT_STATES_TOPIC} record in the file" + (f" ({len(extras)} {EXTRA_TOPIC} messages alone)" if extras else "")
+    if not extras:
+        return (f"{len(states)} {JOINT_STATES_TOPIC} messages but no {EXTRA_TOPIC} channel: armid reads a cycle from the two "
+                "together, as armid record writes them")
+    return (f"none of the {len(states)} {JOINT_STATES_TOPIC} messages has its {EXTRA_TOPIC} message (the same log time and "
+            "sequence number)")
 
 
 def _loss_notes(scan: _McapScan, seq: Any, t: Any, offsets: Any, size: int) -> list[str]:
@@ -630,16 +651,24 @@ def _loss_notes(scan: _McapScan, seq: Any, t: Any, offsets: Any, size: int) -> l
                     continue
                 seconds = float(t[after] - t[before]) - (period if np.isfinite(period) else 0.0)
                 span = f"sequence {seq[before] + 1}..{seq[after] - 1}, between t {t[before]:.4f} and {t[after]:.4f} s"
-            else:
-                lost = int(seq[after] - 0)
+            else:  # before the first record read: the recording need not start at sequence 0
+                count = _lost_before(scan, loss, seq, period)
+                if count is None:
+                    notes.append(f"{loss.why} ({where}): an unknown number of records before sequence {seq[after]} (t {t[after]:.4f} s) "
+                                 "lost (neither the chunk's time span nor the file's counts could be read); reading resumed after it")
+                    continue
+                if count == 0:
+                    notes.append(f"{loss.why} ({where}): no record lost")
+                    continue
+                lost = count
                 seconds = lost * period if np.isfinite(period) else float("nan")
-                span = f"sequence 0..{seq[after] - 1}, before t {t[after]:.4f} s"
+                span = f"sequence {seq[after] - lost}..{seq[after] - 1}, before t {t[after]:.4f} s"
             notes.append(f"{loss.why} ({where}): {lost} records ({seconds:.3f} s; {span}) lost; reading resumed after it")
         else:
             tail = f"after sequence {seq[-1]} (t {t[-1]:.4f} s)" if seq.size else "from the start"
-            expected = scan.expected_cycles()
-            if expected is not None:
-                lost = expected - seq.size - sum(int(seq[i + 1] - seq[i] - 1) for i in range(seq.size - 1))
+            lost_or_none = _unaccounted(scan, seq)
+            if lost_or_none is not None:
+                lost = lost_or_none
                 amount = f"{lost} records ({lost * period:.3f} s)" if np.isfinite(period) else f"{lost} records"
             elif loss.start_time_ns is not None and np.isfinite(period):
                 seconds = max(0.0, (loss.end_time_ns - loss.start_time_ns) * 1e-9) + period  # type: ignore[operator]
@@ -652,10 +681,42 @@ def _loss_notes(scan: _McapScan, seq: Any, t: Any, offsets: Any, size: int) -> l
                      f"records after sequence {seq[-1] if seq.size else '-'} may never have been written; the rest of the run is lost")
     if seq.size > 1:
         d = np.diff(seq)
-        gaps = [i for i in np.flatnonzero(d != 1) if i not in explained]
+        gaps = [i for i in np.flatnonzero(d > 1) if i not in explained]
         if gaps:
             missing = int(sum(d[i] - 1 for i in gaps))
             i = gaps[0]
             notes.append(f"{missing} records missing in {len(gaps)} gap(s) of the sequence numbers "
                          f"(first after sequence {seq[i]}, t {t[i]:.4f} s)")
+        back = np.flatnonzero(d < 1)  # a number repeated or going back: not a gap, and no record missing
+        if back.size:
+            k = int(back[0])
+            notes.append(f"{back.size} record(s) numbered no higher than the record before (first: sequence {seq[k + 1]} after "
+                         f"{seq[k]}): put in sequence order")
     return notes
+
+
+def _unaccounted(scan: _McapScan, seq: Any) -> int | None:
+    """Records the file says were written (its summary's count of cycles, else the recorder's
+    ``armid.run_end`` count) less those read and those in the gaps between them: the records
+    lost outside the records read. None when the file does not say, or says fewer than were read."""
+    expected = scan.expected_cycles()
+    if expected is None:
+        try:
+            expected = int(scan.end["records"])
+        except (KeyError, ValueError):
+            return None
+    unique = np.unique(np.asarray(seq, np.int64))
+    inside = int(unique[-1] - unique[0] + 1) if unique.size else 0  # the records read and the gaps between them
+    lost = expected - inside
+    return lost if lost >= 0 else None
+
+
+def _lost_before(scan: _McapScan, loss: _Loss, seq: Any, period: float) -> int | None:
+    """How many records a stretch before the first record read held: by the lost chunk's own
+    time span where its header could be read, else what the file's counts leave unaccounted
+    (a recording that starts at sequence 47 lost nothing before it started)."""
+    if loss.start_time_ns is not None and loss.end_time_ns is not None and np.isfinite(period) and period > 0:
+        span = (loss.end_time_ns - loss.start_time_ns) * 1e-9
+        if 0 <= span < 1e6:  # no more than the sequence numbers leave room for (a header's times may be garbled too)
+            return min(int(round(span / period)) + 1, int(np.min(seq)))
+    return _unaccounted(scan, seq)

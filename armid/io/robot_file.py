@@ -61,11 +61,9 @@ def load_robot(path: str | Path) -> Robot:
     if path.suffix.lower() == ".urdf":
         return robot_from_urdf(path)
     try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise RobotFileError(src, "", "no such file") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise RobotFileError(src, "", f"cannot read ({err})") from err
+        text = bounded_read(path, src, "").decode()
+    except UnicodeDecodeError as err:
+        raise RobotFileError(src, "", f"not a text file ({err.reason})") from None
     try:
         doc = yaml.safe_load(text)
     except RecursionError:
@@ -75,6 +73,41 @@ def load_robot(path: str | Path) -> Robot:
         where = f"line {mark.line + 1}" if mark is not None else "YAML"
         raise RobotFileError(src, where, f"not valid YAML ({getattr(err, 'problem', err)})") from err
     return robot_from_dict(doc, src, path.parent)
+
+
+ROBOT_FILE_LIMIT_BYTES = 32 * 1024 * 1024
+"""The largest robot file or URDF read (meshes are files of their own): a path to a device or
+a pipe (``/dev/zero``) is refused before it is read, a file larger than this is too."""
+
+
+def bounded_read(path: Path, src: str, where: str) -> bytes:
+    """The bytes of a robot file or a URDF: a regular file of at most :data:`ROBOT_FILE_LIMIT_BYTES`,
+    else a :class:`RobotFileError` that says what the path is. ``src`` and ``where``: the file
+    and field the error names (``where`` empty for the file itself)."""
+    try:
+        info = path.stat()
+    except FileNotFoundError:
+        raise RobotFileError(src, where, "no such file" if not where else f"no such file {path}") from None
+    except OSError as err:
+        raise RobotFileError(src, where, f"cannot read {path} ({err.strerror or type(err).__name__})") from None
+    import stat
+
+    named = f"{path} is " if where else ""
+    if not stat.S_ISREG(info.st_mode):
+        kind = ("a directory" if stat.S_ISDIR(info.st_mode) else "a device" if stat.S_ISCHR(info.st_mode) or stat.S_ISBLK(info.st_mode)
+                else "a pipe" if stat.S_ISFIFO(info.st_mode) else "a socket" if stat.S_ISSOCK(info.st_mode) else "not a regular file")
+        raise RobotFileError(src, where, f"{named}{kind}, not a regular file: a robot description is read from a file")
+    if info.st_size > ROBOT_FILE_LIMIT_BYTES:
+        raise RobotFileError(src, where, f"{named}{info.st_size / 2**20:.0f} MiB, larger than any robot description "
+                                         f"(at most {ROBOT_FILE_LIMIT_BYTES // 2**20} MiB are read)")
+    try:
+        with path.open("rb") as f:
+            data = f.read(ROBOT_FILE_LIMIT_BYTES + 1)
+    except OSError as err:
+        raise RobotFileError(src, where, f"cannot read {path} ({err.strerror or type(err).__name__})") from None
+    if len(data) > ROBOT_FILE_LIMIT_BYTES:  # it grew while read
+        raise RobotFileError(src, where, f"{named}more than {ROBOT_FILE_LIMIT_BYTES // 2**20} MiB: not a robot description")
+    return data
 
 
 def robot_from_urdf(path: Path) -> Robot:
@@ -375,8 +408,7 @@ def _urdf_model(urdf: Path, src: str) -> Any:
     """The URDF loaded through Pinocchio, or a :class:`RobotFileError` that names what is wrong."""
     import pinocchio as pin
 
-    if not urdf.exists():
-        raise RobotFileError(src, "urdf", f"no such file {urdf}")
+    bounded_read(urdf, src, "urdf")  # a regular file of a robot's size: the parser reads without a bound
     with _stderr_of_c_code() as parser_said:
         try:
             model = pin.buildModelFromUrdf(str(urdf))

@@ -123,6 +123,22 @@ class JointStates:
         """The records at ``index`` (a slice, indices or a mask), as records."""
         return JointStates(*(getattr(self, f.name)[index] for f in fields(JointStates)))
 
+    def unusable(self, velocity: bool = True) -> dict[str, NDArray[np.bool_]]:
+        """Why each record cannot be used, by reason (a mask each; a record may have several):
+        the one place that decides it, for identification (:func:`armid.identify.recordings.recording_of`,
+        so for ``armid identify`` of a recording and the service alike) and the payload
+        estimator. A joint flagged invalid, a time stamp, position or joint torque that is not
+        finite, and (``velocity``: for a consumer that reads the drives' velocity) a velocity
+        that is not finite on a cycle that says it is fresh. ``torque`` NaN throughout (a
+        source of currents only) is for the caller to replace first."""
+        why: dict[str, NDArray[np.bool_]] = {
+            "flagged invalid": ~np.all(self.valid, axis=1), "time not finite": ~np.isfinite(self.time),
+            "position not finite": ~np.all(np.isfinite(self.position), axis=1),
+            "torque not finite": ~np.all(np.isfinite(self.torque), axis=1)}
+        if velocity:
+            why["velocity not finite"] = ~np.all(np.isfinite(self.velocity) | ~self.velocity_fresh, axis=1)
+        return why
+
     def recorded(self) -> JointStates:
         """The records with their times on a recording's clock (:func:`recording_seconds`):
         the one place a time stamp is rounded."""
