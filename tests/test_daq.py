@@ -75,9 +75,17 @@ def test_recorder_killed_with_sigkill_leaves_all_but_the_last_second(tmp_path: P
     assert len(arrays["sequence"]) >= last - 500, (len(arrays["sequence"]), last)  # 500 records = 1 s at 2 ms
     assert np.array_equal(arrays["sequence"], np.arange(len(arrays["sequence"])))
     assert notes and "the rest of the run is lost" in notes[0]
-    # a corrupted copy: flip bytes in the middle; what comes before still reads
+    # a corrupted copy: flip bytes in the middle of the middle chunk (not of the message index
+    # after it, which holds no record); what comes before still reads
     data = bytearray(path.read_bytes())
-    data[len(data) // 2 : len(data) // 2 + 64] = b"\xff" * 64
+    chunks, pos = [], 8  # the records after the magic: opcode (1 byte), length (8), content
+    while pos + 9 <= len(data):
+        opcode, length = data[pos], int.from_bytes(data[pos + 1 : pos + 9], "little")
+        if opcode == 0x06 and pos + 9 + length <= len(data):
+            chunks.append((pos + 9, length))
+        pos += 9 + length
+    start, length = chunks[len(chunks) // 2]
+    data[start + length // 2 : start + length // 2 + 64] = b"\xff" * 64
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(bytes(data))
     arrays_bad, _, notes_bad = read_mcap(bad)

@@ -1,7 +1,7 @@
 """Issue 66: the serial chain waits through a stall of the machine, as the CAN arm does.
 
 ``armid excite --whole`` on the simulated Dynamixel rig, its process and the chain's stopped
-together (a host that deschedules both, SIGSTOP), the excitation's process let go first: its
+together for 20 ms (a host that deschedules both, SIGSTOP), the excitation's process let go first: its
 reads find the chain still silent for several cycles. Those cycles are waited through, up to
 the rig's ``bus.silent_cycles``, and said; a chain silent while the driver's process ran on
 time still stops the arm at three cycles (tests/test_excitation_dynamixel.py)."""
@@ -19,7 +19,7 @@ import pytest
 
 from armid.resources import config_file
 
-pytestmark = [pytest.mark.realtime, pytest.mark.slow]
+pytestmark = [pytest.mark.realtime, pytest.mark.slow, pytest.mark.alone]  # a stall it makes itself, on cores of its own
 
 
 def _chain_of(parent: int) -> int:
@@ -51,7 +51,7 @@ def test_a_stall_of_the_machine_is_waited_through_and_said(tmp_path: Path) -> No
         chain = _chain_of(excite.pid)
         os.kill(chain, signal.SIGSTOP)
         os.kill(excite.pid, signal.SIGSTOP)
-        time.sleep(0.05)
+        time.sleep(0.02)
         os.kill(excite.pid, signal.SIGCONT)  # the excitation runs again; the chain only 30 ms later
         time.sleep(0.03)
         os.kill(chain, signal.SIGCONT)
