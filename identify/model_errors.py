@@ -95,7 +95,6 @@ def held_out_error(result: IdentificationResult, system: Array, segments: list[S
     return out
 
 
-
 def measure_errors(result: IdentificationResult, system: Array, segments: list[Segment], validation: list[Prepared] | None,
                    refit: Refit) -> None:
     """The fit, held-out and validation errors, into ``result``."""
