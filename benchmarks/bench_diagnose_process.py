@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
 
 import blindgen  # noqa: E402
-from bench_identify_process import wall_seconds  # noqa: E402
+from bench_identify_process import interleaved  # noqa: E402
 from figures_json import load_average, recorded  # noqa: E402
 
 BASELINE = ROOT.parent / "shared" / "tools" / "baseline.py"
@@ -44,17 +44,7 @@ def main(repeats: int = 5, seconds: float = 50.0) -> None:
                                "--json", str(Path(tmp) / "diagnose.json")],
             "plain pipeline": [sys.executable, str(BASELINE), *logs, "--robot", str(case.robot_yaml), "--validate", str(case.valid_csv)],
         }
-        for argv in commands.values():  # once each first: numba's cache and the files in the page cache
-            wall_seconds(argv)
-        load_start = load_average()
-        times: dict[str, list[float]] = {name: [] for name in commands}
-        cpus: dict[str, list[float]] = {name: [] for name in commands}
-        last: dict[str, str] = {}
-        for _ in range(repeats):
-            for name, argv in commands.items():
-                took, cpu, last[name] = wall_seconds(argv)
-                times[name].append(took)
-                cpus[name].append(cpu)
+        times, cpus, last, load_start = interleaved(commands, repeats)
     print(f"4 logs of {int(seconds * 100)} samples x 6 joints (currents, 100 Hz) and a fifth to validate, {repeats} interleaved runs each, "
           f"{os.cpu_count()} cores, load average {load_start} at the start, {load_average()} at the end")
     for name, secs in times.items():

@@ -67,6 +67,24 @@ def wall_seconds(argv: list[str]) -> tuple[float, float, str]:
     return took, cpu, (done.stdout.strip().splitlines() or [""])[-1]
 
 
+def interleaved(commands: dict[str, list[str]], repeats: int) -> tuple[dict[str, list[float]], dict[str, list[float]], dict[str, str], list[float]]:
+    """Each command run once untimed (numba's cache and the files in the page cache, as a
+    user's second run), then ``repeats`` rounds of every command in turn: wall-clock and CPU
+    seconds per command, each one's last line, and the load average at the start."""
+    for argv in commands.values():
+        wall_seconds(argv)
+    load_start = load_average()
+    times: dict[str, list[float]] = {name: [] for name in commands}
+    cpus: dict[str, list[float]] = {name: [] for name in commands}
+    last: dict[str, str] = {}
+    for _ in range(repeats):
+        for name, argv in commands.items():
+            took, cpu, last[name] = wall_seconds(argv)
+            times[name].append(took)
+            cpus[name].append(cpu)
+    return times, cpus, last, load_start
+
+
 def main(repeats: int = 5, n: int = 100_000) -> None:
     armid = str(Path(sys.executable).parent / "armid")
     with tempfile.TemporaryDirectory() as tmp:
@@ -76,17 +94,7 @@ def main(repeats: int = 5, n: int = 100_000) -> None:
             "armid identify": [armid, "identify", str(csv), "--robot", str(ROBOT), "--json", str(Path(tmp) / "identify.json")],
             "plain script": [sys.executable, str(ROOT / "benchmarks" / "plain_identify.py"), str(csv), str(URDF)],
         }
-        for argv in commands.values():  # once each first: numba's cache and the files in the page cache, as a user's second run
-            wall_seconds(argv)
-        load_start = load_average()
-        times: dict[str, list[float]] = {name: [] for name in commands}
-        cpus: dict[str, list[float]] = {name: [] for name in commands}
-        last: dict[str, str] = {}
-        for _ in range(repeats):
-            for name, argv in commands.items():
-                took, cpu, last[name] = wall_seconds(argv)
-                times[name].append(took)
-                cpus[name].append(cpu)
+        times, cpus, last, load_start = interleaved(commands, repeats)
     print(f"{n} samples x 6 joints (UR5, {RATE_HZ:g} Hz, CSV), {repeats} interleaved runs each, {os.cpu_count()} cores, "
           f"load average {load_start} at the start, {load_average()} at the end")
     for name, secs in times.items():
