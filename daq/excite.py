@@ -48,8 +48,10 @@ LOST_CYCLES_STOP = 3
 """Consecutive cycles without a joint's frames after which the arm is stopped (unless this
 process was not scheduled meanwhile: :meth:`ExcitationControl._waits_through`)."""
 STALL_LOOKBACK_S = 0.05
-"""A stall of this process counts for a gap in the frames when it ended at most this long
-before the gap's newest cycle (the replies it delayed come a few cycles after it)."""
+"""A stall of this process counts for a gap in the frames when it was seen at most this long
+before the gap began (the replies it delayed come a few cycles after it). The gap is timed on
+this process's clock, not counted in cycles: a serial read waits its reply timeout (8 ms on the
+simulated chain) in each silent cycle, so cycles times the period would understate it."""
 
 
 @dataclass
@@ -116,6 +118,7 @@ class ExcitationControl:
         self.peak_torque = np.zeros(n)
         self.saturated = np.zeros(n, np.int64)
         self._invalid_run = np.zeros(n, np.int64)
+        self._gap_began = np.zeros(n)  # time.monotonic() at each joint's first cycle without frames, in its current gap
         self._velocity_age = np.zeros(n, np.int64)  # cycles since each joint's drive last sent its velocity
         self.skipped = 0  # samples supervised but not commanded from (a newer one was waiting)
         self.waited_through = 0  # gaps in a joint's frames waited through: this process was not scheduled (_waits_through)
@@ -148,14 +151,14 @@ class ExcitationControl:
         last = self.last_sample
         self._stop(f"drive fault: {fault}", last.cycle if last is not None else None)  # the cycle it was seen at
 
-    def _waits_through(self, silent_s: float) -> bool:
-        """Frames missing for ``silent_s`` while this process was not scheduled are waited
-        through, up to the driver's declared silent limit (a serial chain's ``silent_cycles``:
-        past it the driver declares the drive lost and stops the arm itself); a drive silent
-        while this process ran on time stops the arm at :data:`LOST_CYCLES_STOP` cycles.
-        Counted in ``waited_through`` (one per gap)."""
+    def _waits_through(self, silent_s: float, gap_s: float) -> bool:
+        """Frames missing for ``silent_s`` of cycles (``gap_s`` on this process's clock) while
+        this process was not scheduled are waited through, up to the driver's declared silent
+        limit (a serial chain's ``silent_cycles``: past it the driver declares the drive lost and
+        stops the arm itself); a drive silent while this process ran on time stops the arm at
+        :data:`LOST_CYCLES_STOP` cycles. Counted in ``waited_through`` (one per gap)."""
         limit = self.driver.silent_limit_s
-        if silent_s >= limit or not self.driver.stalled_within(silent_s + STALL_LOOKBACK_S):
+        if silent_s >= limit or not self.driver.stalled_within(gap_s + STALL_LOOKBACK_S):
             return False
         if self._invalid_run.max() == LOST_CYCLES_STOP:
             self.waited_through += 1
@@ -173,11 +176,13 @@ class ExcitationControl:
         if self.stop_reason:
             return
         self._invalid_run = np.where(s.valid, 0, self._invalid_run + 1)
+        if self._invalid_run.any():
+            self._gap_began = np.where(self._invalid_run == 1, time.monotonic(), self._gap_began)
         self._velocity_age = np.where(s.velocity_fresh, 0, self._velocity_age + 1)
         if self.armed and (self._invalid_run >= LOST_CYCLES_STOP).any():
             j = int(np.argmax(self._invalid_run))
             silent_s = float(self._invalid_run[j]) * self.period_s
-            if not self._waits_through(silent_s):
+            if not self._waits_through(silent_s, time.monotonic() - float(self._gap_began[j])):
                 return self._stop(f"joint {j + 1}: no frames for {int(self._invalid_run[j])} cycles{self.driver.stall_note()}", s.cycle)
         with self._lock:
             active = self.active

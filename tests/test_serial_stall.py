@@ -52,8 +52,8 @@ def test_a_stall_of_the_machine_is_waited_through_and_said(tmp_path: Path) -> No
         os.kill(chain, signal.SIGSTOP)
         os.kill(excite.pid, signal.SIGSTOP)
         time.sleep(0.02)
-        os.kill(excite.pid, signal.SIGCONT)  # the excitation runs again; the chain only 30 ms later
-        time.sleep(0.03)
+        os.kill(excite.pid, signal.SIGCONT)  # the excitation runs again; the chain only 60 ms later (at least
+        time.sleep(0.06)  # three of its 8 ms reply windows shut, in any schedule: the wait is said)
         os.kill(chain, signal.SIGCONT)
         out, _ = excite.communicate(timeout=120)
     finally:
