@@ -11,6 +11,7 @@ from __future__ import annotations
 import select
 from typing import Any
 
+from armid.drivers.line_progress import LineProgress
 from armid.drivers.rig import Rig
 from armid.schema.errors import SimulationError
 from armid.sim_bus.servo_chain import SimulatedServoChain
@@ -27,7 +28,16 @@ class ServoChainProcess:
 
         args = [sys.executable, "-m", "armid.chain_process", str(rig_file)] + ([] if seed is None else ["--seed", str(seed)])
         self._process = subprocess.Popen(args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1)
-        self.port: str = self._reply(start_timeout)["port"]
+        hello = self._reply(start_timeout)
+        self.port: str = hello["port"]
+        # the chain's counters of the line, for its master (drivers.line_progress); the file goes now, the mapping stays
+        self.progress = LineProgress(hello["progress"])
+        self.progress.unlink()
+
+    @property
+    def pid(self) -> int:
+        """The chain's process (a test stops it to stand for a host that stopped its CPU)."""
+        return self._process.pid
 
     def _reply(self, timeout: float) -> Any:
         import json
@@ -92,7 +102,7 @@ def chain_as_hardware(rig: Rig, seed: int | None = None) -> SimulatedServoChain:
 
     settings = ProcessSettings()
     settings.realtime(hardware=True)
-    chain = SimulatedServoChain(rig, seed=seed)
+    chain = SimulatedServoChain(rig, seed=seed, progress=LineProgress.create())
     settings.freeze()
     return chain
 
@@ -117,7 +127,7 @@ def serve(rig_file: str, seed: int | None = None) -> None:
     except Exception as err:
         say({"error": f"{type(err).__name__}: {err}"})
         return
-    say({"port": chain.port})
+    say({"port": chain.port, "progress": chain.progress.path})
     try:
         for line in sys.stdin:
             what, *args = json.loads(line)

@@ -36,6 +36,7 @@ class Simulator:
 
                 self.peer = ServoChainProcess(rig.source)  # its own process: the driver's cannot stall it
             self.driver_kwargs["port"] = self.peer.port
+            self.driver_kwargs["progress"] = self.peer.progress  # how far the chain has got: its own stalls are no servo's silence
             self.pacing = rig.pacing  # the chain keeps its own time: the rig's setting stands
         else:
             from armid.sim_bus.arm import SimulatedArm

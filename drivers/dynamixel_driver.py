@@ -37,6 +37,7 @@ from armid.schema.errors import ServoLost
 from . import dynamixel_protocol as dxl
 from .dynamixel_protocol import Address, ProtocolError, ReplyTimeout, StatusError
 from .interface import CycleClock, DriveConfigError, DriveFault, Driver, DriverError, DriverTimeout, Sample
+from .line_progress import LineProgress
 from .port_errors import serial_open_error
 from .rig import Rig
 
@@ -55,9 +56,10 @@ def serial_budget(rig: Rig) -> dxl.SerialBudget:
 
 
 class DynamixelDriver(Driver):
-    """The rig's servo chain on ``port`` (default: the rig's ``bus.port``)."""
+    """The rig's servo chain on ``port`` (default: the rig's ``bus.port``); on a simulated chain,
+    ``progress`` is its count of what it has served (:mod:`drivers.line_progress`)."""
 
-    def __init__(self, rig: Rig, port: str | None = None) -> None:
+    def __init__(self, rig: Rig, port: str | None = None, progress: LineProgress | None = None) -> None:
         if rig.serial is None:
             raise DriveConfigError(f"{rig.source}: bus.interface is {rig.bus.interface!r}, not dynamixel")
         if (port or rig.serial.port) == "sim":
@@ -92,6 +94,9 @@ class DynamixelDriver(Driver):
         self.noise_bytes = 0
         self.stale_replies = 0  # packets on the line that answered no request of ours (late replies), skipped
         self.stalled_waits = 0  # reply waits that overran their timeout while this process was not running (given a new window)
+        self.progress = progress
+        self.far_end_waits = 0  # reply windows shut before a simulated chain had served the request or its reply had come (given a new window)
+        self._written = self._read = 0  # bytes on the line, each way
         self.reply_times: deque[float] = deque(maxlen=200_000)  # completion stamps (time.perf_counter)
         self.round_trips: deque[float] = deque(maxlen=200_000)  # read request sent -> reply complete (s)
 
@@ -109,6 +114,8 @@ class DynamixelDriver(Driver):
         except (serial.SerialException, OSError) as err:
             raise serial_open_error(self.port_name, err) from err
         self._fd = self._serial.fileno()
+        if self.progress is not None:
+            self.progress.start()
 
     def _send(self, packet: bytes) -> None:
         view = memoryview(packet)
@@ -118,6 +125,7 @@ class DynamixelDriver(Driver):
             except BlockingIOError:
                 select.select([], [self._fd], [], 0.01)
                 continue
+            self._written += n
             view = view[n:]
 
     def _receive(self, deadline: float, size: int | None = None, packet_id: int | None = None) -> bytes:
@@ -164,6 +172,7 @@ class DynamixelDriver(Driver):
                 except BlockingIOError:
                     chunk = b""
                 if chunk:
+                    self._read += len(chunk)
                     buf += chunk
                     continue
             now = time.perf_counter()
@@ -178,6 +187,15 @@ class DynamixelDriver(Driver):
                 self.last_stall = (time.monotonic(), overran)
                 deadline = now + self.reply_timeout_s
                 continue
+            if now >= deadline and stalls < MAX_STALL_WAITS and self.progress is not None and self.progress.behind(self._written, self._read):
+                # a simulated chain that has not yet served what this process wrote, or whose reply the
+                # pty still holds, was not running (its CPU stopped by the host, the pty's kernel
+                # worker not scheduled): its window again; a servo that does not answer is still
+                # one the chain served without a reply
+                stalls += 1
+                self.far_end_waits += 1
+                deadline = now + self.reply_timeout_s
+                continue
             if remaining <= 0:
                 out = bytes(buf) if start == 0 and (packet_id is None or len(buf) <= 4 or buf[4] == packet_id) else b""
                 buf.clear()
@@ -188,10 +206,12 @@ class DynamixelDriver(Driver):
         self._rx.clear()
         while select.select([self._fd], [], [], 0)[0]:
             try:
-                if not os.read(self._fd, 4096):
-                    break
+                chunk = os.read(self._fd, 4096)
             except BlockingIOError:
                 break
+            if not chunk:
+                break
+            self._read += len(chunk)
 
     def _transact(self, servo_id: int, packet: bytes, timeout: float | None = None, attempts: int = ONE_OFF_ATTEMPTS,
                   data_length: int | None = None) -> dxl.Packet:

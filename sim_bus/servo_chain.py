@@ -34,6 +34,7 @@ import numpy as np
 
 from armid.drivers import dynamixel_protocol as dxl
 from armid.drivers.dynamixel_protocol import ALERT, Address, Instruction
+from armid.drivers.line_progress import LineProgress
 from armid.drivers.rig import Rig
 from armid.identify.robot import Robot
 from armid.schema.errors import RigFileError, UsageError
@@ -139,7 +140,7 @@ class SimulatedServo:
 class SimulatedServoChain:
     """The rig's servos on a pty; ``port`` is the device the driver opens. ``close`` ends it."""
 
-    def __init__(self, rig: Rig[Robot], seed: int | None = None) -> None:
+    def __init__(self, rig: Rig[Robot], seed: int | None = None, progress: LineProgress | None = None) -> None:
         if rig.serial is None:
             raise RigFileError(rig.source, "bus.interface", "not a serial rig (bus.interface: dynamixel)")
         self.rig = rig
@@ -155,6 +156,10 @@ class SimulatedServoChain:
         tty.setraw(self._slave)
         self.port = os.ttyname(self._slave)
         self._buffer = bytearray()
+        # request bytes read and reply bytes written, for the master: what it finds unanswered
+        # at its deadline while these lag was this process (or the pty) not running, no servo's silence
+        self.progress = LineProgress() if progress is None else progress
+        self._read_bytes = self._sent_bytes = 0
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._start = time.monotonic()
@@ -238,8 +243,10 @@ class SimulatedServoChain:
                 except OSError:
                     return
                 self._buffer += chunk
+                self._read_bytes += len(chunk)
                 for item in dxl.split_packets(self._buffer):
                     self._serve(item, time.monotonic())
+                self.progress.record(self._read_bytes - len(self._buffer), self._sent_bytes)
 
     def _run_physics(self) -> None:
         period = self.rig.period_s
@@ -258,7 +265,7 @@ class SimulatedServoChain:
         if delay > 0:
             time.sleep(delay)
         if data:
-            os.write(self._master, data)
+            self._sent_bytes += os.write(self._master, data)
 
     def _serve(self, item: dxl.Packet | dxl.ProtocolError, arrived: float) -> None:
         self.instructions += 1
