@@ -105,6 +105,12 @@ class DynamixelDriver(Driver):
         """Cycles started more than a period late (the schedule restarted)."""
         return self._clock.late
 
+    def waits_note(self) -> str:
+        if not self.far_end_waits:
+            return ""
+        return (f"{self.far_end_waits} reply window{'s' if self.far_end_waits != 1 else ''} given again: the simulated chain or "
+                "its pty was not scheduled in time (not a silent servo)")
+
     # --- the line ---
     def _open(self) -> None:
         import serial

@@ -289,6 +289,11 @@ class Driver(abc.ABC):
         when, stall = self.last_stall
         return bool(stall) and time.monotonic() - when < seconds
 
+    def waits_note(self) -> str:
+        """Reply waits given again for simulated hardware that had not yet answered, in a sentence
+        ("" when none: a driver without them, real hardware)."""
+        return ""
+
     def stall_note(self, within_s: float = 0.5) -> str:
         """Why frames went missing, for a stop that says so: this process not scheduled (with
         the figure) when it was within ``within_s``, else the drives or the line."""

@@ -137,6 +137,8 @@ def _excite_run(args: argparse.Namespace, rig: Any, robot: Any, n: int, simulate
 
         reports = run_experiments(session, experiments, out, console, status=status if enabled() else None)
     write_json(out / "runs.json", [r.to_json() for r in reports])
+    if driver.waits_note():  # the simulated chain's own stalls, waited through (drivers.line_progress)
+        console.print(f"armid excite: {driver.waits_note()}", markup=False, highlight=False)
     for r in reports:
         outcome = "completed" if r.completed else f"STOPPED: {r.stop_reason}"
         gaps = f"{r.waited_through} gap{'s' if r.waited_through != 1 else ''}"

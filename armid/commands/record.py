@@ -108,9 +108,8 @@ def _record_rig(args: argparse.Namespace) -> int:
                              reason=stop_line, first_sequence=0, last_sequence=acq.sequence - 1, first_cycle=0, window_s=None)
             print(f"armid record: {acq.sequence} records, invalid per joint {acq.invalid.tolist()}, lost cycles per joint "
                   f"{driver.lost_cycles.tolist()}" + (f", dropped by the stream {sinks[-1].dropped}" if stream else ""), file=sys.stderr)
-            if getattr(driver, "far_end_waits", 0):  # the simulated chain's own stalls, waited through (drivers.line_progress)
-                print(f"armid record: {driver.far_end_waits} reply windows given again: the simulated chain or its pty was not "
-                      "scheduled in time (not a silent servo)", file=sys.stderr)
+            if driver.waits_note():  # the simulated chain's own stalls, waited through (drivers.line_progress)
+                print(f"armid record: {driver.waits_note()}", file=sys.stderr)
             for line in supervision.summary():
                 print(f"armid record: {line}", file=sys.stderr)
             if supervision.failed:
