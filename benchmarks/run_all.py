@@ -40,6 +40,7 @@ RUNS = {
     "canopen": ["bench_canopen.py", "10", "virtual", "udp_multicast"],
     "canopen_busy2": ["bench_canopen.py", "10", "virtual", "udp_multicast", "--busy", "2"],
     "dynamixel": ["bench_dynamixel.py"],
+    "serial_load": ["bench_serial_load.py", "30", "2"],
     "dynamixel_excite": ["bench_command.py", "dynamixel_excite"],
     "dynamixel_excite_busy2": ["bench_command.py", "dynamixel_excite", "--busy", "2"],
     "fleet": ["bench_fleet.py"],

@@ -46,8 +46,8 @@ class Section:
 SECTIONS = (
     Section("Real time on a busy machine",
             "The whole demo, the timing-sensitive tests, the CANopen bus and the Dynamixel arm's excitation, each "
-            "beside two busy processes.",
-            ("demo_busy2", "realtime_busy2", "canopen_busy2", "dynamixel_excite_busy2")),
+            "beside two busy processes; the serial rig's recording beside one pinned to CPU 0, with the machine's own stalls.",
+            ("demo_busy2", "realtime_busy2", "canopen_busy2", "dynamixel_excite_busy2", "serial_load")),
     Section("The estimator service",
             "`armid demo` runs the service's path: its experiments stream to an estimator service, whose published "
             "fits are compared with the fit of the complete recording (equal when no record was missed); the "
