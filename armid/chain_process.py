@@ -92,7 +92,7 @@ class ServoChainProcess:
         self.close()
 
 
-def chain_as_hardware(rig: Rig, seed: int | None = None) -> SimulatedServoChain:
+def chain_as_hardware(rig: Rig, seed: int | None = None, progress: LineProgress | None = None) -> SimulatedServoChain:
     """A chain standing in for servos in this process, which it then has to itself until the
     process ends: hardware answers in hardware time, so its threads run at real-time priority
     where allowed, above a master's (:data:`~drivers.realtime.HARDWARE_ABOVE`), and what exists
@@ -102,7 +102,7 @@ def chain_as_hardware(rig: Rig, seed: int | None = None) -> SimulatedServoChain:
 
     settings = ProcessSettings()
     settings.realtime(hardware=True)
-    chain = SimulatedServoChain(rig, seed=seed, progress=LineProgress.create())
+    chain = SimulatedServoChain(rig, seed=seed, progress=progress)
     settings.freeze()
     return chain
 
@@ -122,9 +122,11 @@ def serve(rig_file: str, seed: int | None = None) -> None:
     # the line's thread takes the interpreter from the physics' within half a millisecond
     # of a request (the default 5 ms switch interval would hold the reply that long)
     sys.setswitchinterval(0.0001)
+    progress = LineProgress.create()  # in a file the master maps (and removes once it has)
     try:
-        chain = chain_as_hardware(load_rig(rig_file), seed)
+        chain = chain_as_hardware(load_rig(rig_file), seed, progress)
     except Exception as err:
+        progress.unlink()
         say({"error": f"{type(err).__name__}: {err}"})
         return
     say({"port": chain.port, "progress": chain.progress.path})
@@ -149,6 +151,7 @@ def serve(rig_file: str, seed: int | None = None) -> None:
                 say({"error": f"{type(err).__name__}: {err}"})
     finally:
         chain.close()
+        progress.unlink()  # a master that never took it
 
 
 if __name__ == "__main__":
