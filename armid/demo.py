@@ -36,6 +36,8 @@ from armid.schema.errors import DriverError, SimulationError
 
 from .demo_clock import (
     ANALYSIS_CPU_S,
+    CORES,
+    ESTIMATOR_ABOVE,
     PAYLOAD_OVERHEAD_S,
     PER_RUN_S,
     PHASE_ESTIMATES_S,
@@ -153,11 +155,13 @@ def _ready_to_analyse() -> int:
     return os.getpid()
 
 
-def _at_ordinary_priority(pid: int) -> None:
-    """The analysis's process back at the caller's priority once no drive moves (as root; without
-    the privilege it stays below)."""
+def _at_priority(pid: int, above: int = 0) -> None:
+    """A process of the demo's at this process's priority, or ``above`` it (where allowed: as root;
+    without the privilege it stays where it is). The analysis comes back from below once no run
+    of the drives it could delay is left but the payload run, whose real-time thread outranks it
+    anyway; the payload estimator, which must keep up with the live stream, goes above it."""
     try:
-        os.setpriority(os.PRIO_PROCESS, pid, os.getpriority(os.PRIO_PROCESS, 0))
+        os.setpriority(os.PRIO_PROCESS, pid, os.getpriority(os.PRIO_PROCESS, 0) - above)
     except OSError:
         pass
 
@@ -181,7 +185,8 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
     out.mkdir(parents=True, exist_ok=True)
     console.print(f"[bold]armid demo[/]: {rig.name}: {robot.n_joints} CiA 402 drives on {rig.bus.interface}:{rig.bus.channel}, "
                   f"{rig.period_s * 1000:g} ms SYNC, arm seed {arm_seed}; output in {out}")
-    phases = Phases(console, PHASE_ESTIMATES_S)
+    # the designs compute (the rest is the arm's real time): a machine busy beyond its cores makes them slower
+    phases = Phases(console, {**PHASE_ESTIMATES_S, "design": PHASE_ESTIMATES_S["design"] * max(1.0, os.getloadavg()[0] / CORES)})
     start = np.asarray(rig.simulation.get("initial_position", np.zeros(robot.n_joints)), float)
     links = list(range(robot.n_joints - 1, -1, -1))  # Khosla: last link first
     whole_runs = [("whole_a", 2), ("whole_b", 1)]
@@ -190,9 +195,9 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
     def designed(done: int, total: int, seconds: float) -> None:
         design_times.append(seconds)
         whole_left = min(len(whole_runs), total - done)
-        # the median: the first design also loads the compiled kernel; the whole-arm designs are made beside the
-        # single-link chain, and what is left of them once it ends is about a second (measured)
-        per_link = float(np.median(design_times[: len(links)]))
+        # the median; the first design also loads the compiled kernel: the others take about half its time (measured).
+        # The first whole-arm design is made beside the single-link chain, the second after it (WHOLE_AFTER_S)
+        per_link = float(np.median(design_times[1 : len(links)])) if done > 1 else 0.5 * seconds
         phases.estimates["design"] = (time.monotonic() - phases.phase_started) + (total - done - whole_left) * per_link + WHOLE_AFTER_S * (whole_left > 0)
 
     # OpenBLAS's threads stall on a loaded 2-core machine, and the demo's products are small; the kernels
@@ -235,6 +240,7 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
             service.wait(lambda: _published_fit(service.docs, "whole_a") is not None or len(service.docs) >= len(experiments), 300)
             if (fit := _published_fit(service.docs, "whole_a")) is not None:
                 early.append(peers.enter_context(closing(payload_estimator(rig, fit, out, meeting))))
+                _at_priority(early[0].peer.proc.pid, above=ESTIMATOR_ABOVE)
 
         reports, published = _runs_beside_the_service(rig, service, experiments, out, console, start_the_payload_estimator)
         stretch = (time.monotonic() - runs_began - RUNS_START_S - len(reports) * PER_RUN_S) / motion_s
@@ -246,6 +252,7 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
         write_json(out / "service.json", published)
         analysis = beside.submit(_identify_and_analyse, rig, reports, {e.link: e.name for e in experiments if e.link is not None}, out)
         pid = analysis_pid.result()
+        _at_priority(pid)
         share = Share(pid, ANALYSIS_CPU_S)
         if early:
             estimator = early[0]
@@ -253,12 +260,14 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
             prepared = prepared_runs([r for r in reports if r.name.startswith("whole")], robot, rig.period_s)
             fit = identify_whole_arm(robot, prepared["whole_a"], [prepared["whole_b"]]).to_json()
             estimator = peers.enter_context(closing(payload_estimator(rig, fit, out, meeting)))
+            _at_priority(estimator.peer.proc.pid, above=ESTIMATOR_ABOVE)
         estimator.ready()
-        # the phase's end: the payload run and its last estimates, or the analysis beside it at the share
-        # of a core it has had since it started (the payload run's processes compete with it as the
-        # estimator's start did), whichever comes last; then the report
+        # the phase's end: the payload run and its last estimates, or the analysis beside it, whichever comes
+        # last, at the share of a core it has had since it started (over a second at least: the estimator's
+        # start competed with it as the payload run's processes will); then the report
         payload_s = payload_plan_s * max(stretch, 1.0) + PAYLOAD_OVERHEAD_S
-        phases.estimates.update(runs=time.monotonic() - phases.phase_started, payload=max(payload_s, share.left_s() + REPORT_S))
+        analysis_s = share.left_s(measure_s=max(0.0, 1.0 - share.since_s())) + REPORT_S
+        phases.estimates.update(runs=time.monotonic() - phases.phase_started, payload=max(payload_s, analysis_s))
         phases.start("payload", "payload: the identified arm works through whole_a; a 2 kg payload is attached and removed, "
                      "estimated on-line from the live Zenoh stream by `armid estimate live` in a process of its own; meanwhile, in "
                      "another, the single-link sequence (links 6 to 1) and the whole arm (validated on whole_b) are identified as the "
@@ -267,9 +276,8 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
         plotted: list[Any] = []
         payload = run_payload(rig, estimator, experiments[-2].design, out, plot=lambda *a: plotted.append(beside.submit(_plot_payload, *a)))
         during_run = share.used_s()
-        _at_ordinary_priority(pid)
-        if not analysis.done():
-            phases.estimates["payload"] = time.monotonic() - phases.phase_started + share.left_s(measure_s=0.3) + REPORT_S
+        if not analysis.done() and (left := share.left_s(measure_s=0.3)) > 3.0:  # a wait worth saying
+            phases.estimates["payload"] = time.monotonic() - phases.phase_started + left + REPORT_S
             phases.note("the payload run is done; the analysis beside it is not yet")
         done = analysis.result()
         for f in plotted:

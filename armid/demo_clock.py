@@ -67,6 +67,12 @@ PHASE_ESTIMATES_S = {"design": 6.0, "runs": 58.0, "payload": 16.0}
 """First guesses for :class:`Phases` (the designs; the runs and the payload phase until the
 designs give their plans), from runs on a 2-core machine with a warm numba cache."""
 
+CORES = max(os.cpu_count() or 1, 1)
+
+ESTIMATOR_ABOVE = 5
+"""How far above the demo's priority its payload estimator runs where allowed (nice 5 less): it must keep up
+with the live stream while the analysis computes beside it at the demo's own."""
+
 RUNS_START_S = 1.4
 """The runs' phase beyond their motion: the drives' start before the first run and their stop after
 the last, the estimator service's last fit (measured on the 2-core machine)."""
@@ -74,8 +80,9 @@ the last, the estimator service's last fit (measured on the 2-core machine)."""
 PER_RUN_S = 0.35
 """Each run's own seconds beyond its plan: the recording closed, the next plan started (measured)."""
 
-WHOLE_AFTER_S = 1.0
-"""The whole-arm designs left once the single-link chain is designed (they are made beside it: 0.2-1.0 s measured)."""
+WHOLE_AFTER_S = 1.6
+"""The whole-arm designs left once the single-link chain is designed (the first is made beside it,
+the second here after it: 1.2-1.9 s measured)."""
 
 PAYLOAD_OVERHEAD_S = 3.0
 """The payload phase beyond its plan's motion: its drives' start and stop, the last estimates, the
@@ -107,16 +114,21 @@ class Share:
         self.pid, self.need_s = pid, need_s
         self.cpu0, self.t0 = cpu_seconds(pid) or 0.0, time.monotonic()
 
+    def since_s(self) -> float:
+        return time.monotonic() - self.t0
+
     def used_s(self) -> float:
         return (cpu_seconds(self.pid) or self.cpu0) - self.cpu0
 
     def left_s(self, measure_s: float = 0.0) -> float:
         """Wall seconds until it is done at the share it has had since it started (with ``measure_s``:
         the share it gets over the next ``measure_s`` seconds, if more: the machine may have freed up)."""
-        used, since = self.used_s(), max(time.monotonic() - self.t0, 1e-3)
-        rate = used / since
         if measure_s > 0:
+            used0 = self.used_s()
             time.sleep(measure_s)
-            rate = max(rate, (self.used_s() - used) / measure_s)
             used = self.used_s()
+            rate = max(used / self.since_s(), (used - used0) / measure_s)
+        else:
+            used = self.used_s()
+            rate = used / max(self.since_s(), 1e-3)
         return max(self.need_s - used, 0.3) / max(rate, 0.05)
