@@ -166,6 +166,33 @@ def _at_priority(pid: int, above: int = 0) -> None:
         pass
 
 
+def _demo_rig(rig_path: Path, arm_seed: int | None) -> tuple[Rig[Robot], int]:
+    """The demo's rig on a virtual bus of its own, and the seed of its simulated drives' current noise:
+    a draw of its own per demo (``--arm-seed`` repeats one). With the rig file's fixed seed every demo
+    measured the same noise, shifted by the few dozen cycles its scheduling moved a run: one draw of
+    2-3 sigma errors (fc3 +2.9, Iyy3 -2.6, msz5 + msz6 +2.4) in every run, which looked like a bias
+    and failed 8 of 10 demos."""
+    rig = load_rig(rig_path)
+    rig = rig.with_bus(channel=f"armid-demo-{uuid.uuid4().hex[:8]}") if rig.bus.interface == "virtual" else rig
+    arm_seed = secrets.randbits(31) if arm_seed is None else arm_seed
+    return replace(rig, simulation={**rig.simulation, "seed": arm_seed}), arm_seed
+
+
+def _design_pace(phases: Phases, links: int, whole: int) -> Any:
+    """The designs' ``progress`` callback: the design phase's estimate from the designs' measured pace."""
+    times: list[float] = []
+
+    def designed(done: int, total: int, seconds: float) -> None:
+        times.append(seconds)
+        whole_left = min(whole, total - done)
+        # the median; the first design also loads the compiled kernel: the others take about half its time (measured).
+        # The first whole-arm design is made beside the single-link chain, the second after it (WHOLE_AFTER_S)
+        per_link = float(np.median(times[1:links])) if done > 1 else 0.5 * seconds
+        phases.estimates["design"] = (time.monotonic() - phases.phase_started) + (total - done - whole_left) * per_link + WHOLE_AFTER_S * (whole_left > 0)
+
+    return designed
+
+
 def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: int | None = None) -> int:
     from rich.console import Console
     from threadpoolctl import threadpool_limits
@@ -173,14 +200,7 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
     console = Console(stderr=True)
     started = time.monotonic()
     rig_path = rig_path or DEFAULT_RIG
-    rig = load_rig(rig_path)
-    rig = rig.with_bus(channel=f"armid-demo-{uuid.uuid4().hex[:8]}") if rig.bus.interface == "virtual" else rig
-    # the simulated drives' current noise: a draw of its own per demo (``--arm-seed`` repeats one).
-    # With the rig file's fixed seed every demo measured the same noise, shifted by the few dozen
-    # cycles its scheduling moved a run: one draw of 2-3 sigma errors (fc3 +2.9, Iyy3 -2.6,
-    # msz5 + msz6 +2.4) in every run, which looked like a bias and failed 8 of 10 demos
-    arm_seed = secrets.randbits(31) if arm_seed is None else arm_seed
-    rig = replace(rig, simulation={**rig.simulation, "seed": arm_seed})
+    rig, arm_seed = _demo_rig(rig_path, arm_seed)
     robot = rig.robot
     out.mkdir(parents=True, exist_ok=True)
     console.print(f"[bold]armid demo[/]: {rig.name}: {robot.n_joints} CiA 402 drives on {rig.bus.interface}:{rig.bus.channel}, "
@@ -190,15 +210,7 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
     start = np.asarray(rig.simulation.get("initial_position", np.zeros(robot.n_joints)), float)
     links = list(range(robot.n_joints - 1, -1, -1))  # Khosla: last link first
     whole_runs = [("whole_a", 2), ("whole_b", 1)]
-    design_times: list[float] = []
-
-    def designed(done: int, total: int, seconds: float) -> None:
-        design_times.append(seconds)
-        whole_left = min(len(whole_runs), total - done)
-        # the median; the first design also loads the compiled kernel: the others take about half its time (measured).
-        # The first whole-arm design is made beside the single-link chain, the second after it (WHOLE_AFTER_S)
-        per_link = float(np.median(design_times[1 : len(links)])) if done > 1 else 0.5 * seconds
-        phases.estimates["design"] = (time.monotonic() - phases.phase_started) + (total - done - whole_left) * per_link + WHOLE_AFTER_S * (whole_left > 0)
+    designed = _design_pace(phases, len(links), len(whole_runs))
 
     # OpenBLAS's threads stall on a loaded 2-core machine, and the demo's products are small; the kernels
     # that the runs and the payload estimator will need compile on the other core while the first design does
@@ -296,6 +308,17 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
                "comparison": comparison, "truth_check": truth, "service": agreement, "diagnosis": diagnosis.to_json(), "payload": payload,
                "runs": [r.to_json() for r in reports]}
         phases.mark("report written")
+    _say_the_figures(console, done, payload)
+    console.print(f"[bold]report:[/] {out / 'report.md'} ({time.monotonic() - started:.0f} s)")
+    # the timeline last, every process ended: each announced time left beside the time that followed
+    write_json(out / "demo.json", {**doc, "timeline": phases.honesty(), "stretch": round(stretch, 3)})
+    return 0
+
+
+def _say_the_figures(console: Any, done: dict[str, Any], payload: dict[str, Any]) -> None:
+    """The demo's figures in a few lines: the truth checks, the consistent model, the diagnosis, the payload
+    (``done``: :func:`_identify_and_analyse`'s)."""
+    truth, whole, diagnosis = done["truth"], done["whole"], done["diagnosis"]
     s, w = truth["single_link"], truth["whole_arm"]
     console.print(f"single-link sequence: {s['within_3_sigma']} of {s['combinations']} combinations within 3 sigma of the truth "
                   f"(max |z| {s['max_abs_z']:.2f}; together {s['per_dof']:.2f} per dof, p {s['chi2_p']:.2f}); "
@@ -308,10 +331,6 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
     console.print(f"payload: 2 s after the attach {_num(p2['mass'], 1, 3)} kg (true {payload['true_mass']} kg), centre of mass off by "
                   f"{_num(p2['com_error_m'], 1000, 1)} mm; 2 s after the removal {_num(payload['after_removal_2s']['mass'], 1, 3)} kg; "
                   f"{payload['estimates']} estimates at 50 Hz")
-    console.print(f"[bold]report:[/] {out / 'report.md'} ({time.monotonic() - started:.0f} s)")
-    # the timeline last, every process ended: each announced time left beside the time that followed
-    write_json(out / "demo.json", {**doc, "timeline": phases.honesty(), "stretch": round(stretch, 3)})
-    return 0
 
 
 def analyse(robot: Robot, whole: IdentificationResult, run: Prepared, validation: Prepared, out: Path) -> tuple[Any, str, dict[str, Any]]:
