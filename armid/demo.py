@@ -38,6 +38,7 @@ from .demo_clock import (
     ANALYSIS_CPU_S,
     CORES,
     ESTIMATOR_ABOVE,
+    MIN_SHARE,
     PAYLOAD_OVERHEAD_S,
     PER_RUN_S,
     PHASE_ESTIMATES_S,
@@ -275,10 +276,11 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
             _at_priority(estimator.peer.proc.pid, above=ESTIMATOR_ABOVE)
         estimator.ready()
         # the phase's end: the payload run and its last estimates, or the analysis beside it, whichever comes
-        # last, at the share of a core it has had since it started (over a second at least: the estimator's
-        # start competed with it as the payload run's processes will); then the report
+        # last, at the share of a core it has had since it started (over a second at least), taken as no less
+        # than it gets beside two busy loops (MIN_SHARE: over the estimator's start the share is lower than over
+        # the payload run); then the report. A longer wait is said when the run ends
         payload_s = payload_plan_s * max(stretch, 1.0) + PAYLOAD_OVERHEAD_S
-        analysis_s = share.left_s(measure_s=max(0.0, 1.0 - share.since_s())) + REPORT_S
+        analysis_s = share.left_s(measure_s=max(0.0, 1.0 - share.since_s()), least=MIN_SHARE) + REPORT_S
         phases.estimates.update(runs=time.monotonic() - phases.phase_started, payload=max(payload_s, analysis_s))
         phases.start("payload", "payload: the identified arm works through whole_a; a 2 kg payload is attached and removed, "
                      "estimated on-line from the live Zenoh stream by `armid estimate live` in a process of its own; meanwhile, in "

@@ -69,6 +69,10 @@ designs give their plans), from runs on a 2-core machine with a warm numba cache
 
 CORES = max(os.cpu_count() or 1, 1)
 
+MIN_SHARE = 0.4
+"""The share of a core the analysis gets at least beside the payload run on the 2-core machine with two busy
+loops beside the demo (0.4-0.5 measured), where a second's measurement says less."""
+
 ESTIMATOR_ABOVE = 5
 """How far above the demo's priority its payload estimator runs where allowed (nice 5 less): it must keep up
 with the live stream while the analysis computes beside it at the demo's own."""
@@ -120,9 +124,10 @@ class Share:
     def used_s(self) -> float:
         return (cpu_seconds(self.pid) or self.cpu0) - self.cpu0
 
-    def left_s(self, measure_s: float = 0.0) -> float:
+    def left_s(self, measure_s: float = 0.0, least: float = 0.05) -> float:
         """Wall seconds until it is done at the share it has had since it started (with ``measure_s``:
-        the share it gets over the next ``measure_s`` seconds, if more: the machine may have freed up)."""
+        the share it gets over the next ``measure_s`` seconds, if more: the machine may have freed up),
+        taken as ``least`` of a core at least."""
         if measure_s > 0:
             used0 = self.used_s()
             time.sleep(measure_s)
@@ -131,4 +136,4 @@ class Share:
         else:
             used = self.used_s()
             rate = used / max(self.since_s(), 1e-3)
-        return max(self.need_s - used, 0.3) / max(rate, 0.05)
+        return max(self.need_s - used, 0.3) / max(rate, least)
