@@ -11,6 +11,7 @@ known parameters; diagnosis of the residual; on-line payload estimation; a repor
 from __future__ import annotations
 
 import multiprocessing
+import os
 import secrets
 import time
 import uuid
@@ -33,6 +34,20 @@ from armid.io.rig_file import load_rig
 from armid.resources import config_file
 from armid.schema.errors import DriverError, SimulationError
 
+from .demo_clock import (
+    ANALYSIS_CPU_S,
+    CORES,
+    ESTIMATOR_ABOVE,
+    MIN_SHARE,
+    PAYLOAD_OVERHEAD_S,
+    PER_RUN_S,
+    PHASE_ESTIMATES_S,
+    REPORT_S,
+    RUNS_START_S,
+    WHOLE_AFTER_S,
+    Phases,
+    Share,
+)
 from .experiments import (
     WHOLE_MARGIN,
     design_experiments,
@@ -42,7 +57,7 @@ from .experiments import (
     service_agreement,
 )
 from .kernels import compiled_ahead
-from .peer import Peer, PeerLink
+from .peer import Meeting, Peer, PeerLink
 from .schema.json_text import write_json
 from .simulated import excitation_session
 
@@ -111,38 +126,72 @@ def check_against_truth(rig: Rig[Robot], seq: SequenceResult, whole: Identificat
                                      whole.base.expressions(), whole.covariance_batches)}
 
 
-class Phases:
-    """What the demo is doing and how long the rest will take, printed as each phase starts.
-
-    Each phase has an estimate in seconds, replaced by what is known as the demo goes: the
-    designs by the time the designs so far took, the runs by their plans' durations (the arm
-    runs in real time), the payload phase by its plan's. The rest are figures measured on
-    the 2-core machine the demo was written on."""
-
-    def __init__(self, console: Any, estimates: dict[str, float]) -> None:
-        self.console, self.estimates, self.started = console, dict(estimates), time.monotonic()
-        self.current: str | None = None
-        self.phase_started = self.started
-
-    def left_s(self) -> float:
-        """Seconds left: the rest of the current phase and every phase after it."""
-        keys = list(self.estimates)
-        k = keys.index(self.current) if self.current in keys else 0
-        in_phase = max(0.0, self.estimates[keys[k]] - (time.monotonic() - self.phase_started)) if self.current else self.estimates[keys[0]]
-        return in_phase + sum(self.estimates[key] for key in keys[k + 1 :])
-
-    def start(self, key: str, text: str) -> None:
-        self.current, self.phase_started = key, time.monotonic()
-        keys = list(self.estimates)
-        self.console.print(f"[bold][{keys.index(key) + 1}/{len(keys)}][/] {text} "
-                           f"[dim]({time.monotonic() - self.started:.0f} s in, about {self.left_s():.0f} s left)[/]")
-
-    def note(self, text: str) -> None:
-        self.console.print(f"  {text} [dim](about {self.left_s():.0f} s left)[/]")
+def _identify_and_analyse(rig: Rig[Robot], reports: list[Any], links: dict[int, str], out: Path) -> dict[str, Any]:
+    """Everything the demo finds in its recordings, made beside the payload run in a process of its
+    own: each run's recording through the pipeline, the single-link sequence and the whole arm
+    (validated on whole_b) as the estimator service made them, both against the simulator's known
+    parameters, then :func:`analyse`. The pipeline's warnings are returned to be said."""
+    robot = rig.robot
+    warnings: list[str] = []
+    prepared = prepared_runs(reports, robot, rig.period_s, warn=warnings.append)
+    whole = identify_whole_arm(robot, prepared["whole_a"], [prepared["whole_b"]])
+    seq = single_link_sequence(robot, {link: [prepared[name]] for link, name in links.items()})
+    truth = check_against_truth(rig, seq, whole)
+    diagnosis, feasible_line, whole_doc = analyse(robot, whole, prepared["whole_a"], prepared["whole_b"], out)
+    return {"whole": whole, "seq": seq, "truth": truth, "comparison": seq.compare(whole), "diagnosis": diagnosis,
+            "feasible_line": feasible_line, "whole_doc": whole_doc, "warnings": warnings}
 
 
-PHASE_ESTIMATES_S = {"design": 12.0, "runs": 75.0, "identify": 8.0, "payload": 16.0, "report": 4.0}
-"""First guesses for :class:`Phases`, from runs on a 2-core machine with a warm numba cache."""
+def _ready_to_analyse() -> int:
+    """The analysis's imports, made while the arm moves (the process has little else to do then); its id."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot  # noqa: F401
+
+    from armid.identify.feasible import feasible_estimate  # noqa: F401
+
+    from . import pipeline, report  # noqa: F401
+
+    return os.getpid()
+
+
+def _at_priority(pid: int, above: int = 0) -> None:
+    """A process of the demo's at this process's priority, or ``above`` it (where allowed: as root;
+    without the privilege it stays where it is). The analysis comes back from below once no run
+    of the drives it could delay is left but the payload run, whose real-time thread outranks it
+    anyway; the payload estimator, which must keep up with the live stream, goes above it."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, pid, os.getpriority(os.PRIO_PROCESS, 0) - above)
+    except OSError:
+        pass
+
+
+def _demo_rig(rig_path: Path, arm_seed: int | None) -> tuple[Rig[Robot], int]:
+    """The demo's rig on a virtual bus of its own, and the seed of its simulated drives' current noise:
+    a draw of its own per demo (``--arm-seed`` repeats one). With the rig file's fixed seed every demo
+    measured the same noise, shifted by the few dozen cycles its scheduling moved a run: one draw of
+    2-3 sigma errors (fc3 +2.9, Iyy3 -2.6, msz5 + msz6 +2.4) in every run, which looked like a bias
+    and failed 8 of 10 demos."""
+    rig = load_rig(rig_path)
+    rig = rig.with_bus(channel=f"armid-demo-{uuid.uuid4().hex[:8]}") if rig.bus.interface == "virtual" else rig
+    arm_seed = secrets.randbits(31) if arm_seed is None else arm_seed
+    return replace(rig, simulation={**rig.simulation, "seed": arm_seed}), arm_seed
+
+
+def _design_pace(phases: Phases, links: int, whole: int) -> Any:
+    """The designs' ``progress`` callback: the design phase's estimate from the designs' measured pace."""
+    times: list[float] = []
+
+    def designed(done: int, total: int, seconds: float) -> None:
+        times.append(seconds)
+        whole_left = min(whole, total - done)
+        # the median; the first design also loads the compiled kernel: the others take about half its time (measured).
+        # The first whole-arm design is made beside the single-link chain, the second after it (WHOLE_AFTER_S)
+        per_link = float(np.median(times[1:links])) if done > 1 else 0.5 * seconds
+        phases.estimates["design"] = (time.monotonic() - phases.phase_started) + (total - done - whole_left) * per_link + WHOLE_AFTER_S * (whole_left > 0)
+
+    return designed
 
 
 def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: int | None = None) -> int:
@@ -152,108 +201,138 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
     console = Console(stderr=True)
     started = time.monotonic()
     rig_path = rig_path or DEFAULT_RIG
-    rig = load_rig(rig_path)
-    rig = rig.with_bus(channel=f"armid-demo-{uuid.uuid4().hex[:8]}") if rig.bus.interface == "virtual" else rig
-    # the simulated drives' current noise: a draw of its own per demo (``--arm-seed`` repeats one).
-    # With the rig file's fixed seed every demo measured the same noise, shifted by the few dozen
-    # cycles its scheduling moved a run: one draw of 2-3 sigma errors (fc3 +2.9, Iyy3 -2.6,
-    # msz5 + msz6 +2.4) in every run, which looked like a bias and failed 8 of 10 demos
-    arm_seed = secrets.randbits(31) if arm_seed is None else arm_seed
-    rig = replace(rig, simulation={**rig.simulation, "seed": arm_seed})
+    rig, arm_seed = _demo_rig(rig_path, arm_seed)
     robot = rig.robot
     out.mkdir(parents=True, exist_ok=True)
     console.print(f"[bold]armid demo[/]: {rig.name}: {robot.n_joints} CiA 402 drives on {rig.bus.interface}:{rig.bus.channel}, "
                   f"{rig.period_s * 1000:g} ms SYNC, arm seed {arm_seed}; output in {out}")
-    phases = Phases(console, PHASE_ESTIMATES_S)
+    # the designs compute (the rest is the arm's real time): a machine busy beyond its cores makes them slower
+    phases = Phases(console, {**PHASE_ESTIMATES_S, "design": PHASE_ESTIMATES_S["design"] * max(1.0, os.getloadavg()[0] / CORES)})
     start = np.asarray(rig.simulation.get("initial_position", np.zeros(robot.n_joints)), float)
     links = list(range(robot.n_joints - 1, -1, -1))  # Khosla: last link first
     whole_runs = [("whole_a", 2), ("whole_b", 1)]
-    phases.start("design", f"designing {len(links) + len(whole_runs)} exciting trajectories (D-optimal finite Fourier series: "
-                 f"one per link, last link first, then two whole-arm) and checking each against every limit before any drive is enabled")
-    design_times: list[float] = []
-
-    def designed(done: int, total: int, seconds: float) -> None:
-        design_times.append(seconds)
-        whole_left = min(len(whole_runs), total - done)
-        # medians: the first design also loads the compiled kernel; a whole-arm design takes about two single-link ones
-        per_link = float(np.median(design_times[: len(links)])) if design_times[: len(links)] else seconds
-        per_whole = float(np.median(design_times[len(links) :])) if design_times[len(links) :] else 2.0 * per_link
-        phases.estimates["design"] = (time.monotonic() - phases.phase_started) + (total - done - whole_left) * per_link + whole_left * per_whole
+    designed = _design_pace(phases, len(links), len(whole_runs))
 
     # OpenBLAS's threads stall on a loaded 2-core machine, and the demo's products are small; the kernels
     # that the runs and the payload estimator will need compile on the other core while the first design does
     # and the estimator service starts (seconds of imports) while the trajectories are designed
     # (``peers``: the processes started ahead, ended with the demo on any error)
     with threadpool_limits(1, "blas"), compiled_ahead(rig_path), ExitStack() as peers:
-        service = peers.enter_context(closing(_estimator_service(rig, out)))
+        # where the demo meets its peers, and where a viewer joins them (loopback only)
+        meeting = Meeting()
+        peers.callback(meeting.close)
+        zenoh_doc = {"endpoint": meeting.endpoint, "watch": meeting.watch_command(robot.name)}
+        console.print(f"  the estimator service and the payload estimator meet the demo on {meeting.endpoint} (loopback only); "
+                      "to watch them live from another terminal:")
+        console.print(f"    {escape(zenoh_doc['watch'])}", soft_wrap=True)  # one line, whatever the width: to be copied
+        phases.start("design", f"designing {len(links) + len(whole_runs)} exciting trajectories (D-optimal finite Fourier series: "
+                     f"one per link, last link first, then two whole-arm) and checking each against every limit before any drive is enabled")
+        service = peers.enter_context(closing(_estimator_service(rig, out, meeting)))
         experiments = design_experiments(robot, start, links, whole_runs, rig.period_s, seed=seed, log=phases.note, progress=designed,
                                          whole_beside=True)
         write_json(out / "designs.json", {e.name: e.design.to_json() for e in experiments})
-        runs_s = sum(e.plan.duration_s + 0.5 for e in experiments)
-        phases.estimates.update(design=time.monotonic() - phases.phase_started, runs=runs_s,
-                                payload=ex.plan(experiments[-2].design, start, ex.Limits.of(robot), periods=2,
-                                                lead_fraction=WHOLE_MARGIN).duration_s + 3.0)
         motion_s = sum(e.plan.duration_s for e in experiments)
+        payload_plan_s = ex.plan(experiments[-2].design, start, ex.Limits.of(robot), periods=2, lead_fraction=WHOLE_MARGIN).duration_s
+        phases.estimates.update(design=time.monotonic() - phases.phase_started,
+                                runs=motion_s + len(experiments) * PER_RUN_S + RUNS_START_S, payload=payload_plan_s + PAYLOAD_OVERHEAD_S)
+        # the analysis is not the real-time process's business: a process of its own, its imports made while the
+        # arm moves, below the real-time process's priority (spawned: a fork would copy this process's threads'
+        # locks; ended with the demo, its work cancelled)
+        beside = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_below_the_real_time)
+        peers.callback(beside.shutdown, cancel_futures=True)
+        analysis_pid = beside.submit(_ready_to_analyse)
         phases.start("runs", f"running the {len(experiments)} experiments on the drives in real time ({motion_s:.0f} s of motion, "
                      "2 ms SYNC over the virtual CAN bus), each recorded as MCAP")
-        # the payload estimator starts on the service's whole_a fit as soon as it is published (while
-        # whole_b runs): its imports are then done by the time the payload phase needs it
+        runs_began = time.monotonic()
+        # the payload estimator starts on the service's whole_a fit once the last run's records are all out
+        # (it meets the demo where the service does): its imports are made while the drives stop, the service
+        # finishes and the payload's drives start
         early: list[PeerLink] = []
 
         def start_the_payload_estimator() -> None:
-            if not early and (fit := _published_fit(service.docs, "whole_a")) is not None:
-                early.append(peers.enter_context(closing(payload_estimator(rig, fit, out))))
+            service.wait(lambda: _published_fit(service.docs, "whole_a") is not None or len(service.docs) >= len(experiments), 300)
+            if (fit := _published_fit(service.docs, "whole_a")) is not None:
+                early.append(peers.enter_context(closing(payload_estimator(rig, fit, out, meeting))))
+                _at_priority(early[0].peer.proc.pid, above=ESTIMATOR_ABOVE)
 
         reports, published = _runs_beside_the_service(rig, service, experiments, out, console, start_the_payload_estimator)
+        stretch = (time.monotonic() - runs_began - RUNS_START_S - len(reports) * PER_RUN_S) / motion_s
         write_json(out / "runs.json", [r.to_json() for r in reports])
         failed = [r for r in reports if not r.completed]
         if failed:
             console.print(f"[red]run {failed[0].name} stopped: {failed[0].stop_reason}[/]")
             return 1
-        phases.start("identify", "identifying: the single-link sequence (links 6 to 1) and whole arm (validated on whole_b), "
-                     "as the estimator service did, both against the simulator's known parameters")
         write_json(out / "service.json", published)
-        prepared = prepared_runs(reports, robot, rig.period_s, warn=lambda w: phases.note(f"[yellow]warning:[/] {escape(w)}"))
-        # the same pipeline as the service's (armid.experiments), on the complete recordings
-        whole = identify_whole_arm(robot, prepared["whole_a"], [prepared["whole_b"]])
-        estimator = early[0] if early else peers.enter_context(closing(payload_estimator(rig, whole.to_json(), out)))
-        # the rest of the analysis is not the real-time process's business: it starts now, in a process of its own
-        # (spawned: a fork would copy this process's threads' locks; ended with the demo, its work cancelled)
-        beside = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_below_the_real_time)
-        peers.callback(beside.shutdown, cancel_futures=True)
-        analysis = beside.submit(analyse, robot, whole, prepared["whole_a"], prepared["whole_b"], out)
-        seq = single_link_sequence(robot, {e.link: [prepared[e.name]] for e in experiments if e.link is not None})
+        analysis = beside.submit(_identify_and_analyse, rig, reports, {e.link: e.name for e in experiments if e.link is not None}, out)
+        pid = analysis_pid.result()
+        _at_priority(pid)
+        share = Share(pid, ANALYSIS_CPU_S)
+        if early:
+            estimator = early[0]
+        else:  # the service published no whole_a fit: the one made from the complete recordings
+            prepared = prepared_runs([r for r in reports if r.name.startswith("whole")], robot, rig.period_s)
+            fit = identify_whole_arm(robot, prepared["whole_a"], [prepared["whole_b"]]).to_json()
+            estimator = peers.enter_context(closing(payload_estimator(rig, fit, out, meeting)))
+            _at_priority(estimator.peer.proc.pid, above=ESTIMATOR_ABOVE)
+        estimator.ready()
+        # the phase's end: the payload run and its last estimates, or the analysis beside it, whichever comes
+        # last, at the share of a core it has had since it started (over a second at least), taken as no less
+        # than it gets beside two busy loops (MIN_SHARE: over the estimator's start the share is lower than over
+        # the payload run); then the report. A longer wait is said when the run ends
+        payload_s = payload_plan_s * max(stretch, 1.0) + PAYLOAD_OVERHEAD_S
+        analysis_s = share.left_s(measure_s=max(0.0, 1.0 - share.since_s()), least=MIN_SHARE) + REPORT_S
+        phases.estimates.update(runs=time.monotonic() - phases.phase_started, payload=max(payload_s, analysis_s))
+        phases.start("payload", "payload: the identified arm works through whole_a; a 2 kg payload is attached and removed, "
+                     "estimated on-line from the live Zenoh stream by `armid estimate live` in a process of its own; meanwhile, in "
+                     "another, the single-link sequence (links 6 to 1) and the whole arm (validated on whole_b) are identified as the "
+                     "estimator service did, both checked against the simulator's known parameters, the residual diagnosed and the "
+                     "physically consistent model computed; then the report")
+        plotted: list[Any] = []
+        payload = run_payload(rig, estimator, experiments[-2].design, out, plot=lambda *a: plotted.append(beside.submit(_plot_payload, *a)))
+        during_run = share.used_s()
+        if not analysis.done() and (left := share.left_s(measure_s=0.3)) > 3.0:  # a wait worth saying
+            phases.estimates["payload"] = time.monotonic() - phases.phase_started + left + REPORT_S
+            phases.note("the payload run is done; the analysis beside it is not yet")
+        done = analysis.result()
+        for f in plotted:
+            f.result()
+        phases.mark("analysis done")
+        analysis_cpu = {"during_payload_run_s": round(during_run, 2), "total_s": round(share.used_s(), 2)}
+        whole, seq, truth, comparison, diagnosis = done["whole"], done["seq"], done["truth"], done["comparison"], done["diagnosis"]
+        for w in done["warnings"]:
+            console.print(f"  [yellow]warning:[/] {escape(w)}")
         agreement = service_agreement(published[-1], whole)
         console.print(f"  the estimator service published {len(published)} estimates; records it missed "
                       f"{sum(d['experiment']['missing'] for d in published)}; its whole_a fit against the recording's: "
                       f"{agreement['max_difference_sigma']:.2g} sigma at most")
-        truth = check_against_truth(rig, seq, whole)
-        comparison = seq.compare(whole)
-        phases.start("payload", "payload: the identified arm works through whole_a; a 2 kg payload is attached and removed, "
-                     "estimated on-line from the live Zenoh stream by `armid estimate live` in a process of its own; the residual "
-                     "is diagnosed and the physically consistent model computed in another")
-        payload = run_payload(rig, estimator, experiments[-2].design, out)
-        phases.start("report", "writing the report and its plots")
-        diagnosis, feasible_line, whole_doc = analysis.result()
-        doc = {"rig": rig.name, "arm_seed": arm_seed, "single_link": seq.to_json(), "whole_arm": whole_doc, "comparison": comparison, "truth_check": truth,
-               "service": agreement,
-               "diagnosis": diagnosis.to_json(), "payload": payload, "runs": [r.to_json() for r in reports]}
-        write_json(out / "demo.json", doc)
-        _write_report(out, rig, experiments, reports, seq, whole, whole_doc, comparison, truth, diagnosis, payload)
+        _write_report(out, rig, experiments, reports, seq, whole, done["whole_doc"], comparison, truth, diagnosis, payload)
+        doc = {"rig": rig.name, "arm_seed": arm_seed, "zenoh": zenoh_doc, "analysis_cpu": analysis_cpu, "single_link": seq.to_json(), "whole_arm": done["whole_doc"],
+               "comparison": comparison, "truth_check": truth, "service": agreement, "diagnosis": diagnosis.to_json(), "payload": payload,
+               "runs": [r.to_json() for r in reports]}
+        phases.mark("report written")
+    _say_the_figures(console, done, payload)
+    console.print(f"[bold]report:[/] {out / 'report.md'} ({time.monotonic() - started:.0f} s)")
+    # the timeline last, every process ended: each announced time left beside the time that followed
+    write_json(out / "demo.json", {**doc, "timeline": phases.honesty(), "stretch": round(stretch, 3)})
+    return 0
+
+
+def _say_the_figures(console: Any, done: dict[str, Any], payload: dict[str, Any]) -> None:
+    """The demo's figures in a few lines: the truth checks, the consistent model, the diagnosis, the payload
+    (``done``: :func:`_identify_and_analyse`'s)."""
+    truth, whole, diagnosis = done["truth"], done["whole"], done["diagnosis"]
     s, w = truth["single_link"], truth["whole_arm"]
     console.print(f"single-link sequence: {s['within_3_sigma']} of {s['combinations']} combinations within 3 sigma of the truth "
                   f"(max |z| {s['max_abs_z']:.2f}; together {s['per_dof']:.2f} per dof, p {s['chi2_p']:.2f}); "
                   f"whole arm: {w['within_3_sigma']} of {w['combinations']} (max |z| {w['max_abs_z']:.2f}; together {w['per_dof']:.2f} "
                   f"per dof, p {w['chi2_p']:.2f}); validation error {100 * whole.validation['relative_error']:.2f} %")  # type: ignore[index]
-    console.print(f"physically consistent whole-arm model: {feasible_line} (identified.urdf)")
+    console.print(f"physically consistent whole-arm model: {done['feasible_line']} (identified.urdf)")
     console.print(f"diagnosis: {len(diagnosis.found)} finding(s); validation error {100 * diagnosis.before['relative_error']:.2f} % -> "
                   f"{100 * diagnosis.after['relative_error']:.2f} %")
     p2 = payload["after_attach_2s"]
     console.print(f"payload: 2 s after the attach {_num(p2['mass'], 1, 3)} kg (true {payload['true_mass']} kg), centre of mass off by "
                   f"{_num(p2['com_error_m'], 1000, 1)} mm; 2 s after the removal {_num(payload['after_removal_2s']['mass'], 1, 3)} kg; "
                   f"{payload['estimates']} estimates at 50 Hz")
-    console.print(f"[bold]report:[/] {out / 'report.md'} ({time.monotonic() - started:.0f} s)")
-    return 0
 
 
 def analyse(robot: Robot, whole: IdentificationResult, run: Prepared, validation: Prepared, out: Path) -> tuple[Any, str, dict[str, Any]]:
@@ -292,11 +371,13 @@ def _below_the_real_time() -> None:
     threadpool_limits(1, "blas")
 
 
-def _estimator_service(rig: Rig[Robot], out: Path) -> PeerLink:
-    """``armid serve`` started in a process of its own (as in a lab), not yet waited for."""
+def _estimator_service(rig: Rig[Robot], out: Path, meeting: Meeting | None = None) -> PeerLink:
+    """``armid serve`` started in a process of its own (as in a lab), not yet waited for;
+    ``meeting``: where it meets the demo (default: an endpoint of its own)."""
     robot = rig.robot
     return PeerLink(robot.name, ["serve", "--robot", robot.source, "--whole-arm", "drives", "--no-payload", "--out", str(out / "service"),
-                                 "--json", str(out / "service.jsonl")], out / "service.log", "estimate/parameters", "alive/estimator", wait=False)
+                                 "--json", str(out / "service.jsonl")], out / "service.log", "estimate/parameters", "alive/estimator", wait=False,
+                    meeting=meeting)
 
 
 def _published_fit(docs: list[dict[str, Any]], run: str) -> dict[str, Any] | None:
@@ -310,16 +391,19 @@ def _published_fit(docs: list[dict[str, Any]], run: str) -> dict[str, Any] | Non
 
 
 def _runs_beside_the_service(rig: Rig[Robot], link: PeerLink, experiments: list[Any], out: Path, console: Any,
-                             tick: Any = None) -> tuple[list[Any], list[dict[str, Any]]]:
+                             after_motion: Any = None) -> tuple[list[Any], list[dict[str, Any]]]:
     """The experiments on the drives, streamed to the estimator service once it is ready; its
-    ``estimate/parameters`` documents, one per experiment it identified. ``tick``: called as the
-    runs go (:func:`~armid.experiments.run_experiments`)."""
+    ``estimate/parameters`` documents, one per experiment it identified. ``after_motion``: called
+    once the drives have stopped and the stream carries no more records (the service may still
+    be identifying the last runs), when every run completed."""
     try:
         link.ready()
         with excitation_session(rig, simulate=True, stream=link.stream) as session:
             console.print(f"  timing: {session.driver.timing_note}; the estimator service runs in process {link.peer.proc.pid}")
-            reports = run_experiments(session, experiments, out / "runs", console, tick=tick)
+            reports = run_experiments(session, experiments, out / "runs", console)
         expected = len(reports) if all(r.completed for r in reports) else 0
+        if expected and after_motion is not None:
+            after_motion()
         link.wait(lambda: len(link.docs) >= expected, 300)
     finally:
         link.close()
@@ -332,22 +416,23 @@ DEMO_PAYLOAD = (2.0, (0.02, -0.03, 0.08), (0.004, 0.0, 0.0, 0.004, 0.0, 0.002))
 """Mass (kg), centre of mass in the last link's frame (m), inertia about it (kg m^2)."""
 
 
-def payload_estimator(rig: Rig[Robot], identification: dict[str, Any], out: Path) -> PeerLink:
+def payload_estimator(rig: Rig[Robot], identification: dict[str, Any], out: Path, meeting: Meeting | None = None) -> PeerLink:
     """``armid estimate live`` on the identified arm (``identification``: its ``armid identify
-    --json`` document), started in a process of its own, not yet waited for."""
+    --json`` document), started in a process of its own, not yet waited for; ``meeting``: where
+    it meets the demo (default: an endpoint of its own)."""
     robot = rig.robot
     params = out / "identified_arm.json"
     write_json(params, identification)
     return PeerLink(robot.name, ["estimate", "live", "--robot", robot.source, "--params", str(params), "--out",
                                  str(out / "payload_estimates.jsonl")], out / "payload_estimator.log", "estimate/payload",
-                    "alive/payload_estimator", wait=False)
+                    "alive/payload_estimator", wait=False, meeting=meeting)
 
 
-def run_payload(rig: Rig[Robot], link: PeerLink, design: Any, out: Path) -> dict[str, Any]:
+def run_payload(rig: Rig[Robot], link: PeerLink, design: Any, out: Path, plot: Any = None) -> dict[str, Any]:
     """Khosla's on-line strategy: the identified arm works through a whole-arm trajectory; a
     payload is attached 3 s in and removed 4 s later; ``link``'s ``armid estimate live``, in a
     process of its own, listens to the live Zenoh stream and publishes its estimates; they are
-    compared with the truth.
+    compared with the truth. ``plot``: where the estimates' plot is made (default: :func:`_plot_payload` here).
 
     Everything runs on the arm's clock: the attach and the removal are scheduled in the
     simulated arm at times of its own clock (not when a polling thread gets to them), and
@@ -409,7 +494,7 @@ def run_payload(rig: Rig[Robot], link: PeerLink, design: Any, out: Path) -> dict
         return {"record_time": e["record_time"], "mass": e["mass"], "mass_std": e["mass_std"], "com": e["com"], "com_error_m": com_err,
                 "converged": e["converged"], "status": e["status"]}
 
-    _plot_payload(out, t - t[0], estimates, truth, t_on - t[0], t_off - t[0])
+    (plot or _plot_payload)(out, t - t[0], estimates, truth, t_on - t[0], t_off - t[0])
     write_json(out / "payload_estimates.json", estimates)
     last = estimates[-1]
     return {"true_mass": truth.mass, "true_com": list(truth.com), "estimates": len(estimates), "skipped": last.get("skipped"),

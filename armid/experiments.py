@@ -56,10 +56,11 @@ def design_experiments(robot: Robot, start: np.ndarray, links: list[int], whole:
     runs use ``whole_margin`` of each limit: coupled joints at speed track less well, and
     the supervision stops the arm at the limit itself. A lead-in uses the share of the limits
     its experiment uses (it was half of them: 16 of the demo's 59 s of motion were lead-ins).
-    ``progress(done, total, seconds)`` follows each design with the time it took. ``whole_beside``: the whole-arm designs, which
-    do not depend on the pose they start from, are made in a process of their own while the
-    single-link chain is designed here (the same designs, in about half the time on two cores);
-    each is planned from its pose and checked here."""
+    ``progress(done, total, seconds)`` follows each design with the time it took. ``whole_beside``: the first whole-arm design,
+    which does not depend on the pose it starts from, is made in a process of its own while the
+    single-link chain is designed here, the others here after the chain (the same designs: the
+    two sides take about as long, the process's start included, on two cores); each is planned
+    from its pose and checked here."""
     limits = ex.Limits.of(robot)
     out: list[Experiment] = []
     pose = np.asarray(start, float)
@@ -78,7 +79,7 @@ def design_experiments(robot: Robot, start: np.ndarray, links: list[int], whole:
                 f"{len(d.unidentifiable)} parameters unidentifiable"))
         return d.trajectory.evaluate(np.zeros(1))[0][0]
 
-    beside = _WholeDesigns(robot, whole_frequency_hz, seeds, whole_margin) if whole_beside and whole and links else None
+    beside = _WholeDesigns(robot, whole_frequency_hz, seeds[:1], whole_margin) if whole_beside and whole and links else None
     try:
         for k in links:
             began = time.monotonic()
@@ -86,7 +87,7 @@ def design_experiments(robot: Robot, start: np.ndarray, links: list[int], whole:
             d = ex.design(robot, moving=(k,), q_hold=hold, base_frequency_hz=link_frequency_hz, seed=seed + k, margin=LINK_MARGIN)
             pose = add(f"link{k + 1}", d, link_periods, time.monotonic() - began, f"link {k + 1}", LINK_MARGIN)
         for i, (name, periods) in enumerate(whole):
-            d, took = beside.result(i) if beside is not None else _timed_whole_design(robot, whole_frequency_hz, seeds[i], whole_margin)
+            d, took = beside.result(i) if beside is not None and i == 0 else _timed_whole_design(robot, whole_frequency_hz, seeds[i], whole_margin)
             pose = add(name, d, periods, took, name, whole_margin)
     finally:
         if beside is not None:

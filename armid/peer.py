@@ -76,6 +76,27 @@ def collect(session: Any, key_expr: str, into: list[dict[str, Any]]) -> Any:
     return session.declare_subscriber(key_expr, lambda sample: into.append(json.loads(sample.payload.to_string())))
 
 
+class Meeting:
+    """A Zenoh session listening on a free loopback endpoint (127.0.0.1 only), where the demo
+    meets its peers; a viewer joins it there too (:meth:`watch_command`)."""
+
+    def __init__(self) -> None:
+        import zenoh
+
+        from armid.daq.stream import session_config
+
+        self.endpoint = loopback_endpoint()
+        self.session = zenoh.open(session_config(listen=[self.endpoint], connect=[]))
+
+    def watch_command(self, robot: str) -> str:
+        """The ``armid watch`` command that joins this meeting from another terminal."""
+        return f"armid watch --robot {robot} --zenoh-connect {self.endpoint}"
+
+    def close(self) -> None:
+        if not self.session.is_closed():
+            self.session.close()
+
+
 class PeerLink:
     """The demo's side of a :class:`Peer`: a Zenoh session listening on a loopback endpoint,
     the peer connected to it and ready (its liveliness ``token`` seen), every JSON document it
@@ -83,18 +104,19 @@ class PeerLink:
     carries the records to it. :meth:`close` ends them in order (safe to call twice)."""
 
     def __init__(self, robot: str, args: list[str], log: Path, publishes: str, token: str, component: str = "demo",
-                 wait: bool = True) -> None:
+                 wait: bool = True, meeting: Meeting | None = None) -> None:
         """``wait=False``: the peer starts (its imports take seconds) while the caller does
-        something else; :meth:`ready` waits for it."""
-        import zenoh
-
-        from armid.daq.stream import key, session_config
+        something else; :meth:`ready` waits for it. ``meeting``: the caller's session and
+        endpoint, shared with its other peers and left open by :meth:`close` (default: a
+        session of this link's own on an endpoint of its own)."""
+        from armid.daq.stream import key
 
         self.docs: list[dict[str, Any]] = []
         self._robot, self._token, self._component = robot, key(robot, token), component
-        endpoint = loopback_endpoint()
-        self.session = zenoh.open(session_config(listen=[endpoint], connect=[]))
-        self.peer = Peer(args, endpoint, log)
+        self._meeting = meeting if meeting is not None else Meeting()
+        self._own = meeting is None
+        self.session = self._meeting.session
+        self.peer = Peer(args, self._meeting.endpoint, log)
         self._subscriber: Any = None
         self.stream: Any = None
         try:
@@ -127,5 +149,5 @@ class PeerLink:
             self._subscriber.undeclare()
             self._subscriber = None
         self.peer.stop()
-        if not self.session.is_closed():
-            self.session.close()
+        if self._own:
+            self._meeting.close()

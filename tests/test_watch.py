@@ -24,6 +24,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 ROBOT = ROOT / "config" / "robots" / "puma560.yaml"
@@ -179,3 +180,59 @@ def test_raw_shows_the_events_documents_and_words_leave_out_what_is_not_words() 
     assert [line.split(" ", 1)[1] for line in words.events] == ["started run 'whole': whole-arm", "calibrated joint=2"]
     assert all("0.123456" not in line and "0.987654" not in line for line in words.events)
     assert "0.123456" in raw.events[0] and "0.987654" in raw.events[1]
+
+
+@pytest.mark.slow
+@pytest.mark.realtime
+@pytest.mark.alone  # the whole demo: its estimator processes must keep up with the live stream (test_payload's, test_serve's)
+def test_watch_joins_the_demo_and_shows_every_parameter_set_and_the_payload_in_words(tmp_path: Path) -> None:
+    """Issue 66: ``armid demo`` prints where its service meets it (a loopback endpoint) and the
+    ``armid watch`` command that joins it; that command, run on a terminal during the demo,
+    shows every parameter set the demo's estimator service published, in order, and the
+    payload estimate in words, as the demo's own records of them say (``service.json``,
+    ``payload_estimates.json``). Real parts throughout: the demo as a user runs it."""
+    from armid.watch import parameter_set_line, payload_line
+
+    out = tmp_path / "demo"
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "COLUMNS": "120"}
+    demo = subprocess.Popen([sys.executable, "-m", "armid.cli", "demo", "--out", str(out)], stdin=subprocess.DEVNULL,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env)
+    said: list[str] = []
+    command: list[str] = []
+    screen = None
+    try:
+        assert demo.stderr is not None
+        for line in demo.stderr:  # until the demo says how to watch it
+            said.append(line)
+            found = re.search(r"armid watch --robot (\S+) --zenoh-connect (tcp/127\.0\.0\.1:\d+)\s*$", line)
+            if found:
+                command = ["--robot", found.group(1), "--zenoh-connect", found.group(2)]
+                break
+        assert command, "".join(said)
+        rest = threading.Thread(target=lambda: said.extend(demo.stderr or []), daemon=True)
+        rest.start()
+        screen = Screen([sys.executable, "-m", "armid.cli", "watch", *command, "--duration", "600"])
+        assert demo.wait(600) == 0, "".join(said)[-3000:]
+        time.sleep(1.5)  # two refreshes of the view after the demo's last estimate
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+            demo.wait()
+        if screen is not None:
+            screen.proc.terminate()
+            screen.proc.wait(30)
+    doc = json.loads((out / "demo.json").read_text())
+    assert doc["zenoh"]["endpoint"] == command[-1] and doc["zenoh"]["watch"] == "armid watch " + " ".join(command)
+    text, frame = screen.text(), screen.last_frame()
+    published = json.loads((out / "service.json").read_text())
+    assert len(published) == 8, len(published)  # one per experiment: six single-link runs, two whole-arm
+    for k, d in enumerate(published, 1):  # every parameter set, in order, with its run and what it gave
+        assert re.search(rf"#{k} \S+ {re.escape(parameter_set_line(d))}", text), (k, parameter_set_line(d), text[-3000:])
+    for b in published[-1]["base_parameters"]:  # the newest set's every base parameter, value +- std
+        assert f"{b['expression']} = {b['value']:.4g} +- {b['std']:.4g}" in text, b
+    estimates = json.loads((out / "payload_estimates.json").read_text())
+    assert payload_line(estimates[-1]) in text, (payload_line(estimates[-1]), frame[-2000:])
+    assert re.search(r"payload: -?\d+\.\d{3} \+- [\d.e+-]+ kg \(1 sigma: data [\d.e+-]+, torque constants [\d.e+-]+\)", frame), frame
+    log = screen.proc.stderr.read() if screen.proc.stderr else ""
+    assert screen.proc.returncode == 0, log
+    assert "8 parameter sets" in log, log
