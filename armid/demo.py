@@ -244,9 +244,8 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
         phases.start("runs", f"running the {len(experiments)} experiments on the drives in real time ({motion_s:.0f} s of motion, "
                      "2 ms SYNC over the virtual CAN bus), each recorded as MCAP")
         runs_began = time.monotonic()
-        # the payload estimator starts on the service's whole_a fit once the last run's records are all out
-        # (it meets the demo where the service does): its imports are made while the drives stop, the service
-        # finishes and the payload's drives start
+        # the payload estimator starts on the service's whole_a fit once the last run's records are all out (it meets
+        # the demo where the service does): its imports are made while the drives stop and the payload's drives start
         early: list[PeerLink] = []
 
         def start_the_payload_estimator() -> None:
