@@ -157,6 +157,7 @@ def _run_excite(cmd: list[str]) -> subprocess.CompletedProcess[str]:
     return subprocess.CompletedProcess(cmd, proc.returncode, stdout, "".join(lines))
 
 
+@pytest.mark.slow  # 55-80 s each on 2 cores: the README's realtime pass starts them first, one on each worker
 @pytest.mark.parametrize("bus", ["udp_multicast", "virtual"])
 def test_three_processes_khosla_sequence_and_whole_arm_streamed_to_the_service(tmp_path: Path, bus: str) -> None:
     """``udp_multicast``: the simulated arm in a process of its own (four processes: the arm,
