@@ -11,11 +11,15 @@ unchanged arms' own estimates, shuffled in time, raise few false alarms.
 from __future__ import annotations
 
 import csv
+import dataclasses
+import fcntl
 import json
+import os
+import shutil
 import signal
 import socket
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -29,23 +33,54 @@ from armid.identify.changes import ALPHA, family_wise, scan
 BAD = {"corrupt": "not a text CSV file", "other_robot": "column q5 but cell1_left has 4 joints", "nan": "non-finite value"}
 
 
+def once_per_run(tmp_path_factory: pytest.TempPathFactory, name: str, make: Callable[[Path], None]) -> Path:
+    """``make(folder)`` once in the whole test run, its folder shared read-only by the module's
+    tests: under pytest-xdist both workers see the run's folder (each worker's own is in it) and
+    the one that comes second waits for the first's, instead of making it again (worksteal can
+    split this module: the fleet and its local run, 15 s, were made on both workers)."""
+    if "PYTEST_XDIST_WORKER" not in os.environ:
+        make(folder := tmp_path_factory.mktemp(name))
+        return folder
+    run = tmp_path_factory.getbasetemp().parent
+    folder, done = run / name, run / f"{name}.done"
+    with (run / f"{name}.lock").open("w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        if not done.exists():
+            shutil.rmtree(folder, ignore_errors=True)  # what a failed first attempt left
+            folder.mkdir()
+            make(folder)
+            done.touch()
+    return folder
+
+
 @pytest.fixture(scope="module")
 def fleet(tmp_path_factory: pytest.TempPathFactory) -> fleetgen.Fleet:
-    made = fleetgen.make_fleet(tmp_path_factory.mktemp("lab") / "fleet")
-    fleetgen.with_bad_recordings(made)
-    return made
+    def make(folder: Path) -> None:
+        made = fleetgen.make_fleet(folder / "fleet")
+        fleetgen.with_bad_recordings(made)
+        (folder / "fleet.json").write_text(json.dumps(dataclasses.asdict(made), default=str))
+
+    doc = json.loads((once_per_run(tmp_path_factory, "lab", make) / "fleet.json").read_text())
+    return fleetgen.Fleet(**{**doc, "root": Path(doc["root"])})
 
 
-def _run(fleet: fleetgen.Fleet, out: Path, *extra: str) -> dict[str, Any]:
-    assert main(["fleet", str(fleet.root), "--out", str(out), *extra]) == 0
+def _read(out: Path) -> dict[str, Any]:
     with (out / "parameters.csv").open() as handle:
         rows = list(csv.DictReader(handle))
     return {"rows": rows, "changes": json.loads((out / "changes.json").read_text()), "report": (out / "report.md").read_text()}
 
 
+def _run(fleet: fleetgen.Fleet, out: Path, *extra: str) -> dict[str, Any]:
+    assert main(["fleet", str(fleet.root), "--out", str(out), *extra]) == 0
+    return _read(out)
+
+
 @pytest.fixture(scope="module")
 def local(fleet: fleetgen.Fleet, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
-    return _run(fleet, tmp_path_factory.mktemp("local"), "--engine", "local", "--workers", "1")
+    def make(folder: Path) -> None:
+        assert main(["fleet", str(fleet.root), "--out", str(folder / "out"), "--engine", "local", "--workers", "1"]) == 0
+
+    return _read(once_per_run(tmp_path_factory, "local", make) / "out")
 
 
 def _index(fleet: fleetgen.Fleet, change: dict[str, Any]) -> int:

@@ -157,6 +157,7 @@ def _run_excite(cmd: list[str]) -> subprocess.CompletedProcess[str]:
     return subprocess.CompletedProcess(cmd, proc.returncode, stdout, "".join(lines))
 
 
+@pytest.mark.slow  # 55-80 s each on 2 cores: the README's realtime pass starts them first, one on each worker
 @pytest.mark.parametrize("bus", ["udp_multicast", "virtual"])
 def test_three_processes_khosla_sequence_and_whole_arm_streamed_to_the_service(tmp_path: Path, bus: str) -> None:
     """``udp_multicast``: the simulated arm in a process of its own (four processes: the arm,
@@ -257,6 +258,7 @@ def _netns() -> str | None:
     return None if r.returncode == 0 else f"no user network namespace here: {r.stderr.decode(errors='replace').strip()}"
 
 
+@pytest.mark.slow  # 30-45 s on 2 cores
 @pytest.mark.skipif(_netns() is not None, reason=str(_netns()))
 def test_record_and_watch_find_each_other_with_no_zenoh_flags(tmp_path: Path) -> None:
     """In a network namespace of its own (only a loopback: nothing else on the machine can
@@ -316,6 +318,7 @@ wait $S || true
     print(f"\nwatcher with no flags: {n} of {n} records; the other order: {later}")
 
 
+@pytest.mark.slow  # 25 s on 2 cores
 def test_a_slow_service_skips_records_says_so_and_identifies_what_it_kept(tmp_path: Path) -> None:
     """The service falls behind by design (10 ms of extra work per record at 2 ms): the
     recording loses nothing, the service says how many records it skipped, and its estimates
