@@ -273,7 +273,8 @@ ip link set lo up
 cd {ROOT}
 {' '.join(armid)} watch --robot puma560 --duration 60 > {tmp_path}/watch.out 2> {tmp_path}/watch.err &
 W=$!
-sleep 4
+i=0; until grep -q watching {tmp_path}/watch.err || [ $i -ge 600 ]; do sleep 0.1; i=$((i+1)); done  # its imports done (seconds under load)
+sleep 1  # its subscribers declared
 {' '.join(armid)} record --rig {RIG} --channel {channel} --out {tmp_path}/run --duration 3 2> {tmp_path}/record.err
 sleep 5
 kill -TERM $W
