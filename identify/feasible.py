@@ -449,11 +449,13 @@ class FeasibleResult:
             "divergence": [float(x) for x in self.fit.divergence],
         }
 
-    def summary_line(self) -> str:
+    def summary_line(self, errors: bool = True) -> str:
+        """One line: which models are physical, and (``errors``) their validation errors as
+        ``armid identify`` gives its own (fractions, on the fitted equations)."""
         bad = [c.link for c in self.least_squares_checks if not c.consistent]
         text = "least squares (completed with the modeled values): " + (f"{link_list(bad)} not physical" if bad else "physically consistent")
         text += f"; feasible: {'consistent' if self.consistent else 'NOT consistent'}, {self.fit.distance:.3g} sigma from least squares"
-        if self.validation and self.least_squares_validation:
+        if errors and self.validation and self.least_squares_validation:
             text += (f", validation error {self.validation['relative_error']:.4g} "
                      f"(least squares {self.least_squares_validation['relative_error']:.4g})")
         return text
