@@ -15,7 +15,6 @@ and the end.
 from __future__ import annotations
 
 import os
-import statistics
 import sys
 import tempfile
 from pathlib import Path
@@ -24,7 +23,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
 
 import blindgen  # noqa: E402
-from bench_identify_process import interleaved  # noqa: E402
+from bench_identify_process import interleaved, print_against  # noqa: E402
 from figures_json import load_average, recorded  # noqa: E402
 
 BASELINE = ROOT.parent / "shared" / "tools" / "baseline.py"
@@ -47,13 +46,7 @@ def main(repeats: int = 5, seconds: float = 50.0) -> None:
         times, cpus, last, load_start = interleaved(commands, repeats)
     print(f"4 logs of {int(seconds * 100)} samples x 6 joints (currents, 100 Hz) and a fifth to validate, {repeats} interleaved runs each, "
           f"{os.cpu_count()} cores, load average {load_start} at the start, {load_average()} at the end")
-    for name, secs in times.items():
-        print(f"{name}: best {min(secs):.2f} s, median {statistics.median(secs):.2f} s; CPU best {min(cpus[name]):.2f} s, "
-              f"median {statistics.median(cpus[name]):.2f} s ({last[name]})")
-    a, p = times["armid diagnose"], times["plain pipeline"]
-    ca, cp = cpus["armid diagnose"], cpus["plain pipeline"]
-    print(f"armid diagnose / plain pipeline: {min(a) / min(p):.2f}x (best), {statistics.median(a) / statistics.median(p):.2f}x (median); "
-          f"CPU seconds {min(ca) / min(cp):.2f}x (best), {statistics.median(ca) / statistics.median(cp):.2f}x (median)")
+    print_against(times, cpus, last, "armid diagnose", "plain pipeline")
 
 
 if __name__ == "__main__":

@@ -85,6 +85,17 @@ def interleaved(commands: dict[str, list[str]], repeats: int) -> tuple[dict[str,
     return times, cpus, last, load_start
 
 
+def print_against(times: dict[str, list[float]], cpus: dict[str, list[float]], last: dict[str, str], ours: str, reference: str) -> None:
+    """Each command's best and median, wall and CPU, then ``ours`` against ``reference`` as ratios."""
+    for name, secs in times.items():
+        print(f"{name}: best {min(secs):.2f} s, median {statistics.median(secs):.2f} s; CPU best {min(cpus[name]):.2f} s, "
+              f"median {statistics.median(cpus[name]):.2f} s ({last[name]})")
+    a, p = times[ours], times[reference]
+    ca, cp = cpus[ours], cpus[reference]
+    print(f"{ours} / {reference}: {min(a) / min(p):.2f}x (best), {statistics.median(a) / statistics.median(p):.2f}x (median); "
+          f"CPU seconds {min(ca) / min(cp):.2f}x (best), {statistics.median(ca) / statistics.median(cp):.2f}x (median)")
+
+
 def main(repeats: int = 5, n: int = 100_000) -> None:
     armid = str(Path(sys.executable).parent / "armid")
     with tempfile.TemporaryDirectory() as tmp:
@@ -97,13 +108,7 @@ def main(repeats: int = 5, n: int = 100_000) -> None:
         times, cpus, last, load_start = interleaved(commands, repeats)
     print(f"{n} samples x 6 joints (UR5, {RATE_HZ:g} Hz, CSV), {repeats} interleaved runs each, {os.cpu_count()} cores, "
           f"load average {load_start} at the start, {load_average()} at the end")
-    for name, secs in times.items():
-        print(f"{name}: best {min(secs):.2f} s, median {statistics.median(secs):.2f} s; CPU best {min(cpus[name]):.2f} s, "
-              f"median {statistics.median(cpus[name]):.2f} s ({last[name]})")
-    a, p = times["armid identify"], times["plain script"]
-    print(f"armid identify / plain script: {min(a) / min(p):.2f}x (best), {statistics.median(a) / statistics.median(p):.2f}x (median); "
-          f"CPU seconds {min(cpus['armid identify']) / min(cpus['plain script']):.2f}x (best), "
-          f"{statistics.median(cpus['armid identify']) / statistics.median(cpus['plain script']):.2f}x (median)")
+    print_against(times, cpus, last, "armid identify", "plain script")
 
 
 if __name__ == "__main__":

@@ -23,8 +23,9 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
+from cli_runs import run
 
-from armid.cli import load_trajectory, main, strict_json
+from armid.cli import load_trajectory, strict_json
 from armid.io.ros2_cdr import ros2_messages
 from armid.schema import Sample
 from armid.schema.joint_state import EXTRA_TOPIC, EXTRA_TYPE, JOINT_STATE_TYPE, JOINT_STATES_TOPIC, ROS2_MSGDEFS, JointStateRecord
@@ -45,15 +46,6 @@ KT = np.array([j["torque_constant"] for j in yaml.safe_load(PUMA.read_text())["j
 RIG_DOC = yaml.safe_load(RIG.read_text())
 Q0 = RIG_DOC["simulation"]["initial_position"]
 TRAJECTORY = {"fourier": {"q0": Q0, "a": [[0.05, 0.02]] * 6, "b": [[0.0, 0.01]] * 6, "base_frequency_hz": 0.2}}
-
-
-def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
-    """``armid ARGV`` in this process: (exit code, stderr)."""
-    try:
-        code = main(argv)
-    except SystemExit as stop:  # argparse's own exit
-        code = int(stop.code or 0)
-    return code, capsys.readouterr().err
 
 
 def assert_clean_error(code: int, err: str, expect: str) -> None:

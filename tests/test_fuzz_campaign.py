@@ -16,7 +16,6 @@ import subprocess
 import sys
 import threading
 import time
-import uuid
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -24,6 +23,7 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
+from cli_runs import record_with, run
 
 from armid.cli import main
 from armid.io.ros2_cdr import ros2_messages
@@ -39,14 +39,6 @@ HEADER = EXAMPLE.read_text().splitlines()[0].split(",")
 DATA = np.loadtxt(EXAMPLE, delimiter=",", skiprows=1, max_rows=ROWS)
 T, Q, QD, TAU = DATA[:, 0], DATA[:, 1:7], DATA[:, 7:13], DATA[:, 13:19]
 KT = np.array([j["torque_constant"] for j in yaml.safe_load(PUMA.read_text())["joints"]])
-
-
-def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
-    try:
-        code = main(argv)
-    except SystemExit as stop:
-        code = int(stop.code or 0)
-    return code, capsys.readouterr().err
 
 
 def assert_clean_error(code: int, err: str, expect: str) -> None:
@@ -295,37 +287,12 @@ def test_no_noise_ratio_over_a_zero_denominator() -> None:
 
 # -- the drives ------------------------------------------------------------------------------------
 
-def _record_with(inject: Callable[[Any], None], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> tuple[int, str, dict[str, Any]]:
-    """``armid record`` for 3 s of the arm's time on a virtual bus; ``inject`` runs once it records, on a bus handle of its own."""
-    import can
-
-    from armid.io.recordings import read_mcap_arrays
-
-    channel, out, box = f"armid-camp-{uuid.uuid4().hex[:8]}", tmp_path / "run", {}
-    thread = threading.Thread(target=lambda: box.setdefault("code", main(
-        ["record", "--rig", str(RIG), "--channel", channel, "--out", str(out), "--duration", "3", "--no-zenoh"])))
-    thread.start()
-    bus = can.Bus(interface="virtual", channel=channel)
-    try:
-        for _ in range(400):
-            if (out / "run.mcap").exists() and (out / "run.mcap").stat().st_size > 0:
-                break
-            time.sleep(0.05)
-        time.sleep(0.3)
-        inject(bus)
-    finally:
-        thread.join(300)
-        bus.shutdown()
-    arrays, _, _ = read_mcap_arrays(out / "run.mcap")
-    return box["code"], capsys.readouterr().err, arrays
-
-
 def test_a_faulted_run_marks_its_records_after_the_fault_invalid(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """"their records after that are not valid" was said and none was marked."""
     import can
 
     emcy = can.Message(arbitration_id=0x80 + 2, data=struct.pack("<HB5s", 0x2310, 0x01, b"\0" * 5), is_extended_id=False)
-    code, err, arrays = _record_with(lambda bus: bus.send(emcy), tmp_path, capsys)
+    code, err, arrays = record_with(lambda bus: bus.send(emcy), tmp_path, capsys)
     assert code == 1 and "the run faulted joint 2: their records after that are marked invalid" in err, err
     valid = arrays["valid"]
     first = int(np.flatnonzero(~valid[:, 1])[0])
@@ -339,7 +306,7 @@ def test_a_flood_of_foreign_sync_frames_is_named_a_second_sync_producer(tmp_path
     def flood(bus: Any) -> None:
         for k in range(2000):
             bus.send(can.Message(arbitration_id=0x80, data=[k % 240 + 1], is_extended_id=False))
-    code, err, _ = _record_with(flood, tmp_path, capsys)
+    code, err, _ = record_with(flood, tmp_path, capsys)
     assert "a second SYNC producer on the bus: a SYNC frame (COB-ID 0x080, counter 1) that this master did not send" in err, err
     faults = [line for line in err.splitlines() if ": fault 0x" in line]
     assert code == 1 and faults and all("a second SYNC producer on the bus (" in line for line in faults), err

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import pytest
 import yaml
+from cli_runs import run
 
-from armid.cli import main
 from armid.drivers.pdo_plan import MAX_LOAD, PLANS, bus_load, check_bus_budget
 from armid.drivers.port_errors import ARPHRD_CAN, LinkState, link_state, socketcan_link_problem
 from armid.drivers.rig import open_bus
@@ -30,15 +30,6 @@ ROOT = Path(__file__).resolve().parent.parent
 BENCH = ROOT / "config" / "rigs" / "bench_template.yaml"
 DXL_RIG = ROOT / "config" / "rigs" / "sim_dynamixel.yaml"
 SIM_RIG = ROOT / "config" / "rigs" / "sim.yaml"
-
-
-def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
-    """``armid ARGV`` in this process: (exit code, stderr)."""
-    try:
-        code = main(argv)
-    except SystemExit as stop:
-        code = int(stop.code or 0)
-    return code, capsys.readouterr().err
 
 
 def one_error_line(code: int, err: str) -> str:

@@ -8,50 +8,22 @@ nodes) and puts frames on the same bus from a third handle, as another device wo
 from __future__ import annotations
 
 import struct
-import threading
 import time
 import uuid
-from collections.abc import Callable
 from pathlib import Path
 
 import can
 import numpy as np
 import pytest
+from cli_runs import record_with
 
-from armid.cli import main
 from armid.daq.supervision import Supervision
 from armid.drivers.interface import DriveFault, Event, HeartbeatLost
-from armid.io.recordings import read_mcap_arrays
 from armid.schema.joint_states import JointStates
 
 ROOT = Path(__file__).resolve().parent.parent
 RIG = ROOT / "config" / "rigs" / "sim.yaml"
 DURATION_S = 3.0
-
-
-def _record_with(inject: Callable[[can.BusABC], None], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> tuple[int, str, dict]:
-    """``armid record`` for DURATION_S of the arm's time; ``inject`` runs once the recording
-    has started, on a bus handle of its own. Returns (exit code, stderr, the recording's arrays)."""
-    channel = f"armid-sup-{uuid.uuid4().hex[:8]}"
-    out = tmp_path / "run"
-    box: dict[str, int] = {}
-    thread = threading.Thread(target=lambda: box.setdefault("code", main(
-        ["record", "--rig", str(RIG), "--channel", channel, "--out", str(out), "--duration", str(DURATION_S), "--no-zenoh"])))
-    thread.start()
-    bus = can.Bus(interface="virtual", channel=channel)
-    try:
-        for _ in range(400):  # the recorder writes its file once the drives are up
-            if (out / "run.mcap").exists() and (out / "run.mcap").stat().st_size > 0:
-                break
-            time.sleep(0.05)
-        time.sleep(0.3)
-        inject(bus)
-    finally:
-        thread.join(300)
-        bus.shutdown()
-    assert not thread.is_alive(), "armid record did not end"
-    arrays, _, _ = read_mcap_arrays(out / "run.mcap")
-    return box["code"], capsys.readouterr().err, arrays
 
 
 def _emcy(node: int, code: int, register: int = 0x01, data: bytes = b"\0" * 5) -> can.Message:
@@ -66,7 +38,7 @@ def test_an_emcy_storm_is_said_once_with_its_count_and_the_run_ends_non_zero(tmp
         for _ in range(20):
             bus.send(can.Message(arbitration_id=0x80 + 3, data=[0x10], is_extended_id=False))
 
-    code, err, arrays = _record_with(inject, tmp_path, capsys)
+    code, err, arrays = record_with(inject, tmp_path, capsys, DURATION_S)
     assert code == 1, err
     assert err.count("joint 2 (node 2): fault 0x2310: continuous over-current") == 2, err  # as it came, and in the sum-up
     assert "(2,000 times)" in err
@@ -78,8 +50,8 @@ def test_an_emcy_storm_is_said_once_with_its_count_and_the_run_ends_non_zero(tmp
 
 
 def test_a_drive_stopped_by_nmt_is_named_and_the_others_record_on(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    code, err, arrays = _record_with(lambda bus: bus.send(can.Message(arbitration_id=0, data=[0x02, 4], is_extended_id=False)),
-                                     tmp_path, capsys)
+    code, err, arrays = record_with(lambda bus: bus.send(can.Message(arbitration_id=0, data=[0x02, 4], is_extended_id=False)),
+                                    tmp_path, capsys, DURATION_S)
     assert code == 1, err
     assert "joint 4 (node 4): stopped by an NMT command" in err
     assert "the run lost joint 4" in err
@@ -91,8 +63,8 @@ def test_a_drive_stopped_by_nmt_is_named_and_the_others_record_on(tmp_path: Path
 
 
 def test_a_reset_of_every_node_loses_every_drive_at_once(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    code, err, arrays = _record_with(lambda bus: bus.send(can.Message(arbitration_id=0, data=[0x81, 0], is_extended_id=False)),
-                                     tmp_path, capsys)
+    code, err, arrays = record_with(lambda bus: bus.send(can.Message(arbitration_id=0, data=[0x81, 0], is_extended_id=False)),
+                                    tmp_path, capsys, DURATION_S)
     assert code == 1, err
     for j in range(1, 7):
         assert f"joint {j} (node {j}): reset: its boot-up message came" in err
@@ -107,7 +79,7 @@ def test_frames_of_the_wrong_length_and_error_frames_are_said(tmp_path: Path, ca
         for _ in range(25):
             bus.send(can.Message(is_error_frame=True, arbitration_id=0x20000004, data=bytes(8)))
 
-    code, err, _ = _record_with(inject, tmp_path, capsys)
+    code, err, _ = record_with(inject, tmp_path, capsys, DURATION_S)
     assert code == 0, err  # nothing was lost: said, not failed
     assert "joint 3 (node 3): TPDO1 (COB-ID 0x183) has 3 bytes, the mapping has" in err
     assert "CAN error frames within 100 ms" in err and "check wiring and termination" in err
