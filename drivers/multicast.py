@@ -15,6 +15,7 @@ from __future__ import annotations
 import ipaddress
 import socket
 import struct
+import sys
 from typing import Any
 
 import can
@@ -22,6 +23,11 @@ from can.interfaces.udp_multicast.bus import SO_TIMESTAMPNS, GeneralPurposeUdpMu
 from can.interfaces.udp_multicast.utils import is_msgpack_installed
 
 LOOPBACK = "127.0.0.1"
+IP_MULTICAST_ALL = getattr(socket, "IP_MULTICAST_ALL", 49)
+"""Linux's option (``<linux/in.h>``): by default a socket bound to a port receives the datagrams sent to
+every group that any socket of the machine joined on that port, so two rigs on one machine, on two
+groups, would each read the other's frames (a boot-up of the other arm's node 1 taken for a reset of
+its own, measured). Off, a bus reads its own group only."""
 
 
 class PinnedMulticastSocket(GeneralPurposeUdpMulticastBus):
@@ -55,6 +61,8 @@ class PinnedMulticastSocket(GeneralPurposeUdpMulticastBus):
                 self.timestamp_nanosecond = False
             sock.bind(("", self.port))
             sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, socket.inet_aton(self.group) + here)
+            if sys.platform.startswith("linux"):  # only this group's datagrams, not every group joined on the port
+                sock.setsockopt(socket.IPPROTO_IP, IP_MULTICAST_ALL, 0)
         except OSError as err:
             sock.close()
             self._failure = err

@@ -51,6 +51,27 @@ def test_a_udp_multicast_bus_sends_and_joins_on_loopback_only() -> None:
     assert joined_devices(group) == set()
 
 
+def test_two_rigs_on_one_machine_each_read_their_own_group_only() -> None:
+    """Two ``udp_multicast`` buses on one port and two groups (two simulated arms on one
+    machine, or two tests at once): each reads its own group's frames, not the other's (Linux
+    hands a socket bound to the port every group joined on it unless ``IP_MULTICAST_ALL`` is off:
+    one arm's boot-up was read by the other as a reset of its node 1)."""
+    first, second = _group(), _group()
+    while second == first:
+        second = _group()
+    a, b, a_too = (open_bus(interface="udp_multicast", channel=g) for g in (first, second, first))
+    try:
+        b.send(can.Message(arbitration_id=0x701, data=[0], is_extended_id=False))  # the other rig's boot-up
+        a_too.send(can.Message(arbitration_id=0x702, data=[5], is_extended_id=False))  # this rig's own frame
+        got = []
+        while (m := a.recv(0.5)) is not None:
+            got.append(m.arbitration_id)
+        assert got == [0x702], [hex(i) for i in got]
+    finally:
+        for bus in (a, b, a_too):
+            bus.shutdown()
+
+
 def test_python_cans_own_bus_would_leave_the_machine() -> None:
     """What the pinning is for: python-can's ``udp_multicast`` as it comes sends on the kernel's
     default interface with a TTL of 1 and joins on every interface the kernel picks, and the
