@@ -34,19 +34,31 @@ from figures_json import recorded
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def one_demo(checkout: Path = ROOT) -> tuple[float, dict[str, Any] | None, str, tuple[float, float]]:
+def stolen_s() -> float:
+    """CPU seconds the host has taken from this virtual machine so far (``/proc/stat``'s steal, all
+    CPUs; 0 where there is none): a demo is real time, and a host that does not run the machine's
+    CPUs when they are due stretches it (8-11 s of a 95 s demo measured on a busy host)."""
+    try:
+        fields = Path("/proc/stat").read_text().splitlines()[0].split()
+        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return 0.0
+
+
+def one_demo(checkout: Path = ROOT) -> tuple[float, dict[str, Any] | None, str, tuple[float, float, float]]:
     """(wall seconds, demo.json or None when it failed, the output's tail, the load average at its
-    start and end); ``checkout``'s demo (with its ``.venv``; this interpreter's for this checkout)."""
+    start and end and the CPU seconds the host stole meanwhile); ``checkout``'s demo (with its
+    ``.venv``; this interpreter's for this checkout)."""
     bin_dir = Path(sys.executable).parent if checkout == ROOT else checkout / ".venv" / "bin"
     env = {**os.environ, "PATH": str(bin_dir) + os.pathsep + os.environ.get("PATH", ""), "COLUMNS": "200"}
     with tempfile.TemporaryDirectory() as out:
-        load0 = os.getloadavg()[0]
+        load0, stolen0 = os.getloadavg()[0], stolen_s()
         start = time.monotonic()
         done = subprocess.run([str(bin_dir / "armid"), "demo", "--out", out], cwd=checkout, env=env, capture_output=True, text=True)
         took = time.monotonic() - start
         load1 = os.getloadavg()[0]
         doc = json.loads((Path(out) / "demo.json").read_text()) if done.returncode == 0 else None
-    return took, doc, (done.stdout + done.stderr)[-400:], (load0, load1)
+    return took, doc, (done.stdout + done.stderr)[-400:], (load0, load1, stolen_s() - stolen0)
 
 
 def worst_time_left(doc: dict[str, Any]) -> tuple[float | None, str]:
@@ -65,14 +77,14 @@ def truth_passed(doc: dict[str, Any]) -> bool:
     return bool(s["within_3_sigma"] == s["combinations"] and w["within_3_sigma"] == w["combinations"])
 
 
-def summary(took: float, doc: dict[str, Any], load: tuple[float, float]) -> str:
+def summary(took: float, doc: dict[str, Any], load: tuple[float, float, float]) -> str:
     s, w, p, service = doc["truth_check"]["single_link"], doc["truth_check"]["whole_arm"], doc["payload"], doc["service"]
     attach = p["after_attach_2s"]
     com = attach["com_error_m"]
     payload = (f"payload 2 s after the attach {attach['mass']:.3f} kg (true {p['true_mass']} kg), centre of mass off by {1000 * com:.1f} mm, "
                f"{p['estimates']} estimates, {p['skipped']} records skipped"
                if com is not None and attach["mass"] is not None else "payload: no estimate 2 s after the attach")
-    return (f"{took:.1f} s (load average {load[0]:.2f} -> {load[1]:.2f}); {worst_time_left(doc)[1]}; "
+    return (f"{took:.1f} s (load average {load[0]:.2f} -> {load[1]:.2f}, {load[2]:.1f} CPU s stolen by the host); {worst_time_left(doc)[1]}; "
             f"single-link {s['within_3_sigma']} of {s['combinations']} within 3 sigma (max |z| {s['max_abs_z']:.2f}, p {s['chi2_p']:.2f}), "
             f"whole arm {w['within_3_sigma']} of {w['combinations']} ({w['max_abs_z']:.2f}, p {w['chi2_p']:.2f}); the service's whole-arm "
             f"fit against the recording's: {service['max_difference_sigma']:.2g} sigma at most, {service.get('missing_records')} records "

@@ -27,8 +27,21 @@ SHARED = ROOT.parent / "shared"
 REALTIME_MODULES = ("test_canopen", "test_daq", "test_dynamixel", "test_excitation", "test_excitation_dynamixel", "test_serve", "test_supervision")
 """The timing-sensitive tests (a bus, a pty, a simulated arm, a live stream): marked ``realtime``
 (a test elsewhere is marked so itself); the README's command runs them after the arithmetic,
-two at a time, and those marked ``alone`` last, one at a time; CI runs those that are not slow
+three at a time (they wait on the arm's clock more than they compute: 65 % of two cores busy
+two at a time), and those marked ``alone`` last, one at a time; CI runs those that are not slow
 a second time with two busy processes beside them (``.ci/run``)."""
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Once per run, before any xdist worker starts: armid's modules compiled to bytecode. Where
+    ``PYTHONDONTWRITEBYTECODE`` is set (CI's machines), no process writes it, and each of the
+    suite's hundreds of ``armid`` processes compiled the modules it imports again (0.12 s of a
+    core for the service's or the demo's imports, measured); the bytecode is read all the same."""
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:
+        import compileall
+
+        for package in ("armid", "identify", "daq", "drivers", "sim_bus", "config"):
+            compileall.compile_dir(ROOT / package, quiet=1)
 
 
 @pytest.hookimpl(wrapper=True)
@@ -40,20 +53,26 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     long_ones_first_on_each_worker(items)
 
 
-def long_ones_first_on_each_worker(items: list[pytest.Item]) -> None:
-    """The timing-sensitive tests marked ``slow`` first in each half of the list, alternately.
-    The README's ``-n 2 --dist worksteal`` hands each worker one half and lets an idle worker take
-    the other's last tests, never the one it runs nor its next: in collection order the two
-    longest came last on one worker, and the other stood idle 95 s of a 338 s pass. Only the
-    order changes: the arithmetic pass (no ``realtime`` test) keeps its own, with its modules'
-    shared fixtures in one piece."""
+def long_ones_first_on_each_worker(items: list[pytest.Item], workers: int | None = None) -> None:
+    """The timing-sensitive tests marked ``slow`` first in each worker's share of the list, in turn.
+    ``--dist worksteal`` hands each of the ``workers`` (xdist's count, default 2) an equal share
+    and lets an idle worker take another's last tests, never the one it runs nor its next: in
+    collection order the two longest came last on one worker, and the other stood idle 95 s of a
+    338 s pass. Only the order changes: the arithmetic pass (no ``realtime`` test) keeps its own,
+    with its modules' shared fixtures in one piece."""
+    n = max(1, workers if workers is not None else int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "2")))
     slow = [item for item in items if item.get_closest_marker("realtime") and item.get_closest_marker("slow")]
     if not slow:
         return
     rest = [item for item in items if not (item.get_closest_marker("realtime") and item.get_closest_marker("slow"))]
-    first, second = slow[0::2], slow[1::2]
-    cut = max(0, len(items) // 2 - len(first))
-    items[:] = first + rest[:cut] + second + rest[cut:]
+    share = len(items) // n
+    ordered: list[pytest.Item] = []
+    for k in range(n):  # worker k's share: its slow ones, then ordinary tests up to the share's end
+        ordered += slow[k::n]
+        take = len(rest) if k == n - 1 else max(0, (k + 1) * share - len(ordered))
+        ordered += rest[:take]
+        rest = rest[take:]
+    items[:] = ordered
 
 
 def random_robot(n: int, convention: str, prismatic_at: int | None, seed: int) -> Robot:

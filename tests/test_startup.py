@@ -78,3 +78,26 @@ def test_a_kernel_that_compiles_says_so_on_a_terminal_once() -> None:
     _compiled_in("armid.identify.kernels.probe2")
     assert terminal.getvalue().count("compiling the numerical kernels") == 1
     assert pipe.getvalue() == ""
+
+
+def test_the_demo_compiles_ahead_only_what_the_kernels_process_has_not_built(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``armid demo`` starts the kernels process beside its first design unless that process has
+    built the rig's kernels where numba caches them now (its stamp, named by the kernels'
+    sources, numba's and Python's versions, the rig and the cache's place); another cache
+    place, another rig or a changed kernel source is not built."""
+    from armid import kernels
+
+    rig = ROOT / "config" / "rigs" / "sim.yaml"
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "cache"))
+    assert not kernels._built(rig)
+    stamp = kernels._stamp(rig)
+    assert stamp.parent == tmp_path / "cache"
+    stamp.parent.mkdir()
+    stamp.touch()  # as `python -m armid.kernels RIG` does once it has compiled
+    assert kernels._built(rig)
+    assert not kernels._built(ROOT / "config" / "rigs" / "sim_dynamixel.yaml")
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "elsewhere"))
+    assert not kernels._built(rig)
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setattr(kernels, "KERNEL_MODULES", (*kernels.KERNEL_MODULES[:-1], "armid.identify.kernels.regressor_lanes"))
+    assert not kernels._built(rig)
