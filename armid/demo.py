@@ -44,6 +44,7 @@ from .demo_clock import (
     PHASE_ESTIMATES_S,
     REPORT_S,
     RUNS_START_S,
+    SERVICE_BELOW,
     WHOLE_AFTER_S,
     Phases,
     Share,
@@ -160,7 +161,8 @@ def _at_priority(pid: int, above: int = 0) -> None:
     """A process of the demo's at this process's priority, or ``above`` it (where allowed: as root;
     without the privilege it stays where it is). The analysis comes back from below once no run
     of the drives it could delay is left but the payload run, whose real-time thread outranks it
-    anyway; the payload estimator, which must keep up with the live stream, goes above it."""
+    anyway; the payload estimator, which must keep up with the live stream, goes above it, and the
+    estimator service, whose last fit nothing waits for before the report, below it (a negative ``above``)."""
     try:
         os.setpriority(os.PRIO_PROCESS, pid, os.getpriority(os.PRIO_PROCESS, 0) - above)
     except OSError:
@@ -227,7 +229,7 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
         console.print(f"    {escape(zenoh_doc['watch'])}", soft_wrap=True)  # one line, whatever the width: to be copied
         phases.start("design", f"designing {len(links) + len(whole_runs)} exciting trajectories (D-optimal finite Fourier series: "
                      f"one per link, last link first, then two whole-arm) and checking each against every limit before any drive is enabled")
-        service = peers.enter_context(closing(_estimator_service(rig, out, meeting)))
+        service = peers.enter_context(closing(_estimator_service(rig, out, len(links) + len(whole_runs), meeting)))
         experiments = design_experiments(robot, start, links, whole_runs, rig.period_s, seed=seed, log=phases.note, progress=designed,
                                          whole_beside=True)
         write_json(out / "designs.json", {e.name: e.design.to_json() for e in experiments})
@@ -257,29 +259,28 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
             first), and the payload estimator started if it is not yet, while the service identifies the last run and the
             arm holds its pose."""
             phases.mark("runs: motion ended")
+            _at_priority(service.peer.proc.pid, above=-SERVICE_BELOW)
             given.extend([Share(analysis_pid.result(), ANALYSIS_CPU_S),
                           beside.submit(_identify_and_analyse, rig, reports, {e.link: e.name for e in experiments if e.link is not None}, out)])
             early.after_motion(len(experiments))
 
-        reports, published = _runs_beside_the_service(session, service, experiments, out, console, after_motion, tick=early.try_start)
+        reports = _runs_beside_the_service(session, service, experiments, out, console, after_motion, tick=early.try_start)
         stretch = (time.monotonic() - runs_began - RUNS_START_S - len(reports) * PER_RUN_S) / motion_s
         write_json(out / "runs.json", [r.to_json() for r in reports])
-        failed = [r for r in reports if not r.completed]
-        if failed:
+        if failed := [r for r in reports if not r.completed]:
             console.print(f"[red]run {failed[0].name} stopped: {failed[0].stop_reason}[/]")
             return 1
-        write_json(out / "service.json", published)
         estimator = early.link or peers.enter_context(closing(_estimator_on_the_recordings(rig, reports, out, meeting)))
         estimator.ready()
         phases.mark("runs: the payload estimator ready")
         share, analysis = given
         _at_priority(share.pid)  # the analysis back at the demo's priority: no run but the payload's is left, whose real-time thread outranks it
         # the phase's end: the payload run and its last estimates, or the analysis beside it, whichever comes
-        # last, at the share of a core it has had since it started (over a second at least), taken as no less
+        # last, at the share of a core it has had since it was given its work (0.3 s at least), taken as no less
         # than it gets beside two busy loops (MIN_SHARE: over the estimator's start the share is lower than over
         # the payload run); then the report. A longer wait is said when the run ends
         payload_s = payload_plan_s * max(stretch, 1.0) + PAYLOAD_OVERHEAD_S
-        analysis_s = share.left_s(measure_s=max(0.0, 1.0 - share.since_s()), least=MIN_SHARE) + REPORT_S
+        analysis_s = share.left_s(measure_s=max(0.0, 0.3 - share.since_s()), least=MIN_SHARE) + REPORT_S
         phases.estimates.update(runs=time.monotonic() - phases.phase_started, payload=max(payload_s, analysis_s))
         phases.start("payload", PAYLOAD_PHASE)
         plotted: list[Any] = []
@@ -289,6 +290,7 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
         session.close()  # the drives' last run: they stop while the analysis ends
         during_run = share.used_s() - before_run
         phases.mark("payload: run done")
+        write_json(out / "service.json", published := _service_documents(service, len(reports)))  # in during the payload run, as a rule
         if not analysis.done() and (left := share.left_s(measure_s=0.3)) > 3.0:  # a wait worth saying
             phases.estimates["payload"] = time.monotonic() - phases.phase_started + left + REPORT_S
             phases.note("the payload run is done; the analysis beside it is not yet")
@@ -389,13 +391,14 @@ def _below_the_real_time() -> None:
     threadpool_limits(1, "blas")
 
 
-def _estimator_service(rig: Rig[Robot], out: Path, meeting: Meeting | None = None) -> PeerLink:
-    """``armid serve`` started in a process of its own (as in a lab), not yet waited for;
-    ``meeting``: where it meets the demo (default: an endpoint of its own)."""
+def _estimator_service(rig: Rig[Robot], out: Path, experiments: int, meeting: Meeting | None = None) -> PeerLink:
+    """``armid serve`` started in a process of its own (as in a lab), not yet waited for, filing
+    the demo's ``experiments`` (not the payload run that follows them); ``meeting``: where it
+    meets the demo (default: an endpoint of its own)."""
     robot = rig.robot
-    return PeerLink(robot.name, ["serve", "--robot", robot.source, "--whole-arm", "drives", "--no-payload", "--out", str(out / "service"),
-                                 "--json", str(out / "service.jsonl")], out / "service.log", "estimate/parameters", "alive/estimator", wait=False,
-                    meeting=meeting)
+    return PeerLink(robot.name, ["serve", "--robot", robot.source, "--whole-arm", "drives", "--no-payload", "--experiments", str(experiments),
+                                 "--out", str(out / "service"), "--json", str(out / "service.jsonl")], out / "service.log", "estimate/parameters",
+                    "alive/estimator", wait=False, meeting=meeting)
 
 
 def _published_fit(docs: list[dict[str, Any]], run: str) -> dict[str, Any] | None:
@@ -409,25 +412,31 @@ def _published_fit(docs: list[dict[str, Any]], run: str) -> dict[str, Any] | Non
 
 
 def _runs_beside_the_service(session: Any, link: PeerLink, experiments: list[Any], out: Path, console: Any,
-                             after_motion: Any = None, tick: Any = None) -> tuple[list[Any], list[dict[str, Any]]]:
+                             after_motion: Any = None, tick: Any = None) -> list[Any]:
     """The experiments on ``session``'s drives, streamed to the estimator service once it is ready
-    (the session's stream is the service's); its ``estimate/parameters`` documents, one per
-    experiment it identified. ``after_motion(reports)``: called once the last run has ended (the arm
-    holds its pose; the service may still be identifying the last runs), when every run completed;
-    ``tick()``: called with each update of the progress bars while the runs go on."""
+    (the session's stream is the service's); their reports. ``after_motion(reports)``: called once
+    the last run has ended (the arm holds its pose; the service may still be identifying the last
+    runs), when every run completed; ``tick()``: called with each update of the progress bars while
+    the runs go on."""
+    link.ready()
+    console.print(f"  timing: {session.driver.timing_note}; the estimator service runs in process {link.peer.proc.pid}")
+    reports = run_experiments(session, experiments, out / "runs", console, tick=tick)
+    if after_motion is not None and all(r.completed for r in reports):
+        after_motion(reports)
+    return reports
+
+
+def _service_documents(link: PeerLink, expected: int) -> list[dict[str, Any]]:
+    """The estimator service's ``estimate/parameters`` documents, one per experiment it filed (it
+    files the demo's experiments, not the payload run, and ends once they are published); then
+    it is closed."""
     try:
-        link.ready()
-        console.print(f"  timing: {session.driver.timing_note}; the estimator service runs in process {link.peer.proc.pid}")
-        reports = run_experiments(session, experiments, out / "runs", console, tick=tick)
-        expected = len(reports) if all(r.completed for r in reports) else 0
-        if expected and after_motion is not None:
-            after_motion(reports)
         link.wait(lambda: len(link.docs) >= expected, 300)
     finally:
         link.close()
     if len(link.docs) < expected:
         raise SimulationError(f"the estimator service published {len(link.docs)} of {expected} estimates: {link.peer.tail()}")
-    return reports, link.docs
+    return link.docs
 
 
 class _EstimatorOnTheFit:

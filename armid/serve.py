@@ -78,6 +78,9 @@ class ServiceOptions:
     whole_arm: str = "identify"
     payload: bool = True
     """Run the payload estimator on the live stream once a whole-arm fit exists."""
+    experiments: int | None = None
+    """File this many experiments and no more (None: every one): a run that starts after them is
+    not the service's (the demo's payload run, which the payload estimator follows)."""
     stop_wait_s: float = 5.0
     ingest_delay_s: float = 0.0
     """Seconds of extra work per record in the ingest: a slow consumer by design (tests)."""
@@ -127,6 +130,8 @@ class EstimatorService:
         self.whole_fits: dict[str, Any] = {}  # run -> IdentificationResult
         self._whole_docs: dict[str, dict[str, Any]] = {}
         self._names: set[str] = set()  # every experiment's name so far (_with_identity)
+        self._filed: set[str] = set()  # the runs whose start was filed (options.experiments)
+        self.not_filed: list[str] = []  # the runs that started after them
         self.payload_service: Any = None
         self._pub = session.declare_publisher(key(self.name, "estimate/parameters"), encoding=zenoh.Encoding.APPLICATION_JSON,
                                               congestion_control=zenoh.CongestionControl.BLOCK)  # a fit, once an experiment: never dropped
@@ -213,6 +218,8 @@ class EstimatorService:
         recorder's :class:`~armid.daq.supervision.Supervision`) said once per kind, joint
         and code, and counted in the status."""
         if doc.get("event") not in ("fault", "drive_event"):
+            if self._beyond_the_experiments(doc):
+                return
             self.collector.event(doc)
             return
         key = (doc.get("event"), doc.get("type"), doc.get("joint"), doc.get("code"))
@@ -225,6 +232,26 @@ class EstimatorService:
         self.drive_reports[key] = {"event": doc.get("event"), "type": doc.get("type"), "joint": doc.get("joint"), "code": doc.get("code"),
                                    "text": text, "count": 1}
         self.log(f"the drives said: {where}: {text}" if doc.get("event") == "fault" else f"the drives said: {text}")
+
+    def _beyond_the_experiments(self, doc: dict[str, Any]) -> bool:
+        """Whether ``doc`` (a run's start or stop) belongs to a run after the ``experiments`` the
+        service files: not filed, said once per run."""
+        limit, run = self.options.experiments, doc.get("run")
+        if limit is None or not isinstance(run, str) or run in self._filed:
+            return False
+        if doc.get("event") == "start" and len(self._filed) < limit:
+            self._filed.add(run)
+            return False
+        if run not in self.not_filed:
+            self.not_filed.append(run)
+            self.log(f"{run}: not filed: the service files {limit} experiment{'s' if limit != 1 else ''} ({', '.join(sorted(self._filed))})")
+        return True
+
+    @property
+    def done(self) -> bool:
+        """Every one of the ``experiments`` it files is identified (or said not to be) and published."""
+        limit = self.options.experiments
+        return limit is not None and len(self.experiments) >= limit and self.idle
 
     def _queue_completed(self) -> None:
         for exp in self.collector.completed():

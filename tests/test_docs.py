@@ -134,7 +134,7 @@ def test_the_readme_is_undated() -> None:
 def test_the_readme_keeps_its_two_setup_commands() -> None:
     text = (ROOT / "README.md").read_text()
     assert 'python3 -m venv .venv && . .venv/bin/activate && pip install -e ".[all,dev]" && armid demo --out report\n' in text
-    assert ('\npython -m pytest tests -rs -m "not realtime" -n 2 && python -m pytest tests -rs -m "realtime and not alone" -n 2 '
+    assert ('\npython -m pytest tests -rs -m "not realtime" -n 2 && python -m pytest tests -rs -m "realtime and not alone" -n 3 '
             '&& python -m pytest tests -rs -m alone\n') in text  # -rs: each skipped test's reason
 
 

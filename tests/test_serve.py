@@ -707,3 +707,44 @@ def test_two_whole_arm_runs_of_one_name_are_each_validated_on_the_other(tmp_path
     finally:
         service.close()
         session.close()
+
+
+def test_a_service_asked_for_n_experiments_files_no_run_after_them_and_is_done_once_they_are_in(tmp_path: Path) -> None:
+    """``armid serve --experiments N`` (the demo's: its eight experiments, then the payload run,
+    which is the payload estimator's): a run that starts after the N filed is not filed, and
+    said once; the service is done once every filed run is processed and published. A real
+    Zenoh session on loopback; the events handed to the service's own ``_take_event``."""
+    import zenoh
+
+    from armid.daq.stream import session_config
+    from armid.io.robot_file import load_robot
+    from armid.serve import EstimatorService, ServiceOptions
+
+    robot = load_robot(ROBOT)
+    session = zenoh.open(session_config(listen=[f"tcp/127.0.0.1:{_free_port()}"]))
+    said: list[str] = []
+    service = EstimatorService(session, robot, tmp_path / "serve", ServiceOptions(experiments=2, payload=False), log=said.append)
+    try:
+        for k, run in enumerate(("link6", "whole_a", "payload")):
+            service._take_event({"event": "start", "run": run})
+            service._take_event({"event": "stop", "run": run, "first_sequence": 100 * k, "last_sequence": 100 * k + 99})
+        assert sorted(service.collector.started) == ["link6", "whole_a"]
+        assert [doc["run"] for doc, _ in service.collector.stopping] == ["link6", "whole_a"]
+        assert service.not_filed == ["payload"] and sum("payload: not filed" in line for line in said) == 1, said
+        assert not service.done  # nothing processed yet
+        service.collector.started.clear()
+        service.collector.stopping.clear()
+        service.experiments += [{"run": "link6"}, {"run": "whole_a"}]  # as process() leaves them
+        assert service.done
+    finally:
+        service.close()
+        session.close()
+    every = EstimatorService(zenoh.open(session_config(listen=[f"tcp/127.0.0.1:{_free_port()}"])), robot, tmp_path / "every",
+                             ServiceOptions(payload=False))
+    try:
+        for run in ("a", "b", "c"):
+            every._take_event({"event": "start", "run": run})
+        assert sorted(every.collector.started) == ["a", "b", "c"] and not every.done
+    finally:
+        every.close()
+        every.session.close()

@@ -53,7 +53,7 @@ def _serve(args: argparse.Namespace) -> int:
             out_json.write(strict_json(doc) + "\n")
             out_json.flush()
 
-    options = ServiceOptions(max_backlog=args.max_backlog, whole_arm=args.whole_arm, payload=not args.no_payload)
+    options = ServiceOptions(max_backlog=args.max_backlog, whole_arm=args.whole_arm, payload=not args.no_payload, experiments=args.experiments)
     try:
         with open_zenoh(args) as session, ros2_bridge(args, session, robot.name, [j.name for j in robot.joints],
                                                       ("estimate/parameters", "estimate/payload", "events")):
@@ -64,7 +64,7 @@ def _serve(args: argparse.Namespace) -> int:
             try:
                 deadline = time.monotonic() + args.duration if args.duration else None
                 while not stop.wait(0.1):
-                    if deadline is not None and time.monotonic() >= deadline:
+                    if (deadline is not None and time.monotonic() >= deadline) or service.done:
                         break
             finally:
                 service.close()
@@ -93,6 +93,8 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--no-payload", action="store_true", help="do not run the payload estimator once the arm is identified")
     p.add_argument("--max-backlog", type=whole_count, default=2500, help="records queued before the service skips to the newest (default 2500: 5 s at 2 ms)")
     p.add_argument("--duration", type=positive_number, help="stop after this many seconds (default: until Ctrl-C)")
+    p.add_argument("--experiments", type=whole_count, metavar="N",
+                   help="file the first N experiments streamed, none after them, and stop once they are published (default: every one, until Ctrl-C)")
     p.add_argument("--json", metavar="JSONL", help="also write every published estimate/parameters document as a JSON line")
     add_zenoh_arguments(p)
     add_ros2_arguments(p)
