@@ -44,7 +44,6 @@ from .demo_clock import (
     PHASE_ESTIMATES_S,
     REPORT_S,
     RUNS_START_S,
-    SERVICE_BELOW,
     WHOLE_AFTER_S,
     Phases,
     Share,
@@ -161,8 +160,7 @@ def _at_priority(pid: int, above: int = 0) -> None:
     """A process of the demo's at this process's priority, or ``above`` it (where allowed: as root;
     without the privilege it stays where it is). The analysis comes back from below once no run
     of the drives it could delay is left but the payload run, whose real-time thread outranks it
-    anyway; the payload estimator, which must keep up with the live stream, goes above it, and the
-    estimator service, whose last fit nothing waits for before the report, below it (a negative ``above``)."""
+    anyway; the payload estimator, which must keep up with the live stream, goes above it."""
     try:
         os.setpriority(os.PRIO_PROCESS, pid, os.getpriority(os.PRIO_PROCESS, 0) - above)
     except OSError:
@@ -229,14 +227,12 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
         console.print(f"    {escape(zenoh_doc['watch'])}", soft_wrap=True)  # one line, whatever the width: to be copied
         phases.start("design", f"designing {len(links) + len(whole_runs)} exciting trajectories (D-optimal finite Fourier series: "
                      f"one per link, last link first, then two whole-arm) and checking each against every limit before any drive is enabled")
-        service = peers.enter_context(closing(_estimator_service(rig, out, len(links) + len(whole_runs), meeting)))
+        service = peers.enter_context(closing(_estimator_service(rig, out, meeting)))
         experiments = design_experiments(robot, start, links, whole_runs, rig.period_s, seed=seed, log=phases.note, progress=designed,
                                          whole_beside=True)
         write_json(out / "designs.json", {e.name: e.design.to_json() for e in experiments})
         motion_s = sum(e.plan.duration_s for e in experiments)
-        # the payload run goes on from where the last run leaves the arm: planned and checked now, before any enable
-        payload_plan_s = payload_plan(robot, experiments[-2].design, experiments[-1].design.trajectory.evaluate(np.zeros(1))[0][0],
-                                      rig.period_s).duration_s
+        payload_plan_s = ex.plan(experiments[-2].design, start, ex.Limits.of(robot), periods=2, lead_fraction=WHOLE_MARGIN).duration_s
         phases.estimates.update(design=time.monotonic() - phases.phase_started,
                                 runs=motion_s + len(experiments) * PER_RUN_S + RUNS_START_S, payload=payload_plan_s + PAYLOAD_OVERHEAD_S)
         # the analysis is not the real-time process's business: a process of its own, its imports made while the
@@ -248,49 +244,51 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
         phases.start("runs", f"running the {len(experiments)} experiments on the drives in real time ({motion_s:.0f} s of motion, "
                      "2 ms SYNC over the virtual CAN bus), each recorded as MCAP")
         runs_began = time.monotonic()
-        # one excitation session for the runs and the payload run (its stream the meeting's: the service's, then the
-        # payload estimator's too, which starts on the service's whole_a fit while whole_b runs)
-        session = peers.enter_context(excitation_session(rig, simulate=True, stream=meeting.stream(robot.name)))
-        early = _EstimatorOnTheFit(rig, service, out, meeting, peers)
-        given: list[Any] = []  # the analysis's work and its process's share of a core
+        # the payload estimator starts on the service's whole_a fit once the last run's records are all out (it meets
+        # the demo where the service does): its imports are made while the drives stop and the payload's drives start
+        early: list[PeerLink] = []
 
-        def after_motion(reports: list[Any]) -> None:
-            """The analysis given the recordings (still below the demo's priority: the payload estimator's imports come
-            first), and the payload estimator started if it is not yet, while the service identifies the last run and the
-            arm holds its pose."""
-            phases.mark("runs: motion ended")
-            _at_priority(service.peer.proc.pid, above=-SERVICE_BELOW)
-            given.extend([Share(analysis_pid.result(), ANALYSIS_CPU_S),
-                          beside.submit(_identify_and_analyse, rig, reports, {e.link: e.name for e in experiments if e.link is not None}, out)])
-            early.after_motion(len(experiments))
+        def start_the_payload_estimator() -> None:
+            service.wait(lambda: _published_fit(service.docs, "whole_a") is not None or len(service.docs) >= len(experiments), 300)
+            if (fit := _published_fit(service.docs, "whole_a")) is not None:
+                early.append(peers.enter_context(closing(payload_estimator(rig, fit, out, meeting))))
+                _at_priority(early[0].peer.proc.pid, above=ESTIMATOR_ABOVE)
 
-        reports = _runs_beside_the_service(session, service, experiments, out, console, after_motion, tick=early.try_start)
+        reports, published = _runs_beside_the_service(rig, service, experiments, out, console, start_the_payload_estimator)
         stretch = (time.monotonic() - runs_began - RUNS_START_S - len(reports) * PER_RUN_S) / motion_s
         write_json(out / "runs.json", [r.to_json() for r in reports])
-        if failed := [r for r in reports if not r.completed]:
+        failed = [r for r in reports if not r.completed]
+        if failed:
             console.print(f"[red]run {failed[0].name} stopped: {failed[0].stop_reason}[/]")
             return 1
-        estimator = early.link or peers.enter_context(closing(_estimator_on_the_recordings(rig, reports, out, meeting)))
+        write_json(out / "service.json", published)
+        analysis = beside.submit(_identify_and_analyse, rig, reports, {e.link: e.name for e in experiments if e.link is not None}, out)
+        pid = analysis_pid.result()
+        _at_priority(pid)
+        share = Share(pid, ANALYSIS_CPU_S)
+        if early:
+            estimator = early[0]
+        else:  # the service published no whole_a fit: the one made from the complete recordings
+            prepared = prepared_runs([r for r in reports if r.name.startswith("whole")], robot, rig.period_s)
+            fit = identify_whole_arm(robot, prepared["whole_a"], [prepared["whole_b"]]).to_json()
+            estimator = peers.enter_context(closing(payload_estimator(rig, fit, out, meeting)))
+            _at_priority(estimator.peer.proc.pid, above=ESTIMATOR_ABOVE)
         estimator.ready()
-        phases.mark("runs: the payload estimator ready")
-        share, analysis = given
-        _at_priority(share.pid)  # the analysis back at the demo's priority: no run but the payload's is left, whose real-time thread outranks it
         # the phase's end: the payload run and its last estimates, or the analysis beside it, whichever comes
-        # last, at the share of a core it has had since it was given its work (0.3 s at least), taken as no less
+        # last, at the share of a core it has had since it started (over a second at least), taken as no less
         # than it gets beside two busy loops (MIN_SHARE: over the estimator's start the share is lower than over
         # the payload run); then the report. A longer wait is said when the run ends
         payload_s = payload_plan_s * max(stretch, 1.0) + PAYLOAD_OVERHEAD_S
-        analysis_s = share.left_s(measure_s=max(0.0, 0.3 - share.since_s()), least=MIN_SHARE) + REPORT_S
+        analysis_s = share.left_s(measure_s=max(0.0, 1.0 - share.since_s()), least=MIN_SHARE) + REPORT_S
         phases.estimates.update(runs=time.monotonic() - phases.phase_started, payload=max(payload_s, analysis_s))
-        phases.start("payload", PAYLOAD_PHASE)
+        phases.start("payload", "payload: the identified arm works through whole_a; a 2 kg payload is attached and removed, "
+                     "estimated on-line from the live Zenoh stream by `armid estimate live` in a process of its own; meanwhile, in "
+                     "another, the single-link sequence (links 6 to 1) and the whole arm (validated on whole_b) are identified as the "
+                     "estimator service did, both checked against the simulator's known parameters, the residual diagnosed and the "
+                     "physically consistent model computed; then the report")
         plotted: list[Any] = []
-        before_run = share.used_s()
-        payload = run_payload(rig, estimator, experiments[-2].design, out, plot=lambda *a: plotted.append(beside.submit(_plot_payload, *a)),
-                              session=session)
-        session.close()  # the drives' last run: they stop while the analysis ends
-        during_run = share.used_s() - before_run
-        phases.mark("payload: run done")
-        write_json(out / "service.json", published := _service_documents(service, len(reports)))  # in during the payload run, as a rule
+        payload = run_payload(rig, estimator, experiments[-2].design, out, plot=lambda *a: plotted.append(beside.submit(_plot_payload, *a)))
+        during_run = share.used_s()
         if not analysis.done() and (left := share.left_s(measure_s=0.3)) > 3.0:  # a wait worth saying
             phases.estimates["payload"] = time.monotonic() - phases.phase_started + left + REPORT_S
             phases.note("the payload run is done; the analysis beside it is not yet")
@@ -316,22 +314,6 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
     # the timeline last, every process ended: each announced time left beside the time that followed
     write_json(out / "demo.json", {**doc, "timeline": phases.honesty(), "stretch": round(stretch, 3)})
     return 0
-
-
-PAYLOAD_PHASE = ("payload: the identified arm works through whole_a; a 2 kg payload is attached and removed, estimated on-line "
-                 "from the live Zenoh stream by `armid estimate live` in a process of its own; meanwhile, in another, the single-link "
-                 "sequence (links 6 to 1) and the whole arm (validated on whole_b) are identified as the estimator service did, both "
-                 "checked against the simulator's known parameters, the residual diagnosed and the physically consistent model "
-                 "computed; then the report")
-
-
-def _estimator_on_the_recordings(rig: Rig[Robot], reports: list[Any], out: Path, meeting: Meeting) -> PeerLink:
-    """The payload estimator where the service published no whole_a fit: on the one made from the complete recordings."""
-    prepared = prepared_runs([r for r in reports if r.name.startswith("whole")], rig.robot, rig.period_s)
-    fit = identify_whole_arm(rig.robot, prepared["whole_a"], [prepared["whole_b"]]).to_json()
-    link = payload_estimator(rig, fit, out, meeting)
-    _at_priority(link.peer.proc.pid, above=ESTIMATOR_ABOVE)
-    return link
 
 
 def _say_the_figures(console: Any, done: dict[str, Any], payload: dict[str, Any]) -> None:
@@ -391,14 +373,13 @@ def _below_the_real_time() -> None:
     threadpool_limits(1, "blas")
 
 
-def _estimator_service(rig: Rig[Robot], out: Path, experiments: int, meeting: Meeting | None = None) -> PeerLink:
-    """``armid serve`` started in a process of its own (as in a lab), not yet waited for, filing
-    the demo's ``experiments`` (not the payload run that follows them); ``meeting``: where it
-    meets the demo (default: an endpoint of its own)."""
+def _estimator_service(rig: Rig[Robot], out: Path, meeting: Meeting | None = None) -> PeerLink:
+    """``armid serve`` started in a process of its own (as in a lab), not yet waited for;
+    ``meeting``: where it meets the demo (default: an endpoint of its own)."""
     robot = rig.robot
-    return PeerLink(robot.name, ["serve", "--robot", robot.source, "--whole-arm", "drives", "--no-payload", "--experiments", str(experiments),
-                                 "--out", str(out / "service"), "--json", str(out / "service.jsonl")], out / "service.log", "estimate/parameters",
-                    "alive/estimator", wait=False, meeting=meeting)
+    return PeerLink(robot.name, ["serve", "--robot", robot.source, "--whole-arm", "drives", "--no-payload", "--out", str(out / "service"),
+                                 "--json", str(out / "service.jsonl")], out / "service.log", "estimate/parameters", "alive/estimator", wait=False,
+                    meeting=meeting)
 
 
 def _published_fit(docs: list[dict[str, Any]], run: str) -> dict[str, Any] | None:
@@ -411,58 +392,26 @@ def _published_fit(docs: list[dict[str, Any]], run: str) -> dict[str, Any] | Non
     return None
 
 
-def _runs_beside_the_service(session: Any, link: PeerLink, experiments: list[Any], out: Path, console: Any,
-                             after_motion: Any = None, tick: Any = None) -> list[Any]:
-    """The experiments on ``session``'s drives, streamed to the estimator service once it is ready
-    (the session's stream is the service's); their reports. ``after_motion(reports)``: called once
-    the last run has ended (the arm holds its pose; the service may still be identifying the last
-    runs), when every run completed; ``tick()``: called with each update of the progress bars while
-    the runs go on."""
-    link.ready()
-    console.print(f"  timing: {session.driver.timing_note}; the estimator service runs in process {link.peer.proc.pid}")
-    reports = run_experiments(session, experiments, out / "runs", console, tick=tick)
-    if after_motion is not None and all(r.completed for r in reports):
-        after_motion(reports)
-    return reports
-
-
-def _service_documents(link: PeerLink, expected: int) -> list[dict[str, Any]]:
-    """The estimator service's ``estimate/parameters`` documents, one per experiment it filed (it
-    files the demo's experiments, not the payload run, and ends once they are published); then
-    it is closed."""
+def _runs_beside_the_service(rig: Rig[Robot], link: PeerLink, experiments: list[Any], out: Path, console: Any,
+                             after_motion: Any = None) -> tuple[list[Any], list[dict[str, Any]]]:
+    """The experiments on the drives, streamed to the estimator service once it is ready; its
+    ``estimate/parameters`` documents, one per experiment it identified. ``after_motion``: called
+    once the drives have stopped and the stream carries no more records (the service may still
+    be identifying the last runs), when every run completed."""
     try:
+        link.ready()
+        with excitation_session(rig, simulate=True, stream=link.stream) as session:
+            console.print(f"  timing: {session.driver.timing_note}; the estimator service runs in process {link.peer.proc.pid}")
+            reports = run_experiments(session, experiments, out / "runs", console)
+        expected = len(reports) if all(r.completed for r in reports) else 0
+        if expected and after_motion is not None:
+            after_motion()
         link.wait(lambda: len(link.docs) >= expected, 300)
     finally:
         link.close()
     if len(link.docs) < expected:
         raise SimulationError(f"the estimator service published {len(link.docs)} of {expected} estimates: {link.peer.tail()}")
-    return link.docs
-
-
-class _EstimatorOnTheFit:
-    """The payload estimator (``armid estimate live``), started as soon as the estimator service
-    publishes its whole_a fit: while whole_b runs, so that its imports are made while the arm
-    moves, not between the runs and the payload run (2.6 s measured there on the 2-core machine).
-    It listens from then on; :func:`run_payload` keeps the estimates of the payload run's records."""
-
-    def __init__(self, rig: Rig[Robot], service: PeerLink, out: Path, meeting: Meeting, peers: ExitStack) -> None:
-        self._rig, self._service, self._out, self._meeting, self._peers = rig, service, out, meeting, peers
-        self.link: PeerLink | None = None
-
-    def try_start(self) -> None:
-        """Start it if the fit is in (the runs' tick: in the thread that runs the plan, at the loop's real-time
-        policy, which the estimator must not inherit: it is spawned from the thread at the ordinary one)."""
-        from armid.drivers.realtime import calling_thread_at, ordinary_policy
-
-        if self.link is None and (fit := _published_fit(self._service.docs, "whole_a")) is not None:
-            with calling_thread_at(ordinary_policy()):
-                self.link = self._peers.enter_context(closing(payload_estimator(self._rig, fit, self._out, self._meeting)))
-            _at_priority(self.link.peer.proc.pid, above=ESTIMATOR_ABOVE)
-
-    def after_motion(self, runs: int) -> None:
-        """Once the runs have ended: until the fit is in (or the service has published for every run), then start it."""
-        self._service.wait(lambda: _published_fit(self._service.docs, "whole_a") is not None or len(self._service.docs) >= runs, 300)
-        self.try_start()
+    return reports, link.docs
 
 
 DEMO_PAYLOAD = (2.0, (0.02, -0.03, 0.08), (0.004, 0.0, 0.0, 0.004, 0.0, 0.002))
@@ -481,13 +430,11 @@ def payload_estimator(rig: Rig[Robot], identification: dict[str, Any], out: Path
                     "alive/payload_estimator", wait=False, meeting=meeting)
 
 
-def run_payload(rig: Rig[Robot], link: PeerLink, design: Any, out: Path, plot: Any = None, session: Any = None) -> dict[str, Any]:
+def run_payload(rig: Rig[Robot], link: PeerLink, design: Any, out: Path, plot: Any = None) -> dict[str, Any]:
     """Khosla's on-line strategy: the identified arm works through a whole-arm trajectory; a
     payload is attached 3 s in and removed 4 s later; ``link``'s ``armid estimate live``, in a
     process of its own, listens to the live Zenoh stream and publishes its estimates; they are
     compared with the truth. ``plot``: where the estimates' plot is made (default: :func:`_plot_payload` here).
-    ``session``: the excitation session the arm is in, streaming to ``link`` (the demo's, which ran
-    the experiments: the drives are not started twice); default: one of its own on the simulated rig.
 
     Everything runs on the arm's clock: the attach and the removal are scheduled in the
     simulated arm at times of its own clock (not when a polling thread gets to them), and
@@ -496,6 +443,7 @@ def run_payload(rig: Rig[Robot], link: PeerLink, design: Any, out: Path, plot: A
     """
     import threading
 
+    from armid.identify import excitation as ex
     from armid.io.recordings import read_mcap_arrays
     from armid.sim_bus.physics import Payload
 
@@ -504,11 +452,10 @@ def run_payload(rig: Rig[Robot], link: PeerLink, design: Any, out: Path, plot: A
     estimates = link.docs
     try:
         link.ready()
-        with ExitStack() as own:
-            s = session if session is not None else own.enter_context(excitation_session(rig, simulate=True, stream=link.stream))
+        with excitation_session(rig, simulate=True, stream=link.stream) as s:
             assert s.arm is not None
             physics = s.arm.physics
-            plan = payload_plan(rig.robot, design, s.position, rig.period_s)
+            plan = ex.plan(design, s.position, s.limits, periods=2, lead_fraction=WHOLE_MARGIN)
             box: dict[str, Any] = {}
             runner = threading.Thread(target=lambda: box.update(report=s.run(plan, run_dir, "payload")))
             runner.start()
@@ -529,13 +476,12 @@ def run_payload(rig: Rig[Robot], link: PeerLink, design: Any, out: Path, plot: A
     report = box["report"]
     if not report.completed:
         raise DriverError(f"payload run stopped: {report.stop_reason}")
-    a, _, _ = read_mcap_arrays(run_dir / "run.mcap")
-    cycle, rec_t = np.asarray(a["cycle"]), np.asarray(a["t"], float)
-    estimates = [e for e in estimates if rec_t.size and e["record_time"] >= rec_t[0]]  # the run's own (the estimator may have listened before it)
     if len(physics.payload_events) != 2 or not estimates:
         raise SimulationError(f"payload phase: {len(physics.payload_events)} payload events took effect, {len(estimates)} estimates "
                            f"(run {'completed' if report.completed else 'stopped: ' + str(report.stop_reason)})")
     # the record on which each event took effect: the step that started at time (k - 1) T is SYNC k
+    a, _, _ = read_mcap_arrays(run_dir / "run.mcap")
+    cycle, rec_t = np.asarray(a["cycle"]), np.asarray(a["t"], float)
     events = []
     for when, _ in physics.payload_events:
         k = int(np.searchsorted(cycle, int(round(when / rig.period_s)) + 1))
@@ -561,16 +507,6 @@ def run_payload(rig: Rig[Robot], link: PeerLink, design: Any, out: Path, plot: A
             "converged_after_attach_s": _converged_after(t, estimates, t_on, t_off),
             "converged_after_removal_s": _converged_after(t, estimates, t_off, float("inf")),
             "report": report.to_json()}
-
-
-def payload_plan(robot: Robot, design: Any, pose: np.ndarray, period_s: float) -> Any:
-    """The payload run's plan from ``pose``: two periods of ``design`` at the whole-arm margin,
-    checked against every limit at the control period (the first violation raises
-    :class:`~identify.excitation.TrajectoryLimitError`, nothing moved)."""
-    limits = ex.Limits.of(robot)
-    plan = ex.plan(design, pose, limits, periods=2, lead_fraction=WHOLE_MARGIN)
-    ex.check_plan(robot, plan, period_s, limits)
-    return plan
 
 
 def _converged_after(t: np.ndarray, estimates: list[dict[str, Any]], t_event: float, t_next: float) -> float | None:

@@ -77,11 +77,6 @@ ESTIMATOR_ABOVE = 5
 """How far above the demo's priority its payload estimator runs where allowed (nice 5 less): it must keep up
 with the live stream while the analysis computes beside it at the demo's own."""
 
-SERVICE_BELOW = 5
-"""How far below the demo's priority its estimator service runs once the runs have ended (nice 5 more):
-it identifies the last run while the payload run moves, and the analysis, which the report waits for,
-must not wait for it (2.3 s after the payload run measured at the same priority)."""
-
 RUNS_START_S = 1.4
 """The runs' phase beyond their motion: the drives' start before the first run and their stop after
 the last, the estimator service's last fit (measured on the 2-core machine)."""

@@ -87,26 +87,12 @@ class Meeting:
 
         self.endpoint = loopback_endpoint()
         self.session = zenoh.open(session_config(listen=[self.endpoint], connect=[]))
-        self._stream: Any = None
-
-    def stream(self, robot: str, component: str = "demo") -> Any:
-        """The one :class:`~daq.stream.Stream` that carries the records to every peer met here
-        (made on first use): one excitation session feeds the estimator service's runs and then
-        the payload estimator's, with no second start of the drives in between."""
-        from armid.daq.stream import Stream
-
-        if self._stream is None:
-            self._stream = Stream(self.session, robot, component, lambda: {"component": component})
-        return self._stream
 
     def watch_command(self, robot: str) -> str:
         """The ``armid watch`` command that joins this meeting from another terminal."""
         return f"armid watch --robot {robot} --zenoh-connect {self.endpoint}"
 
     def close(self) -> None:
-        if self._stream is not None:
-            self._stream.close()
-            self._stream = None
         if not self.session.is_closed():
             self.session.close()
 
@@ -114,8 +100,8 @@ class Meeting:
 class PeerLink:
     """The demo's side of a :class:`Peer`: a Zenoh session listening on a loopback endpoint,
     the peer connected to it and ready (its liveliness ``token`` seen), every JSON document it
-    publishes on ``publishes`` collected in :attr:`docs`, and the meeting's :class:`~daq.stream.Stream`
-    that carries the records to it. :meth:`close` ends them in order (safe to call twice)."""
+    publishes on ``publishes`` collected in :attr:`docs`, and a :class:`~daq.stream.Stream` that
+    carries the records to it. :meth:`close` ends them in order (safe to call twice)."""
 
     def __init__(self, robot: str, args: list[str], log: Path, publishes: str, token: str, component: str = "demo",
                  wait: bool = True, meeting: Meeting | None = None) -> None:
@@ -142,10 +128,12 @@ class PeerLink:
             raise
 
     def ready(self) -> None:
-        """Until the peer is ready (its liveliness token seen); then the stream that feeds it (the meeting's)."""
+        """Until the peer is ready (its liveliness token seen); then the stream that feeds it."""
+        from armid.daq.stream import Stream
+
         if self.stream is None:
             self.peer.wait_alive(self.session, self._token)
-            self.stream = self._meeting.stream(self._robot, self._component)
+            self.stream = Stream(self.session, self._robot, self._component, lambda: {"component": self._component})
 
     def wait(self, done: Any, timeout_s: float) -> None:
         """Until ``done()`` holds, the peer ends, or ``timeout_s`` passes."""
@@ -154,7 +142,9 @@ class PeerLink:
             time.sleep(0.05)
 
     def close(self) -> None:
-        self.stream = None  # the meeting's: it goes on for the meeting's other peers
+        if self.stream is not None:
+            self.stream.close()
+            self.stream = None
         if self._subscriber is not None:
             self._subscriber.undeclare()
             self._subscriber = None
