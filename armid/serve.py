@@ -80,7 +80,7 @@ class ServiceOptions:
     """Run the payload estimator on the live stream once a whole-arm fit exists."""
     experiments: int | None = None
     """File this many experiments and no more (None: every one): a run that starts after them is
-    not the service's (the demo's payload run, which the payload estimator follows)."""
+    not the service's (a session's payload run, which a payload estimator follows)."""
     stop_wait_s: float = 5.0
     ingest_delay_s: float = 0.0
     """Seconds of extra work per record in the ingest: a slow consumer by design (tests)."""

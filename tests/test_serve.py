@@ -710,9 +710,9 @@ def test_two_whole_arm_runs_of_one_name_are_each_validated_on_the_other(tmp_path
 
 
 def test_a_service_asked_for_n_experiments_files_no_run_after_them_and_is_done_once_they_are_in(tmp_path: Path) -> None:
-    """``armid serve --experiments N`` (the demo's: its eight experiments, then the payload run,
-    which is the payload estimator's): a run that starts after the N filed is not filed, and
-    said once; the service is done once every filed run is processed and published. A real
+    """``armid serve --experiments N`` (a session's N experiments, then a payload run that a
+    payload estimator follows): a run that starts after the N filed is not filed, and said
+    once; the service is done once every filed run is processed and published. A real
     Zenoh session on loopback; the events handed to the service's own ``_take_event``."""
     import zenoh
 
