@@ -133,7 +133,8 @@ if __name__ == "__main__":
         built = config_file("rigs/sim.yaml")
         _compile(built, regressor=True)
     try:
-        _stamp(built).parent.mkdir(parents=True, exist_ok=True)
-        _stamp(built).touch()
+        stamp = _stamp(built)
+        stamp.parent.mkdir(parents=True, exist_ok=True)
+        stamp.touch()
     except OSError:  # a cache place this user may not write: the next demo compiles ahead again
         pass

@@ -300,7 +300,6 @@ class ExcitationSession:
         self.acquisition: Acquisition | None = None
         self._sinks = sinks
         self.enabled = False
-        self._closed = False
         self._loop_policy: Policy | None = None  # what the drivers gave this process's threads
 
     def start(self) -> None:
@@ -417,11 +416,6 @@ class ExcitationSession:
         return {"completed": reason is None, "stop": reason, "stop_cycle": c.stop_cycle if c.stop_reason else None}
 
     def close(self) -> None:
-        """Disable the drives (if they follow still), stop the acquisition, close the driver and the
-        simulated hardware (safe to call twice: a caller may end the drives before its ``with`` block does)."""
-        if self._closed:
-            return
-        self._closed = True
         try:
             if self.enabled and self.control.stop_reason is None:
                 self.driver.disable()
