@@ -2,8 +2,9 @@
 
 The simulated PUMA 560 on a virtual CAN bus (``config/rigs/sim.yaml``: CiA 402 drives,
 2 ms SYNC, friction, rotor inertia, quantisation, current noise); Khosla's single-link
-experiments from link 6 to link 1 and two whole-arm runs, all designed and checked before
-any drive is enabled, run through the CANopen driver and recorded as MCAP; the
+experiments from link 6 to link 1 and two whole-arm runs, the first designed before the
+drives start and the others beside the runs, each checked against every limit before it runs,
+run through the CANopen driver and recorded as MCAP; the
 single-link sequence and the whole-arm identification, each against the simulator's
 known parameters; diagnosis of the residual; on-line payload estimation; a report.
 """
@@ -44,13 +45,12 @@ from .demo_clock import (
     PHASE_ESTIMATES_S,
     REPORT_S,
     RUNS_START_S,
-    WHOLE_AFTER_S,
     Phases,
     Share,
 )
 from .experiments import (
     WHOLE_MARGIN,
-    design_experiments,
+    ExperimentsBeside,
     identify_whole_arm,
     prepared_runs,
     run_experiments,
@@ -179,19 +179,29 @@ def _demo_rig(rig_path: Path, arm_seed: int | None) -> tuple[Rig[Robot], int]:
     return replace(rig, simulation={**rig.simulation, "seed": arm_seed}), arm_seed
 
 
-def _design_pace(phases: Phases, links: int, whole: int) -> Any:
-    """The designs' ``progress`` callback: the design phase's estimate from the designs' measured pace."""
-    times: list[float] = []
+DESIGN_PHASE = ("designing {n} exciting trajectories (D-optimal finite Fourier series: one per link, last link first, then two "
+                "whole-arm): the first here, the others in a process of their own while the drives run the first; each is checked "
+                "against every limit before it runs")
+PAYLOAD_PHASE = ("payload: the identified arm works through whole_a; a 2 kg payload is attached and removed, estimated on-line from "
+                 "the live Zenoh stream by `armid estimate live` in a process of its own; meanwhile, in another, the single-link "
+                 "sequence (links 6 to 1) and the whole arm (validated on whole_b) are identified as the estimator service did, both "
+                 "checked against the simulator's known parameters, the residual diagnosed and the physically consistent model "
+                 "computed; then the report")
 
-    def designed(done: int, total: int, seconds: float) -> None:
-        times.append(seconds)
-        whole_left = min(whole, total - done)
-        # the median; the first design also loads the compiled kernel: the others take about half its time (measured).
-        # The first whole-arm design is made beside the single-link chain, the second after it (WHOLE_AFTER_S)
-        per_link = float(np.median(times[1:links])) if done > 1 else 0.5 * seconds
-        phases.estimates["design"] = (time.monotonic() - phases.phase_started) + (total - done - whole_left) * per_link + WHOLE_AFTER_S * (whole_left > 0)
 
-    return designed
+def _at_the_runs_pace(phases: Phases, experiments: ExperimentsBeside) -> None:
+    """The runs' and the payload phase's estimates as a plan is handed over to run (the runs
+    before it done): the motion left at the pace of the runs so far (a loaded machine stretches
+    the arm's clock: 21-43 % short announcements late in the runs when taken at 1.0), and the
+    payload run as long as whole_a's plan at that pace, once whole_a is designed."""
+    done = [e.plan.duration_s for e in experiments.experiments[:-1]]
+    elapsed = time.monotonic() - phases.phase_started
+    pace = max(1.0, (elapsed - RUNS_START_S / 2) / (sum(done) + len(done) * PER_RUN_S)) if done else 1.0
+    left = len(experiments) - len(done)
+    phases.estimates["runs"] = elapsed + (experiments.motion_s - sum(done)) * pace + left * PER_RUN_S + RUNS_START_S / 2
+    whole_a = [e for e in experiments.experiments if e.name == "whole_a"]
+    if whole_a:
+        phases.estimates["payload"] = whole_a[0].plan.duration_s * pace + PAYLOAD_OVERHEAD_S
 
 
 def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: int | None = None) -> int:
@@ -211,12 +221,9 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
     start = np.asarray(rig.simulation.get("initial_position", np.zeros(robot.n_joints)), float)
     links = list(range(robot.n_joints - 1, -1, -1))  # Khosla: last link first
     whole_runs = [("whole_a", 2), ("whole_b", 1)]
-    designed = _design_pace(phases, len(links), len(whole_runs))
-
-    # OpenBLAS's threads stall on a loaded 2-core machine, and the demo's products are small; the kernels
-    # that the runs and the payload estimator will need compile on the other core while the first design does
-    # and the estimator service starts (seconds of imports) while the trajectories are designed
-    # (``peers``: the processes started ahead, ended with the demo on any error)
+    # OpenBLAS's threads stall on a loaded 2-core machine, and the demo's products are small; the kernels that the runs
+    # and the payload estimator will need compile on the other core while the first design is made, and the estimator
+    # service starts meanwhile (``peers``: the processes started ahead, ended with the demo on any error)
     with threadpool_limits(1, "blas"), compiled_ahead(rig_path), ExitStack() as peers:
         # where the demo meets its peers, and where a viewer joins them (loopback only)
         meeting = Meeting()
@@ -225,23 +232,23 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
         console.print(f"  the estimator service and the payload estimator meet the demo on {meeting.endpoint} (loopback only); "
                       "to watch them live from another terminal:")
         console.print(f"    {escape(zenoh_doc['watch'])}", soft_wrap=True)  # one line, whatever the width: to be copied
-        phases.start("design", f"designing {len(links) + len(whole_runs)} exciting trajectories (D-optimal finite Fourier series: "
-                     f"one per link, last link first, then two whole-arm) and checking each against every limit before any drive is enabled")
+        phases.start("design", DESIGN_PHASE.format(n=len(links) + len(whole_runs)))
         service = peers.enter_context(closing(_estimator_service(rig, out, meeting)))
-        experiments = design_experiments(robot, start, links, whole_runs, rig.period_s, seed=seed, log=phases.note, progress=designed,
-                                         whole_beside=True)
-        write_json(out / "designs.json", {e.name: e.design.to_json() for e in experiments})
-        motion_s = sum(e.plan.duration_s for e in experiments)
-        payload_plan_s = ex.plan(experiments[-2].design, start, ex.Limits.of(robot), periods=2, lead_fraction=WHOLE_MARGIN).duration_s
+        def designed(line: str) -> None:  # a plan comes in beside the runs, as the one before it ends
+            if phases.current == "runs":
+                _at_the_runs_pace(phases, experiments)
+            phases.note(line)
+
+        experiments = peers.enter_context(closing(ExperimentsBeside(robot, start, links, whole_runs, rig.period_s, seed=seed, log=designed)))
         phases.estimates.update(design=time.monotonic() - phases.phase_started,
-                                runs=motion_s + len(experiments) * PER_RUN_S + RUNS_START_S, payload=payload_plan_s + PAYLOAD_OVERHEAD_S)
+                                runs=experiments.motion_s + len(experiments) * PER_RUN_S + RUNS_START_S)
         # the analysis is not the real-time process's business: a process of its own, its imports made while the
         # arm moves, below the real-time process's priority (spawned: a fork would copy this process's threads'
         # locks; ended with the demo, its work cancelled)
         beside = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_below_the_real_time)
         peers.callback(beside.shutdown, cancel_futures=True)
         analysis_pid = beside.submit(_ready_to_analyse)
-        phases.start("runs", f"running the {len(experiments)} experiments on the drives in real time ({motion_s:.0f} s of motion, "
+        phases.start("runs", f"running the {len(experiments)} experiments on the drives in real time ({experiments.motion_s:.0f} s of motion, "
                      "2 ms SYNC over the virtual CAN bus), each recorded as MCAP")
         runs_began = time.monotonic()
         # the payload estimator starts on the service's whole_a fit once the last run's records are all out (it meets
@@ -255,6 +262,8 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
                 _at_priority(early[0].peer.proc.pid, above=ESTIMATOR_ABOVE)
 
         reports, published = _runs_beside_the_service(rig, service, experiments, out, console, start_the_payload_estimator)
+        write_json(out / "designs.json", {e.name: e.design.to_json() for e in experiments.experiments})
+        motion_s = sum(e.plan.duration_s for e in experiments.experiments)
         stretch = (time.monotonic() - runs_began - RUNS_START_S - len(reports) * PER_RUN_S) / motion_s
         write_json(out / "runs.json", [r.to_json() for r in reports])
         failed = [r for r in reports if not r.completed]
@@ -262,7 +271,7 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
             console.print(f"[red]run {failed[0].name} stopped: {failed[0].stop_reason}[/]")
             return 1
         write_json(out / "service.json", published)
-        analysis = beside.submit(_identify_and_analyse, rig, reports, {e.link: e.name for e in experiments if e.link is not None}, out)
+        analysis = beside.submit(_identify_and_analyse, rig, reports, {e.link: e.name for e in experiments.experiments if e.link is not None}, out)
         pid = analysis_pid.result()
         _at_priority(pid)
         share = Share(pid, ANALYSIS_CPU_S)
@@ -273,21 +282,21 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
             fit = identify_whole_arm(robot, prepared["whole_a"], [prepared["whole_b"]]).to_json()
             estimator = peers.enter_context(closing(payload_estimator(rig, fit, out, meeting)))
             _at_priority(estimator.peer.proc.pid, above=ESTIMATOR_ABOVE)
-        estimator.ready()
         # the phase's end: the payload run and its last estimates, or the analysis beside it, whichever comes
-        # last, at the share of a core it has had since it started (over a second at least), taken as no less
-        # than it gets beside two busy loops (MIN_SHARE: over the estimator's start the share is lower than over
-        # the payload run); then the report. A longer wait is said when the run ends
-        payload_s = payload_plan_s * max(stretch, 1.0) + PAYLOAD_OVERHEAD_S
-        analysis_s = share.left_s(measure_s=max(0.0, 1.0 - share.since_s()), least=MIN_SHARE) + REPORT_S
-        phases.estimates.update(runs=time.monotonic() - phases.phase_started, payload=max(payload_s, analysis_s))
-        phases.start("payload", "payload: the identified arm works through whole_a; a 2 kg payload is attached and removed, "
-                     "estimated on-line from the live Zenoh stream by `armid estimate live` in a process of its own; meanwhile, in "
-                     "another, the single-link sequence (links 6 to 1) and the whole arm (validated on whole_b) are identified as the "
-                     "estimator service did, both checked against the simulator's known parameters, the residual diagnosed and the "
-                     "physically consistent model computed; then the report")
+        # last, at the share of a core it has had since it started (the estimator's and the drives' start, with no
+        # wait of its own: a second's measurement was a second before the run), taken as no less than it gets beside
+        # two busy loops (MIN_SHARE); then the report. A longer wait is said when the run ends
+        payload_plan = ex.plan(experiments.experiments[-2].design, start, ex.Limits.of(robot), periods=2, lead_fraction=WHOLE_MARGIN)
+        payload_s = payload_plan.duration_s * max(stretch, 1.0) + PAYLOAD_OVERHEAD_S
+
+        def drives_up() -> None:
+            analysis_s = share.left_s(least=MIN_SHARE) + REPORT_S
+            phases.estimates.update(runs=time.monotonic() - phases.phase_started, payload=max(payload_s, analysis_s))
+            phases.start("payload", PAYLOAD_PHASE)
+
         plotted: list[Any] = []
-        payload = run_payload(rig, estimator, experiments[-2].design, out, plot=lambda *a: plotted.append(beside.submit(_plot_payload, *a)))
+        payload = run_payload(rig, estimator, experiments.experiments[-2].design, out, plot=lambda *a: plotted.append(beside.submit(_plot_payload, *a)),
+                              drives_up=drives_up)
         during_run = share.used_s()
         if not analysis.done() and (left := share.left_s(measure_s=0.3)) > 3.0:  # a wait worth saying
             phases.estimates["payload"] = time.monotonic() - phases.phase_started + left + REPORT_S
@@ -297,6 +306,7 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
             f.result()
         phases.mark("analysis done")
         analysis_cpu = {"during_payload_run_s": round(during_run, 2), "total_s": round(share.used_s(), 2)}
+        _ended_meanwhile(beside, peers)
         whole, seq, truth, comparison, diagnosis = done["whole"], done["seq"], done["truth"], done["comparison"], done["diagnosis"]
         for w in done["warnings"]:
             console.print(f"  [yellow]warning:[/] {escape(w)}")
@@ -304,7 +314,7 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
         console.print(f"  the estimator service published {len(published)} estimates; records it missed "
                       f"{sum(d['experiment']['missing'] for d in published)}; its whole_a fit against the recording's: "
                       f"{agreement['max_difference_sigma']:.2g} sigma at most")
-        _write_report(out, rig, experiments, reports, seq, whole, done["whole_doc"], comparison, truth, diagnosis, payload)
+        _write_report(out, rig, experiments.experiments, reports, seq, whole, done["whole_doc"], comparison, truth, diagnosis, payload)
         doc = {"rig": rig.name, "arm_seed": arm_seed, "zenoh": zenoh_doc, "analysis_cpu": analysis_cpu, "single_link": seq.to_json(), "whole_arm": done["whole_doc"],
                "comparison": comparison, "truth_check": truth, "service": agreement, "diagnosis": diagnosis.to_json(), "payload": payload,
                "runs": [r.to_json() for r in reports]}
@@ -362,6 +372,17 @@ def analyse(robot: Robot, whole: IdentificationResult, run: Prepared, validation
     return diagnosis, feasible.summary_line(errors=False), whole_doc
 
 
+def _ended_meanwhile(pool: ProcessPoolExecutor, peers: ExitStack) -> None:
+    """``pool`` shut down in a thread of its own, waited for when ``peers`` close: its process's
+    end (0.3-0.6 s) overlaps what comes before (``shutdown(wait=False)`` left its queues'
+    semaphores to the resource tracker, which warned of them at exit)."""
+    import threading
+
+    ending = threading.Thread(target=pool.shutdown, name="armid-analysis-end")
+    ending.start()
+    peers.callback(ending.join)
+
+
 def _below_the_real_time() -> None:
     """A worker beside the real-time process: a lower priority than it, one BLAS thread (the
     demo's products are small; a second thread stalls on a loaded 2-core machine)."""
@@ -392,7 +413,7 @@ def _published_fit(docs: list[dict[str, Any]], run: str) -> dict[str, Any] | Non
     return None
 
 
-def _runs_beside_the_service(rig: Rig[Robot], link: PeerLink, experiments: list[Any], out: Path, console: Any,
+def _runs_beside_the_service(rig: Rig[Robot], link: PeerLink, experiments: ExperimentsBeside, out: Path, console: Any,
                              after_motion: Any = None) -> tuple[list[Any], list[dict[str, Any]]]:
     """The experiments on the drives, streamed to the estimator service once it is ready; its
     ``estimate/parameters`` documents, one per experiment it identified. ``after_motion``: called
@@ -430,11 +451,12 @@ def payload_estimator(rig: Rig[Robot], identification: dict[str, Any], out: Path
                     "alive/payload_estimator", wait=False, meeting=meeting)
 
 
-def run_payload(rig: Rig[Robot], link: PeerLink, design: Any, out: Path, plot: Any = None) -> dict[str, Any]:
+def run_payload(rig: Rig[Robot], link: PeerLink, design: Any, out: Path, plot: Any = None, drives_up: Any = None) -> dict[str, Any]:
     """Khosla's on-line strategy: the identified arm works through a whole-arm trajectory; a
     payload is attached 3 s in and removed 4 s later; ``link``'s ``armid estimate live``, in a
     process of its own, listens to the live Zenoh stream and publishes its estimates; they are
-    compared with the truth. ``plot``: where the estimates' plot is made (default: :func:`_plot_payload` here).
+    compared with the truth. ``plot``: where the estimates' plot is made (default: :func:`_plot_payload` here);
+    ``drives_up``: called once the drives are up and the estimator ready, before the run starts.
 
     Everything runs on the arm's clock: the attach and the removal are scheduled in the
     simulated arm at times of its own clock (not when a polling thread gets to them), and
@@ -451,9 +473,11 @@ def run_payload(rig: Rig[Robot], link: PeerLink, design: Any, out: Path, plot: A
     run_dir = out / "runs" / "payload"
     estimates = link.docs
     try:
-        link.ready()
-        with excitation_session(rig, simulate=True, stream=link.stream) as s:
+        with excitation_session(rig, simulate=True, stream=link.open_stream()) as s:  # the drives start while the estimator does
             assert s.arm is not None
+            link.ready()
+            if drives_up is not None:
+                drives_up()
             physics = s.arm.physics
             plan = ex.plan(design, s.position, s.limits, periods=2, lead_fraction=WHOLE_MARGIN)
             box: dict[str, Any] = {}
@@ -613,7 +637,8 @@ def _write_report(out: Path, rig: Rig[Robot], experiments: list[Any], reports: l
     whole_run = next(e for e in experiments if e.name == "whole_a")
     lines = [f"# armid demo: {rig.name}", "",
              f"Simulated {rig.robot.name} on a {rig.bus.interface} CAN bus, {len(rig.drives)} CiA 402 drives, {rig.period_s * 1000:g} ms SYNC. "
-             "Every trajectory was designed (D-optimal finite Fourier series) and checked against every limit before any drive was enabled.", "",
+             "Every trajectory was designed (D-optimal finite Fourier series) and checked against every limit before it ran "
+             "(the first before the drives started, the others designed beside the runs before them).", "",
              "## Runs", "", "| run | moving joints | duration s | records | max tracking error mrad | peak torque % of limit | "
              "design's condition number |", "|---|---|---|---|---|---|---|"]
     for e, r in zip(experiments, reports):

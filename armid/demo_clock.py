@@ -14,8 +14,9 @@ class Phases:
     """What the demo is doing and how long the rest will take, printed as each phase starts.
 
     Each phase has an estimate in seconds, replaced by what is known as the demo goes: the
-    designs by the time the designs so far took, the runs by their plans' durations (the arm
-    runs in real time) at the pace measured so far, the payload phase by its plan's. The rest
+    first design by the time it took, the runs by their plans' durations (the arm runs in real
+    time; the plans not yet designed by their periods), the payload phase by its plan's at the
+    pace the runs had. The rest
     are figures measured on the 2-core machine the demo was written on. Every line that says
     a time left is kept in :attr:`timeline` with this process's wall and CPU seconds."""
 
@@ -63,8 +64,8 @@ class Phases:
         self.console.print(f"  {text} [dim](about {left:.0f} s left)[/]")
 
 
-PHASE_ESTIMATES_S = {"design": 6.0, "runs": 58.0, "payload": 16.0}
-"""First guesses for :class:`Phases` (the designs; the runs and the payload phase until the
+PHASE_ESTIMATES_S = {"design": 1.5, "runs": 58.0, "payload": 16.0}
+"""First guesses for :class:`Phases` (the first design; the runs and the payload phase until the
 designs give their plans), from runs on a 2-core machine with a warm numba cache."""
 
 CORES = max(os.cpu_count() or 1, 1)
@@ -83,10 +84,6 @@ the last, the estimator service's last fit (measured on the 2-core machine)."""
 
 PER_RUN_S = 0.35
 """Each run's own seconds beyond its plan: the recording closed, the next plan started (measured)."""
-
-WHOLE_AFTER_S = 1.6
-"""The whole-arm designs left once the single-link chain is designed (the first is made beside it,
-the second here after it: 1.2-1.9 s measured)."""
 
 PAYLOAD_OVERHEAD_S = 3.0
 """The payload phase beyond its plan's motion: its drives' start and stop, the last estimates, the

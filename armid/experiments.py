@@ -1,14 +1,16 @@
 """The operator's experiments: designs chained pose to pose, run on the drives, analysed.
 
-``armid excite`` and ``armid demo`` share this: every trajectory is designed and checked
-against every limit before any drive is enabled (a plan that fails is refused with its
-first violation), then run back to back, each starting where the previous one ended.
+``armid excite`` and ``armid demo`` share this: every trajectory is designed, planned from
+where the previous one ends and checked against every limit at the control period before it
+can move anything (a plan that fails is refused with its first violation), then run back to
+back. ``armid excite`` checks them all before any drive is enabled; the demo designs its
+later ones beside the first runs, and checks each before its run.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -20,6 +22,7 @@ from armid.identify import excitation as ex
 from armid.identify.identification import IdentificationResult
 from armid.identify.preprocess import Prepared
 from armid.identify.robot import Robot
+from armid.schema.errors import ArmidError, UsageError
 
 from . import pipeline
 from .pipeline import DRIVE_RUN, Recipe, Window
@@ -45,104 +48,195 @@ WHOLE_MARGIN = 0.6
 """The share a whole-arm design may use: coupled joints at speed track less well."""
 
 
+@dataclass(frozen=True)
+class Designed:
+    """A design as it comes from the optimiser, before it is planned from a pose."""
+
+    name: str
+    design: ex.Design
+    periods: int
+    margin: float  # the share of each limit its plan's lead-in uses
+    seconds: float  # the design's own time
+
+    def line(self) -> str:
+        """What it identifies, as the operator reads it."""
+        d = self.design
+        what = f"identifies {', '.join(d.base)}; condition number {d.condition_number:.3g}" if len(d.moving) == 1 else \
+            f"rank {d.rank}, condition number {d.condition_number:.3g}, {len(d.unidentifiable)} parameters unidentifiable"
+        return f"designed {self.name.replace('link', 'link ')} in {self.seconds:.1f} s: {what}"
+
+
+def designs(robot: Robot, start: np.ndarray, links: list[int], whole: list[tuple[str, int]], link_frequency_hz: float = 0.5,
+            link_periods: int = 2, whole_frequency_hz: float = 0.2, seed: int = 0, whole_margin: float = WHOLE_MARGIN) -> Iterator[Designed]:
+    """Single-link designs for ``links`` (0-based, in the order given; each holds the others where
+    the previous one ends, Khosla's property 4), then the whole-arm designs ``whole`` (name,
+    periods), which start from no pose: one after the other, as each is made. Each takes the
+    seed of its link or of its place among the whole-arm runs, so that a chain continued
+    elsewhere (:class:`ExperimentsBeside`) gives the same designs."""
+    pose = np.asarray(start, float)
+    for k in links:
+        began = time.monotonic()
+        hold = ex.choose_hold(robot, k, pose, seed=seed + k)
+        d = ex.design(robot, moving=(k,), q_hold=hold, base_frequency_hz=link_frequency_hz, seed=seed + k, margin=LINK_MARGIN)
+        yield Designed(f"link{k + 1}", d, link_periods, LINK_MARGIN, time.monotonic() - began)
+        pose = end_pose(d)
+    for i, (name, periods) in enumerate(whole):
+        began = time.monotonic()
+        d = ex.design(robot, base_frequency_hz=whole_frequency_hz, seed=seed + 100 + i, margin=whole_margin)
+        yield Designed(name, d, periods, whole_margin, time.monotonic() - began)
+
+
+def end_pose(d: ex.Design) -> np.ndarray:
+    """Where a plan of ``d`` ends (its trajectory's pose at time 0: whole periods)."""
+    return np.asarray(d.trajectory.evaluate(np.zeros(1))[0][0], float)
+
+
+class Chain:
+    """Plans designs one after the other, each from where the previous one ends, and checks
+    each at the control period against every limit (the first violation raises
+    :class:`~identify.excitation.TrajectoryLimitError`, before that plan can move anything)."""
+
+    def __init__(self, robot: Robot, start: np.ndarray, period_s: float) -> None:
+        self.robot, self.period_s, self.limits = robot, period_s, ex.Limits.of(robot)
+        self.pose = np.asarray(start, float)
+
+    def add(self, d: Designed) -> Experiment:
+        p = ex.plan(d.design, self.pose, self.limits, periods=d.periods, lead_fraction=d.margin)
+        ex.check_plan(self.robot, p, self.period_s, self.limits)
+        self.pose = end_pose(d.design)
+        return Experiment(d.name, d.design, p)
+
+
 def design_experiments(robot: Robot, start: np.ndarray, links: list[int], whole: list[tuple[str, int]], period_s: float,
                        link_frequency_hz: float = 0.5, link_periods: int = 2, whole_frequency_hz: float = 0.2,
-                       seed: int = 0, log: Any = None, whole_margin: float = WHOLE_MARGIN,
-                       progress: Callable[[int, int, float], None] | None = None, whole_beside: bool = False) -> list[Experiment]:
-    """Single-link experiments for ``links`` (0-based, in the order given), then the whole-arm
-    runs ``whole`` (name, periods); each plan starts where the previous one ends. Every
-    plan is checked at the control period; the first violation raises
-    :class:`~identify.excitation.TrajectoryLimitError` before anything moves. Whole-arm
-    runs use ``whole_margin`` of each limit: coupled joints at speed track less well, and
-    the supervision stops the arm at the limit itself. A lead-in uses the share of the limits
-    its experiment uses (it was half of them: 16 of the demo's 59 s of motion were lead-ins).
-    ``progress(done, total, seconds)`` follows each design with the time it took. ``whole_beside``: the first whole-arm design,
-    which does not depend on the pose it starts from, is made in a process of its own while the
-    single-link chain is designed here, the others here after the chain (the same designs: the
-    two sides take about as long, the process's start included, on two cores); each is planned
-    from its pose and checked here."""
-    limits = ex.Limits.of(robot)
-    out: list[Experiment] = []
-    pose = np.asarray(start, float)
-    total = len(links) + len(whole)
-    seeds = [seed + 100 + i for i in range(len(whole))]
-
-    def add(name: str, d: ex.Design, periods: int, took: float, what: str, margin: float) -> np.ndarray:
-        p = ex.plan(d, pose, limits, periods=periods, lead_fraction=margin)
-        ex.check_plan(robot, p, period_s, limits)
-        out.append(Experiment(name, d, p))
-        if progress:
-            progress(len(out), total, took)
+                       seed: int = 0, log: Any = None, whole_margin: float = WHOLE_MARGIN) -> list[Experiment]:
+    """Every experiment designed (:func:`designs`), planned from its pose and checked
+    (:class:`Chain`) before any drive is enabled. Whole-arm runs use ``whole_margin`` of
+    each limit: coupled joints at speed track less well, and the supervision stops the arm
+    at the limit itself. A lead-in uses the share of the limits its experiment uses (it was
+    half of them: 16 of the demo's 59 s of motion were lead-ins). ``log``: each design's line."""
+    chain = Chain(robot, start, period_s)
+    out = []
+    for d in designs(robot, start, links, whole, link_frequency_hz, link_periods, whole_frequency_hz, seed, whole_margin):
+        out.append(chain.add(d))
         if log:
-            log(f"designed {what} in {took:.1f} s: " + (f"identifies {', '.join(d.base)}; condition number {d.condition_number:.3g}"
-                if len(d.moving) == 1 else f"rank {d.rank}, condition number {d.condition_number:.3g}, "
-                f"{len(d.unidentifiable)} parameters unidentifiable"))
-        return d.trajectory.evaluate(np.zeros(1))[0][0]
-
-    beside = _WholeDesigns(robot, whole_frequency_hz, seeds[:1], whole_margin) if whole_beside and whole and links else None
-    try:
-        for k in links:
-            began = time.monotonic()
-            hold = ex.choose_hold(robot, k, pose, seed=seed + k)
-            d = ex.design(robot, moving=(k,), q_hold=hold, base_frequency_hz=link_frequency_hz, seed=seed + k, margin=LINK_MARGIN)
-            pose = add(f"link{k + 1}", d, link_periods, time.monotonic() - began, f"link {k + 1}", LINK_MARGIN)
-        for i, (name, periods) in enumerate(whole):
-            d, took = beside.result(i) if beside is not None and i == 0 else _timed_whole_design(robot, whole_frequency_hz, seeds[i], whole_margin)
-            pose = add(name, d, periods, took, name, whole_margin)
-    finally:
-        if beside is not None:
-            beside.close()
+            log(d.line())
     return out
 
 
-def _timed_whole_design(robot: Robot, frequency_hz: float, seed: int, margin: float) -> tuple[ex.Design, float]:
-    """A whole-arm design and the seconds it took."""
-    began = time.monotonic()
-    d = ex.design(robot, base_frequency_hz=frequency_hz, seed=seed, margin=margin)
-    return d, time.monotonic() - began
+class ExperimentsBeside:
+    """The experiments of :func:`design_experiments`, the first designed here and the others in
+    a process of their own while the drives run the ones before (issue 65: the demo's 5 s of
+    designs came before any motion). Each is planned from its pose and checked against every
+    limit here, in the process that commands the drives, before it is handed over to run; a
+    plan that fails stops the sequence there. ``links``: one at least (the first is designed
+    here); ``log``: each design's line as it is handed over."""
+
+    def __init__(self, robot: Robot, start: np.ndarray, links: list[int], whole: list[tuple[str, int]], period_s: float,
+                 link_frequency_hz: float = 0.5, link_periods: int = 2, whole_frequency_hz: float = 0.2, seed: int = 0,
+                 log: Any = None, whole_margin: float = WHOLE_MARGIN) -> None:
+        import multiprocessing
+
+        if not links:
+            raise UsageError("experiments designed beside the runs start with a single-link experiment: none given")
+        settings: dict[str, Any] = {"link_frequency_hz": link_frequency_hz, "link_periods": link_periods, "whole_frequency_hz": whole_frequency_hz,
+                    "seed": seed, "whole_margin": whole_margin}
+        self.names = [f"link{k + 1}" for k in links] + [name for name, _ in whole]
+        self._cycle_s = [link_periods / link_frequency_hz] * len(links) + [periods / whole_frequency_hz for _, periods in whole]
+        self._log, self._chain = log, Chain(robot, start, period_s)
+        self.experiments: list[Experiment] = []  # handed over so far, in order
+        spawn = multiprocessing.get_context("spawn")  # a fork would copy this process's threads' locks
+        self._poses, self._designed = spawn.Queue(), spawn.Queue()
+        self._process = spawn.Process(target=_design_beside, args=(self._poses, self._designed, robot, links[1:], whole, settings),
+                                      name="armid-designs", daemon=True)
+        self._process.start()  # its imports are made while the first design is made here
+        try:
+            self._hand_over(next(designs(robot, start, links[:1], [], **settings)))
+        except BaseException:
+            self.close()
+            raise
+        self._poses.put(self._chain.pose)
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    @property
+    def motion_s(self) -> float:
+        """The plans' seconds of motion: those handed over, and the others as their periods and the
+        mean lead-in and settling of those make them (a lead-in takes 1-2.5 s, as far as it goes)."""
+        known = [e.plan.duration_s for e in self.experiments]
+        leads = (sum(known) - sum(self._cycle_s[: len(known)])) / len(known)
+        return sum(known) + sum(s + leads for s in self._cycle_s[len(known):])
+
+    def __iter__(self) -> Iterator[Experiment]:
+        yield self.experiments[0]
+        while len(self.experiments) < len(self.names):
+            yield self._hand_over(self._next())
+
+    def _next(self) -> Designed:
+        import queue
+
+        name = self.names[len(self.experiments)]
+        while True:
+            try:
+                got = self._designed.get(timeout=0.5)
+            except queue.Empty:
+                if not self._process.is_alive():
+                    raise ArmidError(f"the design process ended (exit code {self._process.exitcode}) before {name} was designed") from None
+                continue
+            if isinstance(got, str):
+                raise ArmidError(f"designing {name}: {got}")
+            return got
+
+    def _hand_over(self, d: Designed) -> Experiment:
+        self.experiments.append(self._chain.add(d))
+        if self._log:
+            self._log(d.line())
+        return self.experiments[-1]
+
+    def close(self) -> None:
+        if self._process.is_alive():
+            self._process.terminate()
+        self._process.join(5.0)
+        for q in (self._poses, self._designed):
+            q.close()
+            q.join_thread()
 
 
-def _one_blas_thread() -> None:
-    """The worker's BLAS as the demo's (one thread: the products are small, and a second
-    thread stalls on a loaded 2-core machine), so that its designs are the ones made here."""
+def _design_beside(poses: Any, designed: Any, robot: Robot, links: list[int], whole: list[tuple[str, int]], settings: dict[str, Any]) -> None:
+    """:class:`ExperimentsBeside`'s process: the designs after the first, from the pose it is
+    sent, each put on ``designed`` as it is made (a failure as its message). One BLAS thread, as
+    the demo's (the products are small; a second thread stalls on a loaded 2-core machine), so
+    that its designs are those one process makes."""
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(1, "blas")
+    pose = poses.get()
+    try:
+        for d in designs(robot, pose, links, whole, **settings):
+            designed.put(d)
+    except Exception as err:  # said by the process that runs the drives, where the design is needed
+        designed.put(f"{type(err).__name__}: {err}")
 
 
-class _WholeDesigns:
-    """Whole-arm designs made in one worker process (spawned: a fork would copy this process's
-    threads' locks), handed over in order."""
-
-    def __init__(self, robot: Robot, frequency_hz: float, seeds: list[int], margin: float) -> None:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-
-        self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_one_blas_thread)
-        self._futures = [self._pool.submit(_timed_whole_design, robot, frequency_hz, s, margin) for s in seeds]
-
-    def result(self, i: int) -> tuple[ex.Design, float]:
-        return self._futures[i].result()
-
-    def close(self) -> None:
-        self._pool.shutdown(cancel_futures=True)
-
-
-def run_experiments(session: ExcitationSession, experiments: list[Experiment], out: Path, console: Any = None,
+def run_experiments(session: ExcitationSession, experiments: Sequence[Experiment] | ExperimentsBeside, out: Path, console: Any = None,
                     status: Callable[[], str] | None = None, tick: Callable[[], None] | None = None) -> list[RunReport]:
     """Run each experiment on the drives with a progress bar; stop at the first that fails.
-    ``status``: a live line (records, rate, lost cycles, faults) shown under the bars; ``tick``:
-    called with each update of the bars (every 0.2 s, in this thread, not the bus's)."""
+    ``experiments`` designed beside the runs come as they are designed (the bars' total of
+    motion is the plans' so far and the others' periods). ``status``: a live line (records,
+    rate, lost cycles, faults) shown under the bars; ``tick``: called with each update of the
+    bars (every 0.2 s, in this thread, not the bus's)."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     reports = []
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[summary]}"), TimeRemainingColumn(),
                   console=console, transient=False) as progress:
-        total_s = sum(e.plan.duration_s for e in experiments)
+        total_s = _motion_s(experiments)
         overall = progress.add_task(f"{'all runs':>8}", total=total_s, summary=f"{len(experiments)} plans, {total_s:.0f} s of motion")
         done_s = 0.0
         live = progress.add_task(f"{'live':>8}", total=None, summary=status()) if status is not None else None
         for e in experiments:
+            progress.update(overall, total=_motion_s(experiments))
             task = progress.add_task(f"{e.name:>8}", total=e.plan.duration_s, summary="")
 
             def update(t: float, control: Any, task: Any = task, e: Experiment = e, done_s: float = done_s) -> None:
@@ -163,6 +257,11 @@ def run_experiments(session: ExcitationSession, experiments: list[Experiment], o
             if not report.completed:
                 break
     return reports
+
+
+def _motion_s(experiments: Sequence[Experiment] | ExperimentsBeside) -> float:
+    """The experiments' seconds of motion (of those designed beside the runs: as known so far)."""
+    return experiments.motion_s if isinstance(experiments, ExperimentsBeside) else sum(e.plan.duration_s for e in experiments)
 
 
 def run_window(report: RunReport, period_s: float) -> Window:

@@ -119,6 +119,7 @@ class PeerLink:
         self.peer = Peer(args, self._meeting.endpoint, log)
         self._subscriber: Any = None
         self.stream: Any = None
+        self._alive = False
         try:
             self._subscriber = collect(self.session, key(robot, publishes), self.docs)
             if wait:
@@ -127,13 +128,21 @@ class PeerLink:
             self.close()
             raise
 
-    def ready(self) -> None:
-        """Until the peer is ready (its liveliness token seen); then the stream that feeds it."""
+    def open_stream(self) -> Any:
+        """The stream that feeds the peer, opened now (what it carries before the peer is ready
+        does not reach it: :meth:`ready` before what it must see)."""
         from armid.daq.stream import Stream
 
         if self.stream is None:
-            self.peer.wait_alive(self.session, self._token)
             self.stream = Stream(self.session, self._robot, self._component, lambda: {"component": self._component})
+        return self.stream
+
+    def ready(self) -> None:
+        """Until the peer is ready (its liveliness token seen); the stream that feeds it open."""
+        if not self._alive:
+            self.peer.wait_alive(self.session, self._token)
+            self._alive = True
+        self.open_stream()
 
     def wait(self, done: Any, timeout_s: float) -> None:
         """Until ``done()`` holds, the peer ends, or ``timeout_s`` passes."""

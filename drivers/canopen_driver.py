@@ -43,7 +43,7 @@ from .cia_codes import NMT_OPERATIONAL, NMT_STATES, OPERATION_ENABLED, PDO_FORMA
 from .interface import CycleClock, CycleHeartbeat, Driver, bus_time
 from .pdo_plan import PLANS, PdoSpec, check_bus_budget
 from .realtime import silent_for, stall_sentence
-from .rig import Rig, current_of, open_bus, permille_of
+from .rig import Rig, canopen_network, current_of, open_bus, permille_of
 from .udp_filter import drop_own_frames, master_frames
 
 EDS = str(config_file("drives/armid_cia402.eds"))  # package data (armid.config)
@@ -167,8 +167,7 @@ class CanopenDriver(Driver):
                 kwargs["receive_own_messages"] = True
             self._bus = open_bus(**kwargs)
             drop_own_frames(self._bus, master_frames(self._node_ids, r.master_node_id))  # udp_multicast loops them back
-        self.network = canopen.Network(self._bus)
-        self.network.connect()
+        self.network = canopen_network(self._bus)
         assert self.network.notifier is not None
         self.network.notifier.add_listener(_Watcher(self))
         for d in r.drives:

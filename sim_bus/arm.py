@@ -18,12 +18,11 @@ from collections import deque
 from typing import Any
 
 import can
-import canopen
 import numpy as np
 
 from armid.drivers.interface import ProcessSettings
 from armid.drivers.realtime import one_cpu
-from armid.drivers.rig import Rig, open_bus
+from armid.drivers.rig import Rig, canopen_network, open_bus
 from armid.drivers.udp_filter import drive_frames, drop_own_frames
 from armid.identify.robot import Robot
 
@@ -80,12 +79,11 @@ class SimulatedArm:
         self.bus = bus if bus is not None else open_bus(**rig.bus.kwargs())
         if self._own_bus:  # udp_multicast loops every frame back to its sender
             drop_own_frames(self.bus, drive_frames(d.node_id for d in rig.drives))
-        self.network = canopen.Network(self.bus)
         # a thread waiting for the GIL waits up to the switch interval (5 ms by default):
         # more than two cycles. A 2 ms loop needs the interpreter to switch ten times faster.
         self._settings.fast_switching(rig.period_s)
         self.timing = self._settings.realtime(own_process)  # before the notifier's thread starts: it inherits the policy
-        self.network.connect()
+        self.network = canopen_network(self.bus)
         sync_timeout = float(sim.get("sync_timeout_s", 0.1))
         self.drives = [SimulatedDrive(d.node_id, d.joint, d.units, self.network, sync_timeout) for d in rig.drives]
         self.step_seconds: deque[float] = deque(maxlen=100_000)  # before the first SYNC can come
