@@ -39,7 +39,6 @@ from .demo_clock import (
     ANALYSIS_CPU_S,
     CORES,
     ESTIMATOR_ABOVE,
-    MIN_SHARE,
     PAYLOAD_OVERHEAD_S,
     PER_RUN_S,
     PHASE_ESTIMATES_S,
@@ -47,6 +46,7 @@ from .demo_clock import (
     RUNS_START_S,
     Phases,
     Share,
+    analysis_share_over_the_payload_run,
 )
 from .experiments import (
     WHOLE_MARGIN,
@@ -196,7 +196,8 @@ def _at_the_runs_pace(phases: Phases, experiments: ExperimentsBeside) -> None:
     payload run as long as whole_a's plan at that pace, once whole_a is designed."""
     done = [e.plan.duration_s for e in experiments.experiments[:-1]]
     elapsed = time.monotonic() - phases.phase_started
-    pace = max(1.0, (elapsed - RUNS_START_S / 2) / (sum(done) + len(done) * PER_RUN_S)) if done else 1.0
+    moving = elapsed - experiments.waited_s - RUNS_START_S / 2  # the arm held while a design was awaited: not its pace
+    pace = max(1.0, moving / (sum(done) + len(done) * PER_RUN_S)) if done else 1.0
     left = len(experiments) - len(done)
     phases.estimates["runs"] = elapsed + (experiments.motion_s - sum(done)) * pace + left * PER_RUN_S + RUNS_START_S / 2
     whole_a = [e for e in experiments.experiments if e.name == "whole_a"]
@@ -283,14 +284,12 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
             estimator = peers.enter_context(closing(payload_estimator(rig, fit, out, meeting)))
             _at_priority(estimator.peer.proc.pid, above=ESTIMATOR_ABOVE)
         # the phase's end: the payload run and its last estimates, or the analysis beside it, whichever comes
-        # last, at the share of a core it has had since it started (the estimator's and the drives' start, with no
-        # wait of its own: a second's measurement was a second before the run), taken as no less than it gets beside
-        # two busy loops (MIN_SHARE); then the report. A longer wait is said when the run ends
+        # last, at the share of a core it gets over the run; then the report. A longer wait is said when the run ends
         payload_plan = ex.plan(experiments.experiments[-2].design, start, ex.Limits.of(robot), periods=2, lead_fraction=WHOLE_MARGIN)
         payload_s = payload_plan.duration_s * max(stretch, 1.0) + PAYLOAD_OVERHEAD_S
 
         def drives_up() -> None:
-            analysis_s = share.left_s(least=MIN_SHARE) + REPORT_S
+            analysis_s = max(ANALYSIS_CPU_S - share.used_s(), 0.3) / analysis_share_over_the_payload_run() + REPORT_S
             phases.estimates.update(runs=time.monotonic() - phases.phase_started, payload=max(payload_s, analysis_s))
             phases.start("payload", PAYLOAD_PHASE)
 

@@ -145,6 +145,7 @@ class ExperimentsBeside:
         self._cycle_s = [link_periods / link_frequency_hz] * len(links) + [periods / whole_frequency_hz for _, periods in whole]
         self._log, self._chain = log, Chain(robot, start, period_s)
         self.experiments: list[Experiment] = []  # handed over so far, in order
+        self.waited_s = 0.0  # for designs not yet made when their run was due
         spawn = multiprocessing.get_context("spawn")  # a fork would copy this process's threads' locks
         self._poses, self._designed = spawn.Queue(), spawn.Queue()
         self._process = spawn.Process(target=_design_beside, args=(self._poses, self._designed, robot, links[1:], whole, settings),
@@ -176,7 +177,7 @@ class ExperimentsBeside:
     def _next(self) -> Designed:
         import queue
 
-        name = self.names[len(self.experiments)]
+        name, began = self.names[len(self.experiments)], time.monotonic()
         while True:
             try:
                 got = self._designed.get(timeout=0.5)
@@ -184,6 +185,7 @@ class ExperimentsBeside:
                 if not self._process.is_alive():
                     raise ArmidError(f"the design process ended (exit code {self._process.exitcode}) before {name} was designed") from None
                 continue
+            self.waited_s += time.monotonic() - began
             if isinstance(got, str):
                 raise ArmidError(f"designing {name}: {got}")
             return got
