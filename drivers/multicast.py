@@ -59,10 +59,10 @@ class PinnedMulticastSocket(GeneralPurposeUdpMulticastBus):
                 self.timestamp_nanosecond = True
             except OSError:
                 self.timestamp_nanosecond = False
+            if sys.platform.startswith("linux"):  # only this group's datagrams, not every group joined on the port;
+                sock.setsockopt(socket.IPPROTO_IP, IP_MULTICAST_ALL, 0)  # before the bind: after it, a cycle of another rig's came in first
             sock.bind(("", self.port))
             sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, socket.inet_aton(self.group) + here)
-            if sys.platform.startswith("linux"):  # only this group's datagrams, not every group joined on the port
-                sock.setsockopt(socket.IPPROTO_IP, IP_MULTICAST_ALL, 0)
         except OSError as err:
             sock.close()
             self._failure = err

@@ -454,6 +454,36 @@ def test_a_udp_multicast_bus_does_not_receive_what_it_sends_itself() -> None:
         virtual.shutdown()
 
 
+@pytest.mark.skipif(_multicast_available() is not None, reason=str(_multicast_available()))
+def test_a_udp_multicast_bus_opened_beside_another_groups_traffic_reads_none_of_it() -> None:
+    """A socket bound to the port reads every group joined on it until ``IP_MULTICAST_ALL`` is
+    off (drivers.multicast): set after the bind, a frame of another rig's that came in between
+    stayed queued (a SYNC and six RPDOs of another test's arm, read as this bus's; with the other
+    group flooding the port, 600-960 opens of 1000 had one)."""
+    group = f"239.76.{np.random.default_rng().integers(1, 250)}.{np.random.default_rng().integers(1, 250)}"
+    flood = subprocess.Popen([sys.executable, "-c", (
+        "import can, sys\nfrom armid.drivers.rig import open_bus\n"
+        "bus = open_bus(interface='udp_multicast', channel=sys.argv[1])\nframe = can.Message(arbitration_id=0x80, data=[], is_extended_id=False)\n"
+        "print('flooding', flush=True)\nwhile True:\n    bus.send(frame)\n"), group], stdout=subprocess.PIPE, text=True)
+    listener = open_bus(interface="udp_multicast", channel=group)  # the flood's group joined on the machine, as a rig's would be
+    try:
+        assert flood.stdout is not None and flood.stdout.readline().strip() == "flooding"
+        assert listener.recv(2.0) is not None
+        opened_with_a_frame = 0
+        for _ in range(1000):
+            bus = open_bus(interface="udp_multicast", channel=group.replace("239.76.", "239.77."))
+            try:
+                opened_with_a_frame += bus.recv(0) is not None
+            finally:
+                bus.shutdown()
+        assert listener.recv(1.0) is not None, "the flood stopped: nothing was tested"
+        assert opened_with_a_frame == 0
+    finally:
+        flood.kill()
+        flood.wait()
+        listener.shutdown()
+
+
 def test_simulated_hardware_runs_above_its_master(monkeypatch: pytest.MonkeyPatch) -> None:
     for text, master, hardware in (("", 50, 60), ("70", 70, 80), ("95", 95, 99), ("off", 0, 0)):
         monkeypatch.setenv("ARMID_REALTIME", text)
