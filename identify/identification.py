@@ -77,6 +77,10 @@ class IdentifyOptions:
     # friction's first passes, the diagnosis's trial fits): its ``fit`` is then the filtered
     # equations', and a prediction at every stamp (a regressor of the whole log) is saved
     stamp_errors: bool = True
+    # the ten-fold held-out error on the identification data measured with them (ten refits:
+    # a quarter of the fleet's time per recording); False where only the validation error is
+    # wanted (the fleet's cross-validation of each half on the other)
+    held_out_error: bool = True
 
 
 PRIORS = ("modeled", "none")
@@ -678,7 +682,7 @@ def _identify(robot: Robot, experiments: list[Prepared], validation: list[Prepar
                                   covariance_batches=None if options.covariance != "batch_means" else int(batches))
     result.fit["equations"] = int(tau.shape[0])
     if options.stamp_errors:
-        measure_errors(result, system, segments, validation, refit)
+        measure_errors(result, system, segments, validation, refit, options.held_out_error)
     result.filtering = [p.filtering() for p in experiments]
     return result
 

@@ -96,14 +96,15 @@ def held_out_error(result: IdentificationResult, system: Array, segments: list[S
 
 
 def measure_errors(result: IdentificationResult, system: Array, segments: list[Segment], validation: list[Prepared] | None,
-                   refit: Refit) -> None:
-    """The fit, held-out and validation errors, into ``result``."""
+                   refit: Refit, held_out: bool = True) -> None:
+    """The fit, held-out (unless not ``held_out``) and validation errors, into ``result``."""
     _, tau_raw, tau_hat_raw = result.predict_stamps(segments)
     result.fit = summary(tau_raw, tau_hat_raw)
     result.fit["equations"] = int(system.shape[2])
-    result.held_out = held_out_error(result, system, segments, refit)
-    if result.held_out is None:
-        result.notes.append("held-out error: not measured (a fit without one of its ten folds leaves a base parameter unexcited)")
+    if held_out:
+        result.held_out = held_out_error(result, system, segments, refit)
+        if result.held_out is None:
+            result.notes.append("held-out error: not measured (a fit without one of its ten folds leaves a base parameter unexcited)")
     if validation:
         segs = [s for p in validation for s in p.segments]
         _, tau, tau_hat = result.predict_stamps(segs)

@@ -95,8 +95,9 @@ def cross_validation(rec: Recording, robot: Robot, warnings: list[str]) -> float
     first, second = halves(rec)
     try:
         a, b = (pipeline.prepare_checked([(h, [])], robot, pipeline.USER_LOG).experiments[0] for h in (first, second))
+        recipe = pipeline.USER_LOG.with_options(held_out_error=False)  # the halves' validation errors are what is wanted
         for train, test in ((a, b), (b, a)):
-            result, _ = pipeline.identify(robot, [train], [test], pipeline.USER_LOG)
+            result, _ = pipeline.identify(robot, [train], [test], recipe)
             if result.validation is not None:
                 errors.append(float(result.validation["relative_error"]))
     except ArmidError as err:
