@@ -289,9 +289,13 @@ S=$!
 import json, time, zenoh
 from armid.daq.stream import open_local_session
 with open_local_session() as s:
-    time.sleep(2)
-    docs = [json.loads(r.ok.payload.to_bytes()) for r in s.get('armid/puma560/status', target=zenoh.QueryTarget.ALL,
-            consolidation=zenoh.ConsolidationMode.NONE, timeout=5.0) if r.ok]
+    deadline = time.monotonic() + 60  # both answer once their imports are done: seconds under load (none came within 7 s once)
+    while True:
+        time.sleep(1)
+        docs = [json.loads(r.ok.payload.to_bytes()) for r in s.get('armid/puma560/status', target=zenoh.QueryTarget.ALL,
+                consolidation=zenoh.ConsolidationMode.NONE, timeout=5.0) if r.ok]
+        if {{'estimator', 'recorder'}} <= {{d.get('component') for d in docs}} or time.monotonic() > deadline:
+            break
     print(json.dumps(docs))
 " > {tmp_path}/status.json
 kill -TERM $R
