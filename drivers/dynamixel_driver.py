@@ -274,8 +274,9 @@ class DynamixelDriver(Driver):
         self._transact(servo_id, dxl.write(servo_id, address, data), data_length=0)
 
     def _sync_write(self, address: int, values: list[bytes], joints: list[int] | None = None) -> None:
+        """``values[k]`` to joint ``joints[k]`` (default: every joint, in order)."""
         joints = list(range(self.n_joints)) if joints is None else joints
-        self._send(dxl.sync_write(address, [(self.ids[j], values[j]) for j in joints]))
+        self._send(dxl.sync_write(address, [(self.ids[j], v) for j, v in zip(joints, values, strict=True)]))
 
     # --- start-up ---
     def _start(self) -> None:
