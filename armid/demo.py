@@ -44,6 +44,7 @@ from .demo_clock import (
     PHASE_ESTIMATES_S,
     REPORT_S,
     RUNS_START_S,
+    IdleCpu,
     Phases,
     Share,
     analysis_share_over_the_payload_run,
@@ -189,7 +190,7 @@ PAYLOAD_PHASE = ("payload: the identified arm works through whole_a; a 2 kg payl
                  "computed; then the report")
 
 
-def _at_the_runs_pace(phases: Phases, experiments: ExperimentsBeside) -> None:
+def _at_the_runs_pace(phases: Phases, experiments: ExperimentsBeside, idle: IdleCpu) -> None:
     """The runs' and the payload phase's estimates as a plan is handed over to run (the runs
     before it done): the motion left at the pace of the runs so far (a loaded machine stretches
     the arm's clock: 21-43 % short announcements late in the runs when taken at 1.0), and the
@@ -204,7 +205,7 @@ def _at_the_runs_pace(phases: Phases, experiments: ExperimentsBeside) -> None:
     phases.estimates["runs"] = elapsed + (experiments.motion_s - sum(done)) * pace + left * PER_RUN_S + RUNS_START_S / 2
     whole_a = [e for e in experiments.experiments if e.name == "whole_a"]
     if whole_a:
-        analysis_s = ANALYSIS_CPU_S / analysis_share_over_the_payload_run() + REPORT_S
+        analysis_s = ANALYSIS_CPU_S / analysis_share_over_the_payload_run(idle.cores()) + REPORT_S
         phases.estimates["payload"] = max(whole_a[0].plan.duration_s * pace + PAYLOAD_OVERHEAD_S, analysis_s)
 
 
@@ -240,18 +241,18 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
         service = peers.enter_context(closing(_estimator_service(rig, out, meeting)))
         def designed(line: str) -> None:  # a plan comes in beside the runs, as the one before it ends
             if phases.current == "runs":
-                _at_the_runs_pace(phases, experiments)
+                _at_the_runs_pace(phases, experiments, idle)
             phases.note(line)
 
         experiments = peers.enter_context(closing(ExperimentsBeside(robot, start, links, whole_runs, rig.period_s, seed=seed, log=designed)))
         phases.estimates.update(design=time.monotonic() - phases.phase_started,
                                 runs=experiments.motion_s + len(experiments) * PER_RUN_S + RUNS_START_S)
-        # the analysis is not the real-time process's business: a process of its own, its imports made while the
-        # arm moves, below the real-time process's priority (spawned: a fork would copy this process's threads'
-        # locks; ended with the demo, its work cancelled)
+        # the analysis is not the real-time process's business: a process of its own, its imports made while the arm moves, below
+        # the real-time process's priority (spawned: a fork would copy this process's threads' locks; ended with the demo, work cancelled)
         beside = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_below_the_real_time)
         peers.callback(beside.shutdown, cancel_futures=True)
         analysis_pid = beside.submit(_ready_to_analyse)
+        idle = IdleCpu()  # the CPU the demo leaves over its runs: how busy the machine is beside it
         phases.start("runs", f"running the {len(experiments)} experiments on the drives in real time ({experiments.motion_s:.0f} s of motion, "
                      "2 ms SYNC over the virtual CAN bus), each recorded as MCAP")
         runs_began = time.monotonic()
@@ -292,7 +293,7 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
         payload_s = payload_plan.duration_s * max(stretch, 1.0) + PAYLOAD_OVERHEAD_S
 
         def drives_up() -> None:
-            analysis_s = max(ANALYSIS_CPU_S - share.used_s(), 0.3) / analysis_share_over_the_payload_run() + REPORT_S
+            analysis_s = max(ANALYSIS_CPU_S - share.used_s(), 0.3) / analysis_share_over_the_payload_run(idle.cores()) + REPORT_S
             phases.estimates.update(runs=time.monotonic() - phases.phase_started, payload=max(payload_s, analysis_s))
             phases.start("payload", PAYLOAD_PHASE)
 
@@ -309,7 +310,7 @@ def run_demo(out: Path, rig_path: Path | None = None, seed: int = 0, arm_seed: i
         for f in plotted:
             f.result()
         phases.mark("analysis done")
-        analysis_cpu = {"during_payload_run_s": round(during_run, 2), "total_s": round(share.used_s(), 2)}
+        analysis_cpu = {"during_payload_run_s": round(during_run, 2), "total_s": round(share.used_s(), 2), "idle_cores_over_the_runs": idle.last}
         _ended_meanwhile(beside, peers)
         whole, seq, truth, comparison, diagnosis = done["whole"], done["seq"], done["truth"], done["comparison"], done["diagnosis"]
         for w in done["warnings"]:

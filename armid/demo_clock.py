@@ -70,13 +70,48 @@ designs give their plans), from runs on a 2-core machine with a warm numba cache
 
 CORES = max(os.cpu_count() or 1, 1)
 
-def analysis_share_over_the_payload_run() -> float:
+
+class IdleCpu:
+    """The machine's CPU left idle since this was made, in cores (idle and I/O wait over every
+    core, ``/proc/stat``): what tells a quiet machine from a busy one while the demo runs."""
+
+    def __init__(self) -> None:
+        self._since, self._idle = time.monotonic(), _idle_cpu_s()
+        self.last: float | None = None  # the last reading
+
+    def cores(self) -> float | None:
+        """Idle cores on average so far; None where ``/proc/stat`` is not there, or too soon."""
+        idle, elapsed = _idle_cpu_s(), time.monotonic() - self._since
+        self.last = None if idle is None or self._idle is None or elapsed < 1.0 else (idle - self._idle) / elapsed
+        return self.last
+
+
+def _idle_cpu_s() -> float | None:
+    try:
+        with open("/proc/stat") as f:
+            fields = f.readline().split()
+        return (int(fields[4]) + int(fields[5])) / os.sysconf("SC_CLK_TCK") if fields[0] == "cpu" else None
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+BUSY_BELOW_IDLE_CORES = 0.1
+"""Idle cores over the runs below which the machine is busy beyond the demo: 0.40 measured quiet on
+the 2-core machine (the real-time process costs 1.0-1.4 ms of CPU a 2 ms cycle as the host varies,
+by that a slow hour would leave about 0.2), 0.0005 beside two busy loops."""
+
+
+def analysis_share_over_the_payload_run(idle_cores: float | None) -> float:
     """The share of a core the demo's analysis gets over the payload run, beside the real-time process
     (SCHED_FIFO) and the payload estimator above it: 0.40-0.48 measured on the quiet 2-core machine,
-    0.31-0.35 beside two busy loops, told apart by the load average (near 2 from the demo's own
-    processes, 4.4-5.3 with the loops). Measured before the run, the share was higher than over it,
-    and the phase announced 15 s where 21 s followed."""
-    return 0.35 if os.getloadavg()[0] > CORES + 1.5 else 0.45
+    0.31-0.35 beside two busy loops, told apart by the CPU left idle over the runs (``idle_cores``;
+    where it is not known, by the load average). Measured before the run, the share was higher than
+    over it, and the phase announced 15 s where 21 s followed. The load average told them apart until
+    demos ran back to back: a quiet one began at 3.25 and ended at 4.18 and took the busy share
+    (+38 %: 18 s announced, 13 s followed)."""
+    busy = os.getloadavg()[0] > CORES + 1.5 if idle_cores is None else idle_cores < BUSY_BELOW_IDLE_CORES
+    return 0.35 if busy else 0.45
+
 
 ESTIMATOR_ABOVE = 5
 """How far above the demo's priority its payload estimator runs where allowed (nice 5 less): it must keep up

@@ -13,7 +13,7 @@ import time
 import numpy as np
 from rich.console import Console
 
-from armid.demo_clock import Phases, Share, cpu_seconds
+from armid.demo_clock import BUSY_BELOW_IDLE_CORES, CORES, IdleCpu, Phases, Share, analysis_share_over_the_payload_run, cpu_seconds
 
 
 def test_the_timeline_keeps_each_announcement_beside_the_time_that_followed() -> None:
@@ -61,6 +61,25 @@ def test_a_process_share_of_a_core_and_what_is_left_of_its_work_are_measured() -
         child.wait()
     assert cpu_seconds(child.pid) is None
     assert (mine := cpu_seconds(os.getpid())) is not None and mine > 0
+
+
+def test_the_idle_cpu_tells_a_machine_kept_busy_beside_the_demo() -> None:
+    """As many busy loops as cores leave no CPU idle: the demo counts its analysis at the busy
+    share then, and at the quiet one where a core is idle (0.40 of one measured over the quiet
+    demo's runs, 0.0005 beside two busy loops). Too soon to say, it says nothing."""
+    loops = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(CORES)]
+    try:
+        time.sleep(0.5)  # the loops started
+        idle = IdleCpu()
+        assert idle.cores() is None and idle.last is None
+        time.sleep(2.0)
+        cores = idle.cores()
+    finally:
+        for loop in loops:
+            loop.kill()
+            loop.wait()
+    assert cores is not None and 0.0 <= cores < BUSY_BELOW_IDLE_CORES and idle.last == cores
+    assert analysis_share_over_the_payload_run(cores) == 0.35 and analysis_share_over_the_payload_run(0.40) == 0.45
 
 
 def test_the_experiments_designed_beside_the_runs_are_those_designed_in_line() -> None:
