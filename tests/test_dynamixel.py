@@ -339,7 +339,7 @@ def test_hardware_error_is_a_typed_fault_and_enable_reboots(chain: ServoChainPro
         d.close()
 
 
-@pytest.mark.parametrize("servo, read_mode", [(6, "fast_sync_read"), (2, "sync_read")])  # a silent servo in a Fast Sync
+@pytest.mark.parametrize("servo, read_mode", [(6, "fast_sync_read"), (2, "sync_read")])
 def test_silent_servo_is_declared_lost_the_others_stop_and_it_comes_back(chain: ServoChainProcess, servo: int, read_mode: str) -> None:
     """The others are quick-stopped whichever servo goes silent (where its silence leaves
     theirs readable: a Fast Sync Read's reply blocks after it are lost with it). Before, their
