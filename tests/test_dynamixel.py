@@ -450,6 +450,8 @@ def _acquire(driver: object, rig: object, path: Path) -> tuple[list, np.ndarray]
     return records, q_ref[0]
 
 
+@pytest.mark.alone  # as the full cycle above: beside another worker's simulated arm at SCHED_FIFO, 95.6 % of the chain's
+# cycles were valid where more than 98 % are wanted (CI on 38b546d)
 @pytest.mark.parametrize("family", ["canopen", "dynamixel"])
 def test_the_same_acquisition_code_runs_on_both_driver_families(family: str, tmp_path: Path, chain: ServoChainProcess) -> None:
     if family == "canopen":
